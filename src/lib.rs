@@ -1,0 +1,17 @@
+//! # invaders
+//!
+//! A from-scratch, CPU-only deep-learning library with hand-written kernels, and a Deep Q-Network
+//! built on it that learns Atari Space Invaders through the Arcade Learning Environment.
+//!
+//! * [`tensor`]: NHWC tensors, GEMM and convolution kernels (with plain reference kernels).
+//! * [`layers`]: `Conv2d`, `Dense`, `ReLU`, `Flatten`, `Sequential`, initialisers and losses,
+//!   each with its forward and backward pass side by side.
+//! * [`optim`]: Adam and SGD.
+//! * [`env`]: Space Invaders through the ALE, the article's preprocessing and frame pipelines.
+//! * [`dqn`]: the agent, its replay memory and the training loop.
+
+pub mod dqn;
+pub mod env;
+pub mod layers;
+pub mod optim;
+pub mod tensor;
