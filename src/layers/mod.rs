@@ -1,1 +1,86 @@
-//! (filled in below)
+//! Layers with hand-written backward passes.
+//!
+//! Every layer keeps what its backward pass needs from the forward pass, owns its output and input
+//! gradient buffers (reused from call to call), and *accumulates* parameter gradients with `+=`, so
+//! a caller zeroes them once per step ([`Sequential::zero_grad`]) and can sum gradients over
+//! several backward passes. In each file the forward and backward passes stand side by side with
+//! the derivation of the latter.
+//!
+//! Notation used in the doc comments: `x` the layer's input, `y` its output, `dY = ∂L/∂y` the
+//! upstream gradient of some scalar loss `L`, and likewise `dX`, `dW`, `db`.
+
+mod conv2d;
+mod dense;
+mod flatten;
+pub mod init;
+pub mod loss;
+mod relu;
+mod sequential;
+
+pub use conv2d::Conv2d;
+pub use dense::Dense;
+pub use flatten::Flatten;
+pub use relu::Relu;
+pub use sequential::Sequential;
+
+use crate::tensor::{Float, Tensor};
+
+/// One trainable tensor and its gradient.
+#[derive(Clone, Debug)]
+pub struct Param<T> {
+    /// Full name, `{layer}.{weight|bias}`, as used in checkpoints.
+    pub name: String,
+    /// The values.
+    pub value: Tensor<T>,
+    /// `∂L/∂value`, accumulated by `backward`.
+    pub grad: Tensor<T>,
+}
+
+impl<T: Float> Param<T> {
+    /// A zero-valued parameter of the given shape.
+    pub fn zeros(name: String, shape: &[usize]) -> Self {
+        Param {
+            name,
+            value: Tensor::zeros(shape),
+            grad: Tensor::zeros(shape),
+        }
+    }
+}
+
+/// A differentiable layer.
+pub trait Layer<T: Float>: Send {
+    /// The layer's name; parameters are named `{name}.{kind}`.
+    fn name(&self) -> &str;
+
+    /// Shape of one sample's output for one sample's input shape (batch dimension excluded).
+    fn output_shape(&self) -> Vec<usize>;
+
+    /// Computes `y = f(x)` into the layer's output buffer, keeping what backward needs.
+    fn forward(&mut self, x: &Tensor<T>);
+
+    /// The output of the last [`Layer::forward`].
+    fn output(&self) -> &Tensor<T>;
+
+    /// Given the same `x` as the last forward pass and `dY`, adds `∂L/∂θ` to every parameter
+    /// gradient and, if `need_dx`, writes `dX` into the input-gradient buffer (the first layer of a
+    /// network skips it: nothing upstream needs the gradient with respect to the observations).
+    fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool);
+
+    /// `dX` from the last [`Layer::backward`] that computed it.
+    fn input_grad(&self) -> &Tensor<T>;
+
+    /// The parameters, in a fixed order (none by default).
+    fn params(&self) -> &[Param<T>] {
+        &[]
+    }
+
+    /// The parameters, mutably.
+    fn params_mut(&mut self) -> &mut [Param<T>] {
+        &mut []
+    }
+
+    /// Multiply-adds of one sample's forward pass (for FLOP counts).
+    fn macs(&self) -> usize {
+        0
+    }
+}

@@ -1,1 +1,44 @@
-//! (filled in below)
+//! Optimizers: they read each parameter's accumulated gradient and update its value.
+//!
+//! Parameters are visited in the network's fixed order (layer by layer, weight before bias), and
+//! an optimizer's per-parameter state is kept in that same order.
+
+mod adam;
+mod sgd;
+
+pub use adam::Adam;
+pub use sgd::Sgd;
+
+use crate::layers::Param;
+use crate::tensor::Float;
+
+/// The global L2 norm of all gradients: `sqrt(Σ_p Σ_i g_p[i]²)`.
+pub fn global_grad_norm<'a, T: Float>(params: impl Iterator<Item = &'a Param<T>>) -> T {
+    let mut sum = T::zero();
+    for p in params {
+        for &g in p.grad.data() {
+            sum += g * g;
+        }
+    }
+    sum.sqrt()
+}
+
+/// Clipping by global norm (`tf.clip_by_global_norm`): if the global norm `‖g‖` exceeds
+/// `max_norm`, every gradient is multiplied by `max_norm / ‖g‖`, which shortens the whole update
+/// without changing its direction. Returns the norm before clipping.
+pub fn clip_grad_norm<'a, T: Float>(
+    params: impl Iterator<Item = &'a mut Param<T>>,
+    max_norm: T,
+) -> T {
+    let mut params: Vec<&mut Param<T>> = params.collect();
+    let norm = global_grad_norm(params.iter().map(|p| &**p));
+    if norm > max_norm {
+        let s = max_norm / norm;
+        for p in params.iter_mut() {
+            for g in p.grad.data_mut() {
+                *g *= s;
+            }
+        }
+    }
+    norm
+}

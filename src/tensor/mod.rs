@@ -1,1 +1,123 @@
-//! (filled in below)
+//! Tensors and the kernels under the layers.
+//!
+//! A [`Tensor`] is a shape and a flat row-major buffer. Images are NHWC: batch, height, width,
+//! channels, channels fastest, so one pixel's channels are contiguous and a convolution's patch
+//! rows are contiguous runs of memory. ndarray views are available for reading and slicing.
+//!
+//! Buffers are allocated once and reused: [`Tensor::set_shape`] changes the shape in place and only
+//! allocates when the new size exceeds every size seen before, so after the first pass at the
+//! largest batch nothing in a forward or backward pass allocates.
+
+mod conv;
+mod float;
+mod gemm;
+
+pub use conv::{col2im, conv2d_reference, conv2d_reference_backward, im2col, ConvGeom, Padding};
+pub use float::Float;
+pub use gemm::{gemm, gemm_reference, Op};
+
+use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};
+
+/// A dense row-major tensor of `T` with a reusable buffer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Tensor<T> {
+    shape: Vec<usize>,
+    data: Vec<T>,
+}
+
+impl<T: Float> Tensor<T> {
+    /// A tensor of zeros.
+    pub fn zeros(shape: &[usize]) -> Self {
+        Tensor {
+            shape: shape.to_vec(),
+            data: vec![T::zero(); shape.iter().product()],
+        }
+    }
+
+    /// An empty tensor (shape `[0]`), to be sized by [`Tensor::set_shape`] on first use.
+    pub fn empty() -> Self {
+        Tensor {
+            shape: vec![0],
+            data: Vec::new(),
+        }
+    }
+
+    /// Wraps a buffer; `data.len()` must equal the product of `shape`.
+    pub fn from_vec(shape: &[usize], data: Vec<T>) -> Self {
+        assert_eq!(
+            data.len(),
+            shape.iter().product::<usize>(),
+            "Tensor::from_vec: {} values for shape {:?}",
+            data.len(),
+            shape
+        );
+        Tensor {
+            shape: shape.to_vec(),
+            data,
+        }
+    }
+
+    /// Changes the shape, growing the buffer only if needed. The contents are unspecified
+    /// afterwards (old values, or zeros where the buffer grew); callers overwrite them.
+    pub fn set_shape(&mut self, shape: &[usize]) {
+        if self.shape != shape {
+            self.shape.clear();
+            self.shape.extend_from_slice(shape);
+        }
+        let len = shape.iter().product();
+        if self.data.len() != len {
+            self.data.resize(len, T::zero());
+        }
+    }
+
+    /// Sets every element to zero.
+    pub fn fill_zero(&mut self) {
+        self.data.fill(T::zero());
+    }
+
+    /// The shape, outermost dimension first.
+    pub fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+
+    /// The number of elements.
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+
+    /// Whether the tensor has no elements.
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+
+    /// The elements in row-major order.
+    pub fn data(&self) -> &[T] {
+        &self.data
+    }
+
+    /// The elements in row-major order, mutably.
+    pub fn data_mut(&mut self) -> &mut [T] {
+        &mut self.data
+    }
+
+    /// An ndarray view.
+    pub fn view(&self) -> ArrayViewD<'_, T> {
+        ArrayViewD::from_shape(IxDyn(&self.shape), &self.data).expect("shape matches data")
+    }
+
+    /// A mutable ndarray view.
+    pub fn view_mut(&mut self) -> ArrayViewMutD<'_, T> {
+        ArrayViewMutD::from_shape(IxDyn(&self.shape), &mut self.data).expect("shape matches data")
+    }
+
+    /// The size of the leading (batch) dimension.
+    pub fn batch(&self) -> usize {
+        self.shape[0]
+    }
+
+    /// Copies `other`'s shape and values into `self`, reusing `self`'s buffer.
+    pub fn copy_from(&mut self, other: &Tensor<T>) {
+        self.set_shape(&other.shape);
+        self.data.copy_from_slice(&other.data);
+    }
+}

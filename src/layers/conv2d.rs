@@ -1,0 +1,167 @@
+//! 2-D convolution (NHWC, HWIO filters, TensorFlow's SAME/VALID padding).
+
+use super::{Layer, Param};
+use crate::tensor::{col2im, gemm, im2col, ConvGeom, Float, Op, Tensor};
+
+/// `y = conv(x, W) + b`: see [`crate::tensor::ConvGeom`] for the defining sum and the shapes.
+///
+/// Formulation: im2col + GEMM. The input is unrolled into `cols[N·OH·OW, KH·KW·Cin]` (kept for the
+/// backward pass), and `Y[N·OH·OW, Cout] = cols · W[KH·KW·Cin, Cout] + b` is a single matrix
+/// product whose result is already the NHWC output.
+pub struct Conv2d<T> {
+    name: String,
+    /// The geometry (input and output sizes, strides, padding).
+    pub geom: ConvGeom,
+    /// `[weight [KH, KW, Cin, Cout], bias [Cout]]` with their gradients.
+    pub params: [Param<T>; 2],
+    /// `[N·OH·OW, KH·KW·Cin]`, from the last forward pass.
+    cols: Vec<T>,
+    /// `[N·OH·OW, KH·KW·Cin]`, scratch for the input gradient.
+    dcols: Vec<T>,
+    y: Tensor<T>,
+    dx: Tensor<T>,
+}
+
+impl<T: Float> Conv2d<T> {
+    /// A convolution with zero weights and bias (initialise them with [`super::init`]).
+    pub fn new(name: &str, geom: ConvGeom) -> Self {
+        let wshape = [geom.kh, geom.kw, geom.cin, geom.cout];
+        Conv2d {
+            name: name.to_string(),
+            geom,
+            params: [
+                Param::zeros(format!("{name}.weight"), &wshape),
+                Param::zeros(format!("{name}.bias"), &[geom.cout]),
+            ],
+            cols: Vec::new(),
+            dcols: Vec::new(),
+            y: Tensor::empty(),
+            dx: Tensor::empty(),
+        }
+    }
+
+    fn rows(&self, n: usize) -> usize {
+        n * self.geom.out_pixels()
+    }
+}
+
+impl<T: Float> Layer<T> for Conv2d<T> {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn output_shape(&self) -> Vec<usize> {
+        vec![self.geom.oh, self.geom.ow, self.geom.cout]
+    }
+
+    /// `cols = im2col(x)`, then `Y = b + cols·W` (bias broadcast first, GEMM accumulates).
+    fn forward(&mut self, x: &Tensor<T>) {
+        let g = self.geom;
+        assert_eq!(
+            x.shape()[1..],
+            [g.h, g.w, g.cin],
+            "{}: input shape",
+            self.name
+        );
+        let n = x.batch();
+        let (m, k) = (self.rows(n), g.patch_len());
+        self.cols.resize(m * k, T::zero());
+        im2col(&g, n, x.data(), &mut self.cols);
+        self.y.set_shape(&[n, g.oh, g.ow, g.cout]);
+        let y = self.y.data_mut();
+        for row in y.chunks_exact_mut(g.cout) {
+            row.copy_from_slice(self.params[1].value.data());
+        }
+        gemm(
+            Op::N,
+            Op::N,
+            m,
+            g.cout,
+            k,
+            T::one(),
+            &self.cols,
+            self.params[0].value.data(),
+            T::one(),
+            y,
+        );
+    }
+
+    fn output(&self) -> &Tensor<T> {
+        &self.y
+    }
+
+    /// With `Y = cols·W + b` (`M = N·OH·OW` rows, `K = KH·KW·Cin`):
+    /// - `dW += colsᵀ·dY` (`[K, M]·[M, Cout]`): each weight meets every input value it multiplied;
+    /// - `db += Σ_rows dY`;
+    /// - `dcols = dY·Wᵀ` (`[M, Cout]·[Cout, K]`), then `dX = col2im(dcols)`: an input pixel that
+    ///   appears in several patches (overlapping windows) collects the gradient of each.
+    fn backward(&mut self, _x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
+        let g = self.geom;
+        let n = dy.batch();
+        assert_eq!(
+            dy.shape(),
+            [n, g.oh, g.ow, g.cout],
+            "{}: upstream gradient shape",
+            self.name
+        );
+        let (m, k) = (self.rows(n), g.patch_len());
+        assert_eq!(
+            self.cols.len(),
+            m * k,
+            "{}: backward without forward",
+            self.name
+        );
+        let gw = self.params[0].grad.data_mut();
+        gemm(
+            Op::T,
+            Op::N,
+            k,
+            g.cout,
+            m,
+            T::one(),
+            &self.cols,
+            dy.data(),
+            T::one(),
+            gw,
+        );
+        let gb = self.params[1].grad.data_mut();
+        for row in dy.data().chunks_exact(g.cout) {
+            for (g, &d) in gb.iter_mut().zip(row) {
+                *g += d;
+            }
+        }
+        if need_dx {
+            self.dcols.resize(m * k, T::zero());
+            gemm(
+                Op::N,
+                Op::T,
+                m,
+                k,
+                g.cout,
+                T::one(),
+                dy.data(),
+                self.params[0].value.data(),
+                T::zero(),
+                &mut self.dcols,
+            );
+            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
+            col2im(&g, n, &self.dcols, self.dx.data_mut());
+        }
+    }
+
+    fn input_grad(&self) -> &Tensor<T> {
+        &self.dx
+    }
+
+    fn params(&self) -> &[Param<T>] {
+        &self.params
+    }
+
+    fn params_mut(&mut self) -> &mut [Param<T>] {
+        &mut self.params
+    }
+
+    fn macs(&self) -> usize {
+        self.geom.macs()
+    }
+}

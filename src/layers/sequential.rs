@@ -1,0 +1,123 @@
+//! A stack of layers applied in order.
+
+use super::{Layer, Param};
+use crate::tensor::{Float, Tensor};
+
+/// Layers applied one after another: `y = f_L(… f_2(f_1(x)))`.
+///
+/// The backward pass walks the layers in reverse, handing each the input it saw (the previous
+/// layer's output, or the network's input `x` for the first) and the gradient of its output (the
+/// next layer's input gradient, or the caller's `dY` for the last): the chain rule, one link per
+/// layer.
+pub struct Sequential<T> {
+    layers: Vec<Box<dyn Layer<T>>>,
+}
+
+impl<T: Float> Sequential<T> {
+    /// An empty network.
+    pub fn new() -> Self {
+        Sequential { layers: Vec::new() }
+    }
+
+    /// Appends a layer.
+    pub fn push(&mut self, layer: impl Layer<T> + 'static) {
+        self.layers.push(Box::new(layer));
+    }
+
+    /// Shape of one sample's output (of the last layer).
+    pub fn output_shape(&self) -> Vec<usize> {
+        self.layers
+            .last()
+            .map(|l| l.output_shape())
+            .unwrap_or_default()
+    }
+
+    /// The layers, in order.
+    pub fn layers(&self) -> &[Box<dyn Layer<T>>] {
+        &self.layers
+    }
+
+    /// Runs every layer on `x` and returns the last output.
+    pub fn forward(&mut self, x: &Tensor<T>) -> &Tensor<T> {
+        for i in 0..self.layers.len() {
+            let (before, rest) = self.layers.split_at_mut(i);
+            let input = before.last().map_or(x, |l| l.output());
+            rest[0].forward(input);
+        }
+        self.output()
+    }
+
+    /// The output of the last forward pass.
+    pub fn output(&self) -> &Tensor<T> {
+        self.layers.last().expect("empty network").output()
+    }
+
+    /// Back-propagates `dY` (the gradient of the loss with respect to the output of the last
+    /// forward pass, which must have been on this same `x`), adding every parameter's gradient.
+    /// Returns `dX` if `need_input_grad`.
+    pub fn backward(
+        &mut self,
+        x: &Tensor<T>,
+        dy: &Tensor<T>,
+        need_input_grad: bool,
+    ) -> Option<&Tensor<T>> {
+        for i in (0..self.layers.len()).rev() {
+            let (before, rest) = self.layers.split_at_mut(i);
+            let (layer, after) = rest.split_first_mut().expect("i < len");
+            let input = before.last().map_or(x, |l| l.output());
+            let upstream = after.first().map_or(dy, |l| l.input_grad());
+            layer.backward(input, upstream, i > 0 || need_input_grad);
+        }
+        if need_input_grad {
+            self.layers.first().map(|l| l.input_grad())
+        } else {
+            None
+        }
+    }
+
+    /// Every parameter, layer by layer, weight before bias.
+    pub fn params(&self) -> impl Iterator<Item = &Param<T>> {
+        self.layers.iter().flat_map(|l| l.params().iter())
+    }
+
+    /// Every parameter, mutably.
+    pub fn params_mut(&mut self) -> impl Iterator<Item = &mut Param<T>> {
+        self.layers
+            .iter_mut()
+            .flat_map(|l| l.params_mut().iter_mut())
+    }
+
+    /// Sets every parameter gradient to zero (gradients accumulate across `backward` calls).
+    pub fn zero_grad(&mut self) {
+        for p in self.params_mut() {
+            p.grad.fill_zero();
+        }
+    }
+
+    /// Copies every parameter's values from a network of the same architecture (the DQN's
+    /// target-network update).
+    pub fn copy_params_from(&mut self, other: &Sequential<T>) {
+        let mut theirs = other.params();
+        for mine in self.params_mut() {
+            let p = theirs.next().expect("same architecture");
+            assert_eq!(mine.name, p.name, "copy_params_from: architectures differ");
+            mine.value.data_mut().copy_from_slice(p.value.data());
+        }
+    }
+
+    /// The number of trainable scalars.
+    pub fn param_count(&self) -> usize {
+        self.params().map(|p| p.value.len()).sum()
+    }
+
+    /// Multiply-adds of one sample's forward pass.
+    pub fn macs(&self) -> usize {
+        self.layers.iter().map(|l| l.macs()).sum()
+    }
+}
+
+impl<T: Float> Default for Sequential<T> {
+    fn default() -> Self {
+        Self::new()
+    }
+}

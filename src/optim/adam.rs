@@ -1,0 +1,85 @@
+//! Adam (Kingma & Ba, 2015) in TensorFlow's formulation.
+
+use crate::layers::Param;
+use crate::tensor::{Float, Tensor};
+
+/// Adam: per-parameter step sizes from running moments of the gradient.
+///
+/// With gradient `g` at step `t` (counting from 1):
+/// ```text
+/// m ← β₁·m + (1 − β₁)·g            first moment (mean)
+/// v ← β₂·v + (1 − β₂)·g²           second moment (uncentred variance)
+/// α_t = lr · sqrt(1 − β₂ᵗ) / (1 − β₁ᵗ)
+/// θ ← θ − α_t · m / (sqrt(v) + ε)
+/// ```
+/// The bias corrections `1/(1 − β₁ᵗ)` and `1/(1 − β₂ᵗ)` (the moments start at zero, so early on
+/// they underestimate) are folded into the step size `α_t`, as TensorFlow and Keras do. This is the
+/// paper's "ε̂" form: it equals `m̂ / (sqrt(v̂) + ε)` with a slightly different ε. Defaults are
+/// TensorFlow 1's (`tf.train.AdamOptimizer`): lr 1e-3, β₁ 0.9, β₂ 0.999, ε 1e-8.
+#[derive(Clone, Debug)]
+pub struct Adam<T> {
+    /// Learning rate.
+    pub lr: T,
+    /// Decay of the first moment.
+    pub beta1: T,
+    /// Decay of the second moment.
+    pub beta2: T,
+    /// Added to `sqrt(v)` to keep the step finite.
+    pub eps: T,
+    /// Updates done so far.
+    pub t: u64,
+    /// First moments, one per parameter, in the network's order.
+    pub m: Vec<Tensor<T>>,
+    /// Second moments.
+    pub v: Vec<Tensor<T>>,
+}
+
+impl<T: Float> Adam<T> {
+    /// Adam with TensorFlow's defaults and the given learning rate.
+    pub fn new(lr: T) -> Self {
+        Adam {
+            lr,
+            beta1: T::of(0.9),
+            beta2: T::of(0.999),
+            eps: T::of(1e-8),
+            t: 0,
+            m: Vec::new(),
+            v: Vec::new(),
+        }
+    }
+
+    /// One update of every parameter from its gradient. The moments are allocated on the first
+    /// call, shaped like the parameters.
+    pub fn step<'a>(&mut self, params: impl Iterator<Item = &'a mut Param<T>>) {
+        self.t += 1;
+        let t = self.t as i32;
+        let one = T::one();
+        let alpha = self.lr * (one - self.beta2.powi(t)).sqrt() / (one - self.beta1.powi(t));
+        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        for (i, p) in params.enumerate() {
+            if i == self.m.len() {
+                self.m.push(Tensor::zeros(p.value.shape()));
+                self.v.push(Tensor::zeros(p.value.shape()));
+            }
+            assert_eq!(
+                self.m[i].shape(),
+                p.value.shape(),
+                "Adam: parameter {} changed shape",
+                p.name
+            );
+            let m = self.m[i].data_mut().iter_mut();
+            let v = self.v[i].data_mut().iter_mut();
+            let it = p
+                .value
+                .data_mut()
+                .iter_mut()
+                .zip(p.grad.data())
+                .zip(m.zip(v));
+            for ((w, &g), (m, v)) in it {
+                *m = b1 * *m + (one - b1) * g;
+                *v = b2 * *v + (one - b2) * g * g;
+                *w -= alpha * *m / (v.sqrt() + eps);
+            }
+        }
+    }
+}

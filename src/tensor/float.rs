@@ -1,0 +1,106 @@
+//! The scalar type the library is generic over.
+//!
+//! Everything numeric is written once for any [`Float`]; training uses `f32`, and the gradient
+//! checks run the very same code in `f64`, where central finite differences are accurate to
+//! about 1e-9, so a tolerance can be tight enough to catch a single wrong index.
+
+use std::fmt::{Debug, Display};
+use std::iter::Sum;
+use std::ops::{AddAssign, MulAssign, SubAssign};
+
+/// A floating-point scalar with a GEMM kernel.
+pub trait Float:
+    num_traits::Float
+    + Default
+    + Debug
+    + Display
+    + Sum
+    + AddAssign
+    + SubAssign
+    + MulAssign
+    + Send
+    + Sync
+    + bytemuck::Pod
+    + 'static
+{
+    /// The safetensors dtype name (`"F32"` or `"F64"`).
+    const DTYPE: &'static str;
+
+    /// Converts from `f64` (exact for `f64`, rounded for `f32`).
+    fn of(x: f64) -> Self;
+
+    /// `C = alpha * A * B + beta * C` on strided matrices, by `matrixmultiply`.
+    ///
+    /// A is `m x k` with row stride `rsa` and column stride `csa`, B is `k x n`, C is `m x n`.
+    ///
+    /// # Safety
+    /// Every index `i * rs + j * cs` reached for the given sizes must lie inside the allocation
+    /// behind each pointer, and C must not alias A or B. [`crate::tensor::gemm`] checks this.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn gemm_raw(
+        m: usize,
+        k: usize,
+        n: usize,
+        alpha: Self,
+        a: *const Self,
+        rsa: isize,
+        csa: isize,
+        b: *const Self,
+        rsb: isize,
+        csb: isize,
+        beta: Self,
+        c: *mut Self,
+        rsc: isize,
+        csc: isize,
+    );
+}
+
+impl Float for f32 {
+    const DTYPE: &'static str = "F32";
+    fn of(x: f64) -> Self {
+        x as f32
+    }
+    unsafe fn gemm_raw(
+        m: usize,
+        k: usize,
+        n: usize,
+        alpha: f32,
+        a: *const f32,
+        rsa: isize,
+        csa: isize,
+        b: *const f32,
+        rsb: isize,
+        csb: isize,
+        beta: f32,
+        c: *mut f32,
+        rsc: isize,
+        csc: isize,
+    ) {
+        matrixmultiply::sgemm(m, k, n, alpha, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
+    }
+}
+
+impl Float for f64 {
+    const DTYPE: &'static str = "F64";
+    fn of(x: f64) -> Self {
+        x
+    }
+    unsafe fn gemm_raw(
+        m: usize,
+        k: usize,
+        n: usize,
+        alpha: f64,
+        a: *const f64,
+        rsa: isize,
+        csa: isize,
+        b: *const f64,
+        rsb: isize,
+        csb: isize,
+        beta: f64,
+        c: *mut f64,
+        rsc: isize,
+        csc: isize,
+    ) {
+        matrixmultiply::dgemm(m, k, n, alpha, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
+    }
+}

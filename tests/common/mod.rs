@@ -1,0 +1,157 @@
+//! Helpers shared by the integration tests.
+#![allow(dead_code)]
+
+use invaders::layers::Layer;
+use invaders::tensor::{Float, Tensor};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// A seeded generator.
+pub fn rng(seed: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed)
+}
+
+/// A tensor of uniform values in [-1, 1).
+pub fn uniform<T: Float>(shape: &[usize], rng: &mut impl Rng) -> Tensor<T> {
+    let n = shape.iter().product();
+    Tensor::from_vec(
+        shape,
+        (0..n).map(|_| T::of(rng.random_range(-1.0..1.0))).collect(),
+    )
+}
+
+/// Uniform values in [-1, 1) kept at least `margin` away from zero (so a ReLU's kink is never
+/// within a finite-difference step).
+pub fn uniform_away_from_zero(shape: &[usize], margin: f64, rng: &mut impl Rng) -> Tensor<f64> {
+    let n = shape.iter().product();
+    let data = (0..n)
+        .map(|_| {
+            let v: f64 = rng.random_range(margin..1.0);
+            if rng.random_bool(0.5) {
+                v
+            } else {
+                -v
+            }
+        })
+        .collect();
+    Tensor::from_vec(shape, data)
+}
+
+/// `Σ a·b`.
+pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Whether `a` and `b` agree to `atol + rtol·max(|a|, |b|)`.
+pub fn close(a: f64, b: f64, atol: f64, rtol: f64) -> bool {
+    (a - b).abs() <= atol + rtol * a.abs().max(b.abs())
+}
+
+/// Finite-difference step and tolerances for the f64 gradient checks. Central differences of a
+/// function that is linear (conv, dense) or piecewise linear away from its kinks (ReLU) in the
+/// perturbed value are exact up to rounding, about 1e-16·|S|/H ≈ 1e-10 here, so 1e-7 leaves room
+/// for rounding while any wrong index (an error of the size of a whole term, ~1e-2) fails.
+pub const H: f64 = 1e-5;
+pub const ATOL: f64 = 1e-7;
+pub const RTOL: f64 = 1e-6;
+
+/// Which entries of a tensor of `len` to check: all of them up to `max`, else a seeded sample.
+pub fn indices(len: usize, max: usize, rng: &mut impl Rng) -> Vec<usize> {
+    if len <= max {
+        (0..len).collect()
+    } else {
+        (0..max).map(|_| rng.random_range(0..len)).collect()
+    }
+}
+
+/// The gradient check of one layer: the scalar `S = Σ f(x)·dY` has `∂S/∂θ` equal to what
+/// `backward` accumulates for `dY`. Compares every input-gradient entry and every parameter
+/// gradient entry (up to `max_per_tensor` sampled per tensor) with central finite differences.
+/// Also checks that a second backward pass *adds* the same gradient again (accumulation with +=).
+pub fn check_layer(
+    layer: &mut dyn Layer<f64>,
+    x: &Tensor<f64>,
+    dy: &Tensor<f64>,
+    max_per_tensor: usize,
+    seed: u64,
+) -> Result<(), String> {
+    let mut rng = rng(seed);
+    for p in layer.params_mut() {
+        p.grad.fill_zero();
+    }
+    layer.forward(x);
+    if layer.output().shape() != dy.shape() {
+        return Err(format!(
+            "output shape {:?} != {:?}",
+            layer.output().shape(),
+            dy.shape()
+        ));
+    }
+    layer.backward(x, dy, true);
+    let dx = layer.input_grad().clone();
+    let grads: Vec<Tensor<f64>> = layer.params().iter().map(|p| p.grad.clone()).collect();
+    if dx.shape() != x.shape() {
+        return Err(format!(
+            "dx shape {:?} != x shape {:?}",
+            dx.shape(),
+            x.shape()
+        ));
+    }
+    let objective = |layer: &mut dyn Layer<f64>, x: &Tensor<f64>| {
+        layer.forward(x);
+        dot(layer.output().data(), dy.data())
+    };
+    let mut xp = x.clone();
+    for i in indices(x.len(), max_per_tensor, &mut rng) {
+        let v = xp.data()[i];
+        xp.data_mut()[i] = v + H;
+        let sp = objective(layer, &xp);
+        xp.data_mut()[i] = v - H;
+        let sm = objective(layer, &xp);
+        xp.data_mut()[i] = v;
+        let num = (sp - sm) / (2.0 * H);
+        if !close(dx.data()[i], num, ATOL, RTOL) {
+            return Err(format!(
+                "dx[{i}]: backward {} vs numeric {num}",
+                dx.data()[i]
+            ));
+        }
+    }
+    for (k, grad) in grads.iter().enumerate() {
+        for i in indices(grad.len(), max_per_tensor, &mut rng) {
+            let v = layer.params()[k].value.data()[i];
+            layer.params_mut()[k].value.data_mut()[i] = v + H;
+            let sp = objective(layer, x);
+            layer.params_mut()[k].value.data_mut()[i] = v - H;
+            let sm = objective(layer, x);
+            layer.params_mut()[k].value.data_mut()[i] = v;
+            let num = (sp - sm) / (2.0 * H);
+            if !close(grad.data()[i], num, ATOL, RTOL) {
+                let name = &layer.params()[k].name;
+                return Err(format!(
+                    "{name}[{i}]: backward {} vs numeric {num}",
+                    grad.data()[i]
+                ));
+            }
+        }
+    }
+    // Accumulation: a second backward on the same forward adds the same gradient again.
+    layer.forward(x);
+    layer.backward(x, dy, true);
+    for (k, grad) in grads.iter().enumerate() {
+        for (i, (&twice, &once)) in layer.params()[k]
+            .grad
+            .data()
+            .iter()
+            .zip(grad.data())
+            .enumerate()
+        {
+            if !close(twice, 2.0 * once, 1e-12, 1e-12) {
+                return Err(format!(
+                    "param {k}[{i}] does not accumulate: {twice} vs 2x{once}"
+                ));
+            }
+        }
+    }
+    Ok(())
+}

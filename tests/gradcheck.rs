@@ -1,0 +1,183 @@
+//! Gradient checks: every layer's backward pass against central finite differences, in f64.
+//!
+//! Each case draws a random shape, input, parameters and upstream gradient `dY`, and compares
+//! `backward` with the numerical derivative of `S = Σ f(x)·dY` for the input and for every weight
+//! and bias (see `common::check_layer` for the tolerance and why it is tight).
+
+mod common;
+
+use common::*;
+use invaders::dqn::article_qnet;
+use invaders::layers::init::VarianceScaling;
+use invaders::layers::loss::{huber, mse};
+use invaders::layers::{Conv2d, Dense, Flatten, Layer, Relu};
+use invaders::tensor::{ConvGeom, Padding, Tensor};
+use proptest::prelude::*;
+
+fn padding() -> impl Strategy<Value = Padding> {
+    prop_oneof![Just(Padding::Same), Just(Padding::Valid)]
+}
+
+fn stride() -> impl Strategy<Value = usize> {
+    prop_oneof![Just(1usize), Just(2), Just(4)]
+}
+
+/// Fills a layer's parameters with uniform values in [-1, 1).
+fn randomise(layer: &mut dyn Layer<f64>, seed: u64) {
+    let mut r = rng(seed);
+    for p in layer.params_mut() {
+        let t: Tensor<f64> = uniform(p.value.shape(), &mut r);
+        p.value.data_mut().copy_from_slice(t.data());
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
+
+    /// Conv2d: kernel 1..8 (height and width drawn separately), strides 1/2/4 (separately),
+    /// SAME and VALID, 1..3 channels in and out, batch 1..2.
+    #[test]
+    fn conv2d_gradients(
+        kh in 1usize..=8, kw in 1usize..=8, sh in stride(), sw in stride(),
+        extra_h in 0usize..6, extra_w in 0usize..6,
+        cin in 1usize..=3, cout in 1usize..=3, n in 1usize..=2,
+        pad in padding(), seed in any::<u64>(),
+    ) {
+        // Inputs at least as large as the kernel, so VALID is possible; SAME often pads unevenly.
+        let (h, w) = (kh + extra_h, kw + extra_w);
+        let g = ConvGeom::new(h, w, cin, cout, kh, kw, (sh, sw), pad).unwrap();
+        let mut layer = Conv2d::<f64>::new("conv", g);
+        randomise(&mut layer, seed);
+        let mut r = rng(seed ^ 1);
+        let x = uniform(&[n, h, w, cin], &mut r);
+        let dy = uniform(&[n, g.oh, g.ow, cout], &mut r);
+        check_layer(&mut layer, &x, &dy, 400, seed).map_err(TestCaseError::fail)?;
+    }
+
+    #[test]
+    fn dense_gradients(n_in in 1usize..40, n_out in 1usize..12, n in 1usize..=4, seed in any::<u64>()) {
+        let mut layer = Dense::<f64>::new("dense", n_in, n_out);
+        randomise(&mut layer, seed);
+        let mut r = rng(seed ^ 1);
+        let x = uniform(&[n, n_in], &mut r);
+        let dy = uniform(&[n, n_out], &mut r);
+        check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
+    #[test]
+    fn relu_gradients(h in 1usize..6, w in 1usize..6, c in 1usize..4, n in 1usize..=3, seed in any::<u64>()) {
+        let mut layer = Relu::<f64>::new("relu", &[h, w, c]);
+        let mut r = rng(seed);
+        let x = uniform_away_from_zero(&[n, h, w, c], 1e-3, &mut r);
+        let dy = uniform(&[n, h, w, c], &mut r);
+        check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
+    #[test]
+    fn flatten_gradients(h in 1usize..6, w in 1usize..6, c in 1usize..4, n in 1usize..=3, seed in any::<u64>()) {
+        let mut layer = Flatten::<f64>::new("flatten", &[h, w, c]);
+        let mut r = rng(seed);
+        let x = uniform(&[n, h, w, c], &mut r);
+        let dy = uniform(&[n, h * w * c], &mut r);
+        check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
+    /// Both losses against finite differences of the loss itself, with differences on both sides
+    /// of Huber's δ = 1.
+    #[test]
+    fn loss_gradients(n in 1usize..10, seed in any::<u64>()) {
+        let mut r = rng(seed);
+        let pred = uniform::<f64>(&[n], &mut r);
+        let mut target = uniform::<f64>(&[n], &mut r);
+        for t in target.data_mut() { *t *= 3.0; }
+        for (name, f) in [("mse", mse as fn(&[f64], &[f64], &mut [f64]) -> f64),
+                          ("huber", |p: &[f64], t: &[f64], g: &mut [f64]| huber(p, t, 1.0, g))] {
+            let mut grad = vec![0.0; n];
+            f(pred.data(), target.data(), &mut grad);
+            let mut scratch = vec![0.0; n];
+            for i in 0..n {
+                let mut p = pred.data().to_vec();
+                if (p[i] - target.data()[i]).abs() > 1.0 - 1e-3 && (p[i] - target.data()[i]).abs() < 1.0 + 1e-3 {
+                    continue; // Huber's second derivative jumps at |d| = δ
+                }
+                p[i] += H;
+                let lp = f(&p, target.data(), &mut scratch);
+                p[i] -= 2.0 * H;
+                let lm = f(&p, target.data(), &mut scratch);
+                let num = (lp - lm) / (2.0 * H);
+                prop_assert!(close(grad[i], num, 1e-8, 1e-6), "{name} grad[{i}] {} vs {num}", grad[i]);
+            }
+        }
+    }
+}
+
+#[test]
+fn losses_known_values() {
+    let mut g = [0.0f64; 3];
+    let l: f64 = mse(&[1.0, 2.0, 3.0], &[1.0, 0.0, 6.0], &mut g);
+    assert!((l - (0.0 + 4.0 + 9.0) / 3.0).abs() < 1e-12);
+    assert_eq!(g, [0.0, 4.0 / 3.0, -6.0 / 3.0]);
+    let l: f64 = huber(&[1.0, 2.0, 3.0], &[1.0, 1.5, 6.0], 1.0, &mut g);
+    assert!((l - (0.0 + 0.125 + 2.5) / 3.0).abs() < 1e-12);
+    assert_eq!(g, [0.0, 0.5 / 3.0, -1.0 / 3.0]);
+}
+
+/// The whole article Q-network (conv 32@8x8/4, 64@4x4/2, 64@3x3/1, SAME, ReLU, dense 128, dense 6)
+/// at a reduced input size, end to end through `Sequential`, including the input gradient.
+#[test]
+fn article_qnet_gradients() {
+    let mut r = rng(7);
+    let mut net = article_qnet::<f64>([21, 19, 2], 6, &VarianceScaling::HE, &mut r);
+    // Non-zero biases, so bias indexing is exercised too.
+    for p in net.params_mut() {
+        if p.name.ends_with(".bias") {
+            let t: Tensor<f64> = uniform(p.value.shape(), &mut r);
+            for (v, t) in p.value.data_mut().iter_mut().zip(t.data()) {
+                *v = 0.1 * t;
+            }
+        }
+    }
+    let x = uniform::<f64>(&[2, 21, 19, 2], &mut r);
+    let dy = uniform::<f64>(&[2, 6], &mut r);
+    net.zero_grad();
+    net.forward(&x);
+    let dx = net.backward(&x, &dy, true).unwrap().clone();
+    let grads: Vec<(String, Tensor<f64>)> = net
+        .params()
+        .map(|p| (p.name.clone(), p.grad.clone()))
+        .collect();
+    let objective = |net: &mut invaders::layers::Sequential<f64>, x: &Tensor<f64>| {
+        dot(net.forward(x).data(), dy.data())
+    };
+    let mut xp = x.clone();
+    for i in indices(x.len(), 200, &mut r) {
+        let v = xp.data()[i];
+        xp.data_mut()[i] = v + H;
+        let sp = objective(&mut net, &xp);
+        xp.data_mut()[i] = v - H;
+        let sm = objective(&mut net, &xp);
+        xp.data_mut()[i] = v;
+        let num = (sp - sm) / (2.0 * H);
+        assert!(
+            close(dx.data()[i], num, ATOL, RTOL),
+            "dx[{i}]: {} vs {num}",
+            dx.data()[i]
+        );
+    }
+    for (k, (name, grad)) in grads.iter().enumerate() {
+        for i in indices(grad.len(), 150, &mut r) {
+            let v = net.params().nth(k).unwrap().value.data()[i];
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v + H;
+            let sp = objective(&mut net, &x);
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v - H;
+            let sm = objective(&mut net, &x);
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v;
+            let num = (sp - sm) / (2.0 * H);
+            assert!(
+                close(grad.data()[i], num, ATOL, RTOL),
+                "{name}[{i}]: {} vs {num}",
+                grad.data()[i]
+            );
+        }
+    }
+}
