@@ -14,7 +14,8 @@ use crate::tensor::{Float, Tensor};
 /// ```
 /// The bias corrections `1/(1 − β₁ᵗ)` and `1/(1 − β₂ᵗ)` (the moments start at zero, so early on
 /// they underestimate) are folded into the step size `α_t`, as TensorFlow and Keras do. This is the
-/// paper's "ε̂" form: it equals `m̂ / (sqrt(v̂) + ε)` with a slightly different ε. Defaults are
+/// paper's "ε̂" form: with `m̂ = m/(1 − β₁ᵗ)` and `v̂ = v/(1 − β₂ᵗ)` it is `θ ← θ − lr·m̂/(sqrt(v̂) + ε̂)`
+/// with `ε̂ = ε/sqrt(1 − β₂ᵗ)`, so ε matters slightly more early on than in the paper's Algorithm 1. Defaults are
 /// TensorFlow 1's (`tf.train.AdamOptimizer`): lr 1e-3, β₁ 0.9, β₂ 0.999, ε 1e-8.
 #[derive(Clone, Debug)]
 pub struct Adam<T> {

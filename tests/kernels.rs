@@ -1,0 +1,125 @@
+//! The fast kernels against the plain reference kernels, on random shapes, in f32.
+
+mod common;
+
+use common::{rng, uniform};
+use invaders::layers::{Conv2d, Layer};
+use invaders::tensor::{
+    conv2d_reference, conv2d_reference_backward, gemm, gemm_reference, ConvGeom, Op, Padding,
+    Tensor,
+};
+use proptest::prelude::*;
+
+/// `max |a − b| ≤ tol · (1 + max |b|)`.
+fn assert_close(what: &str, a: &[f32], b: &[f32], tol: f32) -> Result<(), TestCaseError> {
+    prop_assert_eq!(a.len(), b.len());
+    let scale = 1.0 + b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+        prop_assert!(
+            (x - y).abs() <= tol * scale,
+            "{}[{}]: {} vs {}",
+            what,
+            i,
+            x,
+            y
+        );
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    /// The parallel GEMM for every transpose combination, with beta 0 (overwrite, even NaN) and 1
+    /// (accumulate), at sizes that split into several row blocks.
+    #[test]
+    fn gemm_matches_reference(
+        m in 1usize..300, n in 1usize..40, k in 1usize..70,
+        ta in any::<bool>(), tb in any::<bool>(), accumulate in any::<bool>(), seed in any::<u64>(),
+    ) {
+        let mut r = rng(seed);
+        let a = uniform::<f32>(&[m * k], &mut r);
+        let b = uniform::<f32>(&[k * n], &mut r);
+        let c0 = uniform::<f32>(&[m * n], &mut r);
+        let (opa, opb) = (if ta { Op::T } else { Op::N }, if tb { Op::T } else { Op::N });
+        let beta = if accumulate { 1.0 } else { 0.0 };
+        let mut fast = c0.data().to_vec();
+        if !accumulate { fast.fill(f32::NAN); }
+        let mut slow = c0.data().to_vec();
+        gemm(opa, opb, m, n, k, 0.5, a.data(), b.data(), beta, &mut fast);
+        gemm_reference(opa, opb, m, n, k, 0.5, a.data(), b.data(), beta, &mut slow);
+        assert_close("C", &fast, &slow, 1e-5)?;
+    }
+
+    /// The `Conv2d` layer (im2col + GEMM, col2im) against the direct convolution and its direct
+    /// backward pass.
+    #[test]
+    fn conv2d_matches_reference(
+        kh in 1usize..=8, kw in 1usize..=8, sh in 1usize..=4, sw in 1usize..=4,
+        h in 1usize..24, w in 1usize..24, cin in 1usize..6, cout in 1usize..9, n in 1usize..4,
+        same in any::<bool>(), seed in any::<u64>(),
+    ) {
+        let pad = if same { Padding::Same } else { Padding::Valid };
+        let Some(g) = ConvGeom::new(h, w, cin, cout, kh, kw, (sh, sw), pad) else {
+            return Ok(()); // VALID with a kernel larger than the input
+        };
+        let mut r = rng(seed);
+        let mut layer = Conv2d::<f32>::new("c", g);
+        let wt = uniform::<f32>(&[kh, kw, cin, cout], &mut r);
+        let bt = uniform::<f32>(&[cout], &mut r);
+        layer.params_mut()[0].value.data_mut().copy_from_slice(wt.data());
+        layer.params_mut()[1].value.data_mut().copy_from_slice(bt.data());
+        let x = uniform::<f32>(&[n, h, w, cin], &mut r);
+        let dy = uniform::<f32>(&[n, g.oh, g.ow, cout], &mut r);
+        layer.forward(&x);
+        let mut y = vec![0.0; n * g.oh * g.ow * cout];
+        conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut y);
+        assert_close("y", layer.output().data(), &y, 1e-5)?;
+        layer.backward(&x, &dy, true);
+        let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
+        conv2d_reference_backward(&g, n, x.data(), wt.data(), dy.data(), &mut dx, &mut dw, &mut db);
+        assert_close("dx", layer.input_grad().data(), &dx, 1e-5)?;
+        assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5)?;
+        assert_close("db", layer.params()[1].grad.data(), &db, 1e-5)?;
+    }
+}
+
+/// TensorFlow's SAME rule, including the uneven case (the extra padding goes after).
+#[test]
+fn same_padding_follows_tensorflow() {
+    // 88 rows, kernel 8, stride 4: 22 outputs, (21·4 + 8) − 88 = 4 rows of padding, 2 above.
+    let g = ConvGeom::new(88, 80, 4, 32, 8, 8, (4, 4), Padding::Same).unwrap();
+    assert_eq!((g.oh, g.ow, g.pad_top, g.pad_left), (22, 20, 2, 2));
+    // 22x20, kernel 4, stride 2: 11x10, padding 2 in total, 1 before.
+    let g = ConvGeom::new(22, 20, 32, 64, 4, 4, (2, 2), Padding::Same).unwrap();
+    assert_eq!((g.oh, g.ow, g.pad_top, g.pad_left), (11, 10, 1, 1));
+    // 9 rows, kernel 4, stride 3: 3 outputs, (2·3 + 4) − 9 = 1 row, 0 above, 1 below.
+    let g = ConvGeom::new(9, 7, 3, 5, 4, 4, (3, 3), Padding::Same).unwrap();
+    assert_eq!((g.oh, g.ow, g.pad_top, g.pad_left), (3, 3, 0, 1));
+    // A kernel smaller than the stride needs no padding.
+    let g = ConvGeom::new(8, 8, 1, 1, 1, 1, (4, 4), Padding::Same).unwrap();
+    assert_eq!((g.oh, g.pad_top), (2, 0));
+    let g = ConvGeom::new(10, 9, 2, 3, 3, 2, (2, 2), Padding::Valid).unwrap();
+    assert_eq!((g.oh, g.ow), (4, 4));
+    assert!(ConvGeom::new(2, 9, 2, 3, 3, 2, (2, 2), Padding::Valid).is_none());
+    assert!(ConvGeom::new(2, 9, 2, 3, 3, 2, (0, 2), Padding::Same).is_none());
+}
+
+/// Changing the batch size reuses buffers and gives the same per-sample results.
+#[test]
+fn batch_size_changes_are_consistent() {
+    let g = ConvGeom::new(12, 10, 3, 4, 3, 3, (2, 2), Padding::Same).unwrap();
+    let mut layer = Conv2d::<f32>::new("c", g);
+    let mut r = rng(3);
+    let wt = uniform::<f32>(&[3, 3, 3, 4], &mut r);
+    layer.params_mut()[0]
+        .value
+        .data_mut()
+        .copy_from_slice(wt.data());
+    let x = uniform::<f32>(&[5, 12, 10, 3], &mut r);
+    layer.forward(&x);
+    let big = layer.output().clone();
+    let one = Tensor::from_vec(&[1, 12, 10, 3], x.data()[..360].to_vec());
+    layer.forward(&one);
+    assert_eq!(layer.output().data(), &big.data()[..g.out_pixels() * 4]);
+}
