@@ -82,6 +82,7 @@ fn initialisation_is_seeded() {
 /// `v̂ = v/(1−β₂ᵗ)`, `θ −= lr·m̂/(sqrt(v̂) + ε̂)` with `ε̂ = ε/sqrt(1−β₂ᵗ)`, which is algebraically
 /// TensorFlow's form), computed independently in f64 over 50 steps of varying gradients.
 #[test]
+#[allow(clippy::needless_range_loop)] // four parallel arrays, indexed alike
 fn adam_matches_closed_form() {
     let mut p = Param::<f64>::zeros("w".into(), &[4]);
     p.value.data_mut().copy_from_slice(&[0.5, -1.0, 2.0, 0.0]);
@@ -96,18 +97,13 @@ fn adam_matches_closed_form() {
         for i in 0..4 {
             m[i] = 0.9 * m[i] + 0.1 * g[i];
             v[i] = 0.999 * v[i] + 0.001 * g[i] * g[i];
-            let mh = m[i] / (1.0 - 0.9f64.powi(t as i32));
-            let vh = v[i] / (1.0 - 0.999f64.powi(t as i32));
-            let eps_hat = 1e-8 / (1.0 - 0.999f64.powi(t as i32)).sqrt();
+            let mh = m[i] / (1.0 - 0.9f64.powi(t));
+            let vh = v[i] / (1.0 - 0.999f64.powi(t));
+            let eps_hat = 1e-8 / (1.0 - 0.999f64.powi(t)).sqrt();
             w[i] -= 0.01 * mh / (vh.sqrt() + eps_hat);
         }
-        for i in 0..4 {
-            assert!(
-                (p.value.data()[i] - w[i]).abs() < 1e-12,
-                "step {t}: {} vs {}",
-                p.value.data()[i],
-                w[i]
-            );
+        for (&ours, &want) in p.value.data().iter().zip(&w) {
+            assert!((ours - want).abs() < 1e-12, "step {t}: {ours} vs {want}");
         }
     }
     assert_eq!(adam.t, 50);
@@ -115,7 +111,7 @@ fn adam_matches_closed_form() {
 
 #[test]
 fn sgd_and_clipping() {
-    let mut ps = vec![
+    let mut ps = [
         Param::<f64>::zeros("a".into(), &[2]),
         Param::<f64>::zeros("b".into(), &[1]),
     ];
