@@ -1,4 +1,133 @@
-use criterion::{criterion_group, criterion_main, Criterion};
-fn placeholder(_c: &mut Criterion) {}
-criterion_group!(benches, placeholder);
+//! Layer and train-step benchmarks for the article's Q-network.
+//!
+//! Throughput is reported as criterion "elements" per second where one element is one
+//! floating-point operation, so `Gelem/s` reads as GFLOP/s (a multiply-add counts as 2 FLOPs).
+//! Compare with `../shared/bench/tf_step.py` run in the same session (TensorFlow's train step) and
+//! `peak.c` (the machine's FMA peak).
+//!
+//! `cargo bench --bench layers` runs everything; `cargo bench --bench layers -- conv1` one layer.
+//! Threads: rayon's default (all cores) unless `RAYON_NUM_THREADS` is set.
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use invaders::dqn::{Batch, Learner};
+use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::tensor::{ConvGeom, Padding, Tensor};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::time::Duration;
+
+fn random(shape: &[usize], rng: &mut impl Rng) -> Tensor<f32> {
+    let n = shape.iter().product();
+    Tensor::from_vec(shape, (0..n).map(|_| rng.random_range(-1.0..1.0)).collect())
+}
+
+fn randomise(layer: &mut dyn Layer<f32>, rng: &mut impl Rng) {
+    for p in layer.params_mut() {
+        for v in p.value.data_mut() {
+            *v = rng.random_range(-0.1..0.1);
+        }
+    }
+}
+
+/// Forward, input gradient and weight gradient of one layer at batch 1 and 48.
+fn bench_layer(
+    c: &mut Criterion,
+    name: &str,
+    make: &dyn Fn() -> Box<dyn Layer<f32>>,
+    in_shape: &[usize],
+) {
+    let mut group = c.benchmark_group(name);
+    group
+        .measurement_time(Duration::from_secs(3))
+        .warm_up_time(Duration::from_secs(1));
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    for batch in [1usize, 48] {
+        let mut layer = make();
+        randomise(layer.as_mut(), &mut rng);
+        let mut shape = vec![batch];
+        shape.extend_from_slice(in_shape);
+        let x = random(&shape, &mut rng);
+        layer.forward(&x);
+        let dy = random(layer.output().shape(), &mut rng);
+        let flops = 2 * layer.macs() as u64 * batch as u64;
+        group.throughput(Throughput::Elements(flops));
+        group.bench_function(BenchmarkId::new("forward", batch), |b| {
+            b.iter(|| layer.forward(&x))
+        });
+        // The weight gradient alone (what the first layer does), then weight + input gradients;
+        // the input gradient's cost is the difference.
+        group.bench_function(BenchmarkId::new("weight_grad", batch), |b| {
+            b.iter(|| layer.backward(&x, &dy, false))
+        });
+        group.throughput(Throughput::Elements(2 * flops));
+        group.bench_function(BenchmarkId::new("weight_and_input_grad", batch), |b| {
+            b.iter(|| layer.backward(&x, &dy, true))
+        });
+    }
+    group.finish();
+}
+
+fn layers(c: &mut Criterion) {
+    let convs = [
+        ("conv1", [88, 80, 4], 32, 8, 4),
+        ("conv2", [22, 20, 32], 64, 4, 2),
+        ("conv3", [11, 10, 64], 64, 3, 1),
+    ];
+    for (name, [h, w, cin], cout, k, s) in convs {
+        let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+        bench_layer(
+            c,
+            name,
+            &|| Box::new(Conv2d::<f32>::new(name, g)),
+            &[h, w, cin],
+        );
+    }
+    bench_layer(
+        c,
+        "dense1",
+        &|| Box::new(Dense::<f32>::new("dense1", 7040, 128)),
+        &[7040],
+    );
+    bench_layer(
+        c,
+        "dense2",
+        &|| Box::new(Dense::<f32>::new("dense2", 128, 6)),
+        &[128],
+    );
+}
+
+/// The article's train step at batch 48 (online forward + backward + Adam, target forward on the
+/// next states): 4.33 GFLOP by `../shared/bench/README.md`'s count. And the batch-1 forward
+/// used for acting.
+fn train_step(c: &mut Criterion) {
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut learner = Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut rng);
+    let mut batch = Batch::new(48, [88, 80, 4]);
+    batch.states = random(&[48, 88, 80, 4], &mut rng);
+    batch.next_states = random(&[48, 88, 80, 4], &mut rng);
+    for i in 0..48 {
+        batch.actions[i] = rng.random_range(0..6);
+        batch.rewards[i] = rng.random_range(0.0..1.0);
+        batch.dones[i] = rng.random_bool(0.1);
+    }
+    let macs = learner.online.macs() as u64;
+    let first_layer_macs = learner.online.layers()[0].macs() as u64;
+    // 3 passes of 48 samples (online forward, weight gradients, target forward) + input
+    // gradients of every layer but the first.
+    let flops = 2 * 48 * (3 * macs + (macs - first_layer_macs));
+    let mut group = c.benchmark_group("train_step");
+    group
+        .measurement_time(Duration::from_secs(8))
+        .warm_up_time(Duration::from_secs(2));
+    group.throughput(Throughput::Elements(flops));
+    group.bench_function("batch48", |b| b.iter(|| learner.train_step(&batch)));
+    let x1 = random(&[1, 88, 80, 4], &mut rng);
+    group.throughput(Throughput::Elements(2 * macs));
+    group.bench_function("act_forward_batch1", |b| {
+        b.iter(|| learner.online.forward(&x1).data()[0])
+    });
+    group.finish();
+}
+
+criterion_group!(benches, layers, train_step);
 criterion_main!(benches);

@@ -1,0 +1,197 @@
+//! The learning half of DQN: one gradient step on a minibatch of transitions.
+
+use super::article_qnet;
+use crate::layers::init::VarianceScaling;
+use crate::layers::loss::LossKind;
+use crate::layers::Sequential;
+use crate::optim::{clip_grad_norm, Adam};
+use crate::tensor::Tensor;
+use rand::Rng;
+
+/// A minibatch of transitions `(s, a, r, s', done)`, laid out for the network.
+pub struct Batch {
+    /// `[B, H, W, C]`, normalised network inputs.
+    pub states: Tensor<f32>,
+    /// `[B]`, indices into the action set.
+    pub actions: Vec<usize>,
+    /// `[B]`.
+    pub rewards: Vec<f32>,
+    /// `[B, H, W, C]`.
+    pub next_states: Tensor<f32>,
+    /// `[B]`, whether `s'` is terminal (then there is no future to bootstrap from).
+    pub dones: Vec<bool>,
+}
+
+impl Batch {
+    /// An empty batch for inputs of shape `[H, W, C]`, to be filled by the replay memory.
+    pub fn new(batch: usize, input: [usize; 3]) -> Self {
+        let shape = [batch, input[0], input[1], input[2]];
+        Batch {
+            states: Tensor::zeros(&shape),
+            actions: vec![0; batch],
+            rewards: vec![0.0; batch],
+            next_states: Tensor::zeros(&shape),
+            dones: vec![false; batch],
+        }
+    }
+
+    /// The number of transitions.
+    pub fn len(&self) -> usize {
+        self.actions.len()
+    }
+
+    /// Whether the batch is empty.
+    pub fn is_empty(&self) -> bool {
+        self.actions.is_empty()
+    }
+}
+
+/// What one train step measured.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StepStats {
+    /// The loss before the update.
+    pub loss: f32,
+    /// Mean over the batch of `max_a Q(s, a)` (the online network's value estimate).
+    pub mean_max_q: f32,
+    /// Global gradient norm before any clipping.
+    pub grad_norm: f32,
+}
+
+/// The online network, its lagged target copy and the optimizer, with every buffer a step needs.
+pub struct Learner {
+    /// The network being trained; it also picks the actions.
+    pub online: Sequential<f32>,
+    /// A copy of `online` refreshed every `target_update` steps; it gives the bootstrap values.
+    pub target: Sequential<f32>,
+    /// The optimizer and its moments.
+    pub adam: Adam<f32>,
+    /// Discount factor γ.
+    pub gamma: f32,
+    /// The regression loss.
+    pub loss: LossKind,
+    /// Double DQN: the online network picks `a' = argmax Q(s', ·)`, the target evaluates it.
+    pub double: bool,
+    /// Clip gradients to this global norm, if set.
+    pub clip_norm: Option<f32>,
+    n_actions: usize,
+    /// `[B]`: `Q(s, a)` of the taken actions, the TD targets `y`, and `∂L/∂Q(s, a)`.
+    q_taken: Vec<f32>,
+    y: Vec<f32>,
+    dq_taken: Vec<f32>,
+    /// `[B]`: the online network's greedy `a'` (Double DQN only).
+    next_greedy: Vec<usize>,
+    /// `[B, n_actions]`: the upstream gradient, non-zero only at the taken actions.
+    dq: Tensor<f32>,
+}
+
+impl Learner {
+    /// A learner for inputs of shape `[H, W, C]`; the target starts as a copy of the online net.
+    pub fn new(
+        input: [usize; 3],
+        n_actions: usize,
+        lr: f32,
+        gamma: f32,
+        rng: &mut impl Rng,
+    ) -> Self {
+        let online = article_qnet(input, n_actions, &VarianceScaling::HE, rng);
+        let mut target = article_qnet(input, n_actions, &VarianceScaling::HE, rng);
+        target.copy_params_from(&online);
+        Learner {
+            online,
+            target,
+            adam: Adam::new(lr),
+            gamma,
+            loss: LossKind::Mse,
+            double: false,
+            clip_norm: None,
+            n_actions,
+            q_taken: Vec::new(),
+            y: Vec::new(),
+            dq_taken: Vec::new(),
+            next_greedy: Vec::new(),
+            dq: Tensor::empty(),
+        }
+    }
+
+    /// The number of actions.
+    pub fn n_actions(&self) -> usize {
+        self.n_actions
+    }
+
+    /// Copies the online network into the target network.
+    pub fn update_target(&mut self) {
+        self.target.copy_params_from(&self.online);
+    }
+
+    /// One DQN update on `batch`:
+    ///
+    /// 1. TD target `y = r + γ·(1 − done)·max_a' Q_target(s', a')` (Double DQN:
+    ///    `Q_target(s', argmax_a' Q_online(s', a'))`); no gradient flows through `y`.
+    /// 2. Forward `Q_online(s, ·)`, keep `Q(s, a)` of the taken actions.
+    /// 3. Loss `L = mean_b ℓ(Q(s_b, a_b) − y_b)` (MSE or Huber); `∂L/∂Q(s_b, a)` is non-zero only
+    ///    at `a = a_b`, so the upstream gradient `dQ[B, A]` is zero except one entry per row.
+    /// 4. Backward through the online network (the first layer skips its input gradient), then
+    ///    one Adam step.
+    pub fn train_step(&mut self, batch: &Batch) -> StepStats {
+        let (b, na) = (batch.len(), self.n_actions);
+        self.q_taken.resize(b, 0.0);
+        self.y.resize(b, 0.0);
+        self.dq_taken.resize(b, 0.0);
+        self.next_greedy.resize(b, 0);
+        if self.double {
+            let q_next = self.online.forward(&batch.next_states);
+            for (g, row) in self
+                .next_greedy
+                .iter_mut()
+                .zip(q_next.data().chunks_exact(na))
+            {
+                *g = argmax(row);
+            }
+        }
+        let q_next = self.target.forward(&batch.next_states);
+        for (i, row) in q_next.data().chunks_exact(na).enumerate() {
+            let future = if self.double {
+                row[self.next_greedy[i]]
+            } else {
+                row[argmax(row)]
+            };
+            let cont = if batch.dones[i] { 0.0 } else { 1.0 };
+            self.y[i] = batch.rewards[i] + self.gamma * cont * future;
+        }
+        let q = self.online.forward(&batch.states);
+        let mut max_q_sum = 0.0;
+        for (i, row) in q.data().chunks_exact(na).enumerate() {
+            self.q_taken[i] = row[batch.actions[i]];
+            max_q_sum += row[argmax(row)];
+        }
+        let loss = self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken);
+        self.dq.set_shape(&[b, na]);
+        self.dq.fill_zero();
+        for (i, row) in self.dq.data_mut().chunks_exact_mut(na).enumerate() {
+            row[batch.actions[i]] = self.dq_taken[i];
+        }
+        self.online.zero_grad();
+        self.online.backward(&batch.states, &self.dq, false);
+        let grad_norm = match self.clip_norm {
+            Some(max) => clip_grad_norm(self.online.params_mut(), max),
+            None => crate::optim::global_grad_norm(self.online.params()),
+        };
+        self.adam.step(self.online.params_mut());
+        StepStats {
+            loss,
+            mean_max_q: max_q_sum / b as f32,
+            grad_norm,
+        }
+    }
+}
+
+/// Index of the largest value (the first one on ties).
+pub fn argmax(row: &[f32]) -> usize {
+    let mut best = 0;
+    for (i, &v) in row.iter().enumerate() {
+        if v > row[best] {
+            best = i;
+        }
+    }
+    best
+}
