@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
-use clap::Args;
+use clap::{Args, ValueEnum};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -77,8 +77,17 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     }
     let s = Summary::of(&scores);
     println!(
-        "random agent, mode {:?}, {} episodes, seed {}: mean {:.1} std {:.1} min {} max {}",
-        args.mode, s.n, args.seed, s.mean, s.std, s.min, s.max
+        "random agent, mode {}, {} episodes, seed {}: mean {:.1} std {:.1} min {} max {}",
+        args.mode
+            .to_possible_value()
+            .expect("modes are named")
+            .get_name(),
+        s.n,
+        args.seed,
+        s.mean,
+        s.std,
+        s.min,
+        s.max
     );
     Ok(())
 }
