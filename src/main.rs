@@ -1,3 +1,9 @@
-fn main() {
-    println!("invaders: see README.md");
+//! The `invaders` command line; each subcommand lives in `src/cli/`.
+
+mod cli;
+
+use clap::Parser;
+
+fn main() -> anyhow::Result<()> {
+    cli::run(cli::Cli::parse())
 }

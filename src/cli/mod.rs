@@ -1,0 +1,28 @@
+//! Subcommands of the `invaders` binary. Add a subcommand by adding a variant to [`Command`]
+//! with its own `Args` struct in a file of this folder, and a line in [`run`].
+
+use clap::{Parser, Subcommand};
+
+mod eval;
+
+/// A from-scratch DQN that learns Atari Space Invaders.
+#[derive(Debug, Parser)]
+#[command(name = "invaders", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// What to do.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Play episodes and print score statistics (mean, std, min, max).
+    Eval(eval::EvalArgs),
+}
+
+/// Runs the chosen subcommand.
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Eval(args) => eval::run(&args),
+    }
+}

@@ -1,0 +1,169 @@
+//! The article's preprocessing: crop, downsample, greyscale, and (at the network input) normalise.
+//!
+//! The Atari screen is 210 rows by 160 columns of RGB. The article keeps rows 25, 27, ..., 199
+//! (`obs[25:201:2]`, which drops the score bar at the top and the ground at the bottom and halves
+//! the height) and every second column (`obs[:, ::2]`), giving an 88 x 80 image, then averages the
+//! three colour channels into one grey value.
+//!
+//! Frames stay `u8` (7 040 bytes each) so a replay memory of a million frames fits in memory;
+//! they become `f32` only when written into the network's input, by [`normalize_into`].
+
+use serde::{Deserialize, Serialize};
+
+use super::ale::{SCREEN_HEIGHT, SCREEN_RGB_LEN, SCREEN_WIDTH};
+
+/// Rows of a preprocessed frame.
+pub const FRAME_HEIGHT: usize = 88;
+/// Columns of a preprocessed frame.
+pub const FRAME_WIDTH: usize = 80;
+/// Pixels (= bytes) of a preprocessed frame.
+pub const FRAME_LEN: usize = FRAME_HEIGHT * FRAME_WIDTH;
+/// First screen row kept by the crop.
+pub const CROP_TOP: usize = 25;
+
+/// The article's "contrast" colour, as a sum of R + G + B: `mspacman_color = 210 + 164 + 74`.
+///
+/// The article copied this step from a Ms. Pac-Man agent, where that colour is Ms. Pac-Man
+/// herself. No pixel of Space Invaders has this colour, so in this game the step changes nothing
+/// (the test suite checks this on real frames). It is therefore off by default.
+pub const MSPACMAN_RGB_SUM: u16 = 210 + 164 + 74;
+
+/// Crops, downsamples and greys one RGB screen into an 88 x 80 frame.
+///
+/// Grey is the integer mean of the three channels rounded down, `(r + g + b) / 3`. The article's
+/// code takes the floating-point mean; flooring differs from it by less than one grey level.
+///
+/// `contrast`: if `Some(sum)`, pixels whose `r + g + b == sum` become 0 (the article's contrast
+/// step, compared on the exact RGB sum as the article's float comparison effectively does).
+///
+/// # Panics
+/// If `rgb.len() != 210 * 160 * 3` or `out.len() != 88 * 80`.
+pub fn preprocess_rgb(rgb: &[u8], contrast: Option<u16>, out: &mut [u8]) {
+    assert_eq!(rgb.len(), SCREEN_RGB_LEN, "RGB screen has the wrong length");
+    assert_eq!(out.len(), FRAME_LEN, "frame buffer has the wrong length");
+    let key = contrast.map(u32::from).unwrap_or(u32::MAX);
+    for (r, out_row) in out.chunks_exact_mut(FRAME_WIDTH).enumerate() {
+        let y = CROP_TOP + 2 * r;
+        debug_assert!(y < SCREEN_HEIGHT);
+        let row = &rgb[y * SCREEN_WIDTH * 3..(y + 1) * SCREEN_WIDTH * 3];
+        // Every second pixel: a stride of 6 bytes.
+        for (o, px) in out_row.iter_mut().zip(row.chunks_exact(6)) {
+            let sum = px[0] as u32 + px[1] as u32 + px[2] as u32;
+            *o = if sum == key { 0 } else { (sum / 3) as u8 };
+        }
+    }
+}
+
+/// Element-wise maximum of two frames into `out` (DeepMind's max over the last two raw frames,
+/// which removes the flicker of sprites drawn only on every other frame).
+///
+/// # Panics
+/// If the lengths differ.
+pub fn max_into(a: &[u8], b: &[u8], out: &mut [u8]) {
+    assert!(
+        a.len() == b.len() && b.len() == out.len(),
+        "frame lengths differ"
+    );
+    for ((o, &x), &y) in out.iter_mut().zip(a).zip(b) {
+        *o = x.max(y);
+    }
+}
+
+/// How a grey value `x` in 0..=255 becomes the network's input.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Normalization {
+    /// `x / 128 - 1`, in [-1, 1): what the article says it does ("from -1 to +1").
+    #[default]
+    Symmetric,
+    /// `(x - 128) / 128 - 1`, in [-2, 0): what the article's notebook code actually computes.
+    ArticleCode,
+}
+
+impl Normalization {
+    /// The normalised value of one grey level.
+    pub fn apply(self, x: u8) -> f32 {
+        let x = x as f32;
+        match self {
+            Normalization::Symmetric => x / 128.0 - 1.0,
+            Normalization::ArticleCode => (x - 128.0) / 128.0 - 1.0,
+        }
+    }
+
+    /// A 256-entry lookup table: `table[x] == self.apply(x)`.
+    pub fn table(self) -> [f32; 256] {
+        std::array::from_fn(|x| self.apply(x as u8))
+    }
+}
+
+/// Writes `table[src[i]]` into `dst[i]` (use [`Normalization::table`] for `table`).
+///
+/// # Panics
+/// If the lengths differ.
+pub fn normalize_into(table: &[f32; 256], src: &[u8], dst: &mut [f32]) {
+    assert_eq!(
+        src.len(),
+        dst.len(),
+        "source and destination lengths differ"
+    );
+    for (d, &s) in dst.iter_mut().zip(src) {
+        *d = table[s as usize];
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crop_picks_the_article_rows_and_columns() {
+        // Encode the row (then the column) in every pixel so we can see which ones were picked.
+        let mut by_row = vec![0u8; SCREEN_RGB_LEN];
+        let mut by_col = vec![0u8; SCREEN_RGB_LEN];
+        for y in 0..SCREEN_HEIGHT {
+            for x in 0..SCREEN_WIDTH {
+                let i = (y * SCREEN_WIDTH + x) * 3;
+                by_row[i..i + 3].fill(y as u8);
+                by_col[i..i + 3].fill(x as u8);
+            }
+        }
+        let mut out = vec![0u8; FRAME_LEN];
+        preprocess_rgb(&by_row, None, &mut out);
+        for r in 0..FRAME_HEIGHT {
+            assert!(out[r * FRAME_WIDTH..(r + 1) * FRAME_WIDTH]
+                .iter()
+                .all(|&v| v as usize == 25 + 2 * r));
+        }
+        preprocess_rgb(&by_col, None, &mut out);
+        for (c, &v) in out[..FRAME_WIDTH].iter().enumerate() {
+            assert_eq!(v as usize, 2 * c);
+        }
+    }
+
+    #[test]
+    fn grey_is_floor_of_mean_and_contrast_matches_exact_sum() {
+        let mut rgb = vec![0u8; SCREEN_RGB_LEN];
+        let i = (CROP_TOP * SCREEN_WIDTH + 2) * 3; // second output pixel of the first row
+        rgb[i..i + 3].copy_from_slice(&[1, 1, 2]); // sum 4 -> 1
+        let j = (CROP_TOP * SCREEN_WIDTH + 4) * 3;
+        rgb[j..j + 3].copy_from_slice(&[210, 164, 74]); // the Ms. Pac-Man colour
+        let k = (CROP_TOP * SCREEN_WIDTH + 6) * 3;
+        rgb[k..k + 3].copy_from_slice(&[210, 164, 75]); // one off
+        let mut out = vec![0u8; FRAME_LEN];
+        preprocess_rgb(&rgb, None, &mut out);
+        assert_eq!(&out[..4], &[0, 1, 149, 149]);
+        preprocess_rgb(&rgb, Some(MSPACMAN_RGB_SUM), &mut out);
+        assert_eq!(&out[..4], &[0, 1, 0, 149]);
+    }
+
+    #[test]
+    fn normalisations_have_the_stated_ranges() {
+        let s = Normalization::Symmetric.table();
+        assert_eq!((s[0], s[128], s[255]), (-1.0, 0.0, 255.0 / 128.0 - 1.0));
+        let a = Normalization::ArticleCode.table();
+        assert_eq!((a[0], a[128], a[255]), (-2.0, -1.0, 127.0 / 128.0 - 1.0));
+        let mut dst = [0.0f32; 3];
+        normalize_into(&s, &[0, 128, 64], &mut dst);
+        assert_eq!(dst, [-1.0, 0.0, -0.5]);
+    }
+}
