@@ -129,5 +129,74 @@ fn train_step(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, layers, train_step);
+criterion_group!(benches, layers, train_step, gemm_kernels);
 criterion_main!(benches);
+
+/// matrixmultiply against faer on the GEMMs of the article's layers at batch 48 (forward
+/// `cols·W`, weight gradient `colsᵀ·dY`, input gradient `dY·Wᵀ`), to choose a kernel per shape.
+fn gemm_kernels(c: &mut Criterion) {
+    use invaders::tensor::{gemm, gemm_faer, Op};
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    // (name, M rows, K, N) of Y[M×N] = X[M×K]·W[K×N]
+    let shapes = [
+        ("conv1", 48 * 22 * 20, 8 * 8 * 4, 32),
+        ("conv2", 48 * 11 * 10, 4 * 4 * 32, 64),
+        ("conv3", 48 * 11 * 10, 3 * 3 * 64, 64),
+        ("dense1", 48, 7040, 128),
+    ];
+    let mut group = c.benchmark_group("gemm");
+    group
+        .measurement_time(Duration::from_secs(2))
+        .warm_up_time(Duration::from_millis(500));
+    for (name, m, k, n) in shapes {
+        let x = random(&[m, k], &mut rng);
+        let w = random(&[k, n], &mut rng);
+        let dy = random(&[m, n], &mut rng);
+        let mut y = vec![0.0f32; m * n];
+        let mut dw = vec![0.0f32; k * n];
+        let mut dx = vec![0.0f32; m * k];
+        group.throughput(Throughput::Elements(2 * (m * k * n) as u64));
+        type G = fn(Op, Op, usize, usize, usize, f32, &[f32], &[f32], f32, &mut [f32]);
+        for (kernel, f) in [
+            ("matrixmultiply", gemm::<f32> as G),
+            ("faer", gemm_faer::<f32> as G),
+        ] {
+            group.bench_function(format!("{name}/forward/{kernel}"), |b| {
+                b.iter(|| f(Op::N, Op::N, m, n, k, 1.0, x.data(), w.data(), 0.0, &mut y))
+            });
+            group.bench_function(format!("{name}/weight_grad/{kernel}"), |b| {
+                b.iter(|| {
+                    f(
+                        Op::T,
+                        Op::N,
+                        k,
+                        n,
+                        m,
+                        1.0,
+                        x.data(),
+                        dy.data(),
+                        1.0,
+                        &mut dw,
+                    )
+                })
+            });
+            group.bench_function(format!("{name}/input_grad/{kernel}"), |b| {
+                b.iter(|| {
+                    f(
+                        Op::N,
+                        Op::T,
+                        m,
+                        k,
+                        n,
+                        1.0,
+                        dy.data(),
+                        w.data(),
+                        0.0,
+                        &mut dx,
+                    )
+                })
+            });
+        }
+    }
+    group.finish();
+}

@@ -9,9 +9,11 @@
 //! * [`optim`]: Adam and SGD.
 //! * [`env`]: Space Invaders through the ALE, the article's preprocessing and frame pipelines.
 //! * [`dqn`]: the agent, its replay memory and the training loop.
+//! * [`plot`]: reward curves.
 
 pub mod dqn;
 pub mod env;
 pub mod layers;
 pub mod optim;
+pub mod plot;
 pub mod tensor;

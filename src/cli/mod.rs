@@ -4,6 +4,7 @@
 use clap::{Parser, Subcommand};
 
 mod eval;
+mod train;
 
 /// A from-scratch DQN that learns Atari Space Invaders.
 #[derive(Debug, Parser)]
@@ -16,6 +17,8 @@ pub struct Cli {
 /// What to do.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Train a DQN headlessly, writing a run directory.
+    Train(train::TrainArgs),
     /// Play episodes and print score statistics (mean, std, min, max).
     Eval(eval::EvalArgs),
 }
@@ -23,6 +26,7 @@ pub enum Command {
 /// Runs the chosen subcommand.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Train(args) => train::run(&args),
         Command::Eval(args) => eval::run(&args),
     }
 }

@@ -113,6 +113,21 @@ impl Learner {
         }
     }
 
+    /// A learner with every setting taken from a run's configuration.
+    pub fn from_config(config: &super::Config, n_actions: usize, rng: &mut impl Rng) -> Self {
+        let mut l = Learner::new(
+            config.input_shape(),
+            n_actions,
+            config.learning_rate,
+            config.gamma,
+            rng,
+        );
+        l.loss = config.loss;
+        l.double = config.double_dqn;
+        l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm);
+        l
+    }
+
     /// The number of actions.
     pub fn n_actions(&self) -> usize {
         self.n_actions

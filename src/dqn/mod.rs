@@ -1,7 +1,14 @@
-//! The Deep Q-Network: the Q-network, replay memory and training loop.
+//! The Deep Q-Network: the Q-network, replay memory, configuration and training loop.
 
+mod agent;
+pub mod checkpoint;
+mod config;
 mod learner;
 mod qnet;
+mod replay;
 
+pub use agent::{greedy, play_evaluation_episode, Agent, EpisodeRow};
+pub use config::{Config, Preset};
 pub use learner::{argmax, Batch, Learner, StepStats};
 pub use qnet::article_qnet;
+pub use replay::Replay;

@@ -32,12 +32,14 @@
 pub mod ale;
 pub mod config;
 mod error;
+pub mod game;
 pub mod pipeline;
 pub mod preprocess;
 pub mod space_invaders;
 
 pub use config::{EnvConfig, EnvMode};
 pub use error::EnvError;
+pub use game::Game;
 pub use pipeline::{write_stacked_input, Composer, FrameStack, Observer, Pipeline};
 pub use preprocess::{
     max_into, normalize_into, preprocess_rgb, Normalization, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH,

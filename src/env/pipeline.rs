@@ -14,7 +14,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::preprocess::{max_into, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH};
-use super::SpaceInvaders;
+use super::Game;
 
 /// How frames become the network's input.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -232,7 +232,7 @@ impl Observer {
     }
 
     /// Call after `env.reset()`: composes the first frame and fills the stack with it.
-    pub fn reset(&mut self, env: &SpaceInvaders) -> &[u8] {
+    pub fn reset(&mut self, env: &impl Game) -> &[u8] {
         let (prev, last) = env.last_two_frames();
         let frame = self.composer.reset(prev, last, env.observation());
         self.stack.reset(frame);
@@ -241,7 +241,7 @@ impl Observer {
 
     /// Call after `env.step(..)`: composes the step's frame and pushes it; returns the composite
     /// (what a replay memory stores).
-    pub fn step(&mut self, env: &SpaceInvaders) -> &[u8] {
+    pub fn step(&mut self, env: &impl Game) -> &[u8] {
         let (prev, last) = env.last_two_frames();
         let frame = self.composer.step(prev, last, env.observation());
         self.stack.push(frame);

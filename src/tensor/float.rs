@@ -36,6 +36,21 @@ pub trait Float:
     /// # Safety
     /// Every index `i * rs + j * cs` reached for the given sizes must lie inside the allocation
     /// behind each pointer, and C must not alias A or B. [`crate::tensor::gemm`] checks this.
+    /// `C = alpha·op(A)·op(B) + (accumulate ? C : 0)` by faer, on row-major slices.
+    #[allow(clippy::too_many_arguments)]
+    fn gemm_faer(
+        ta: bool,
+        tb: bool,
+        m: usize,
+        n: usize,
+        k: usize,
+        alpha: Self,
+        a: &[Self],
+        b: &[Self],
+        accumulate: bool,
+        c: &mut [Self],
+    );
+
     #[allow(clippy::too_many_arguments)]
     unsafe fn gemm_raw(
         m: usize,
@@ -55,7 +70,49 @@ pub trait Float:
     );
 }
 
+/// `C = alpha·op(A)·op(B) + beta·C` by faer on row-major slices (see [`crate::tensor::gemm_faer`]).
+macro_rules! faer_gemm_impl {
+    ($t:ty) => {
+        fn gemm_faer(
+            ta: bool,
+            tb: bool,
+            m: usize,
+            n: usize,
+            k: usize,
+            alpha: $t,
+            a: &[$t],
+            b: &[$t],
+            accumulate: bool,
+            c: &mut [$t],
+        ) {
+            use faer::{Accum, MatMut, MatRef, Par};
+            let a = if ta {
+                MatRef::from_row_major_slice(&a[..m * k], k, m).transpose()
+            } else {
+                MatRef::from_row_major_slice(&a[..m * k], m, k)
+            };
+            let b = if tb {
+                MatRef::from_row_major_slice(&b[..k * n], n, k).transpose()
+            } else {
+                MatRef::from_row_major_slice(&b[..k * n], k, n)
+            };
+            let c = MatMut::from_row_major_slice_mut(&mut c[..m * n], m, n);
+            let beta = if accumulate {
+                Accum::Add
+            } else {
+                Accum::Replace
+            };
+            let par = match rayon::current_num_threads() {
+                1 => Par::Seq,
+                t => Par::rayon(t),
+            };
+            faer::linalg::matmul::matmul(c, beta, a, b, alpha, par);
+        }
+    };
+}
+
 impl Float for f32 {
+    faer_gemm_impl!(f32);
     const DTYPE: &'static str = "F32";
     fn of(x: f64) -> Self {
         x as f32
@@ -81,6 +138,7 @@ impl Float for f32 {
 }
 
 impl Float for f64 {
+    faer_gemm_impl!(f64);
     const DTYPE: &'static str = "F64";
     fn of(x: f64) -> Self {
         x

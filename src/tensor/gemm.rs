@@ -133,3 +133,40 @@ pub fn gemm_reference<T: Float>(
         }
     }
 }
+
+/// The same product by faer (its own packed, AVX-512-capable kernels, parallel over rayon's
+/// threads). `beta` must be 0 or 1.
+#[allow(clippy::too_many_arguments)]
+pub fn gemm_faer<T: Float>(
+    opa: Op,
+    opb: Op,
+    m: usize,
+    n: usize,
+    k: usize,
+    alpha: T,
+    a: &[T],
+    b: &[T],
+    beta: T,
+    c: &mut [T],
+) {
+    assert!(
+        beta == T::zero() || beta == T::one(),
+        "gemm_faer: beta must be 0 or 1"
+    );
+    assert!(
+        a.len() >= m * k && b.len() >= k * n && c.len() >= m * n,
+        "gemm_faer: sizes"
+    );
+    T::gemm_faer(
+        opa == Op::T,
+        opb == Op::T,
+        m,
+        n,
+        k,
+        alpha,
+        a,
+        b,
+        beta == T::one(),
+        c,
+    );
+}

@@ -1,0 +1,273 @@
+//! The DQN loop: act ε-greedily, remember, learn, refresh the target network.
+//!
+//! Read top to bottom, one episode of [`Agent::play_episode`] is the whole algorithm (Mnih et al.
+//! 2015, Algorithm 1) with the article's hyperparameters from [`Config`]:
+//!
+//! ```text
+//! reset the game; compose the first frame; fill the stack with it; store it
+//! repeat
+//!     ε ← linear schedule(agent step)
+//!     a ← random action with probability ε, else argmax_a Q_online(stack, a)
+//!     play a (2–4 emulator frames); compose the step's frame; push it on the stack
+//!     store (a, r, done, new frame) in the replay memory
+//!     every `train_every` steps after `learning_starts`: one gradient step on a sampled batch
+//!     every `target_update` steps: copy the online network into the target network
+//! until the game is over or the step limit is hit
+//! ```
+
+use super::checkpoint::Counters;
+use super::{argmax, Batch, Config, Learner, Replay};
+use crate::env::{Game, Observer};
+use crate::layers::Sequential;
+use crate::tensor::Tensor;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::time::Instant;
+
+/// One row of a run's `metrics.csv`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct EpisodeRow {
+    /// Episode number, from 1.
+    pub episode: u64,
+    /// Agent steps since the start of the run, at the end of this episode.
+    pub agent_steps: u64,
+    /// Emulator frames since the start of the run.
+    pub frames: u64,
+    /// The episode's score (unclipped rewards).
+    pub reward: f64,
+    /// Agent steps in this episode.
+    pub length: u64,
+    /// ε at the end of the episode.
+    pub epsilon: f32,
+    /// Mean loss of this episode's gradient steps (NaN if none).
+    pub mean_loss: f32,
+    /// Mean of `max_a Q(s, a)` over this episode's gradient steps (NaN if none).
+    pub mean_max_q: f32,
+    /// Training wall time since the start of the run, in seconds.
+    pub wall_seconds: f64,
+}
+
+impl EpisodeRow {
+    /// The CSV header.
+    pub const HEADER: &'static str =
+        "episode,agent_steps,emulator_frames,reward,length,epsilon,mean_loss,mean_max_q,wall_seconds";
+
+    /// The row as CSV.
+    pub fn csv(&self) -> String {
+        format!(
+            "{},{},{},{},{},{:.6},{:.6},{:.6},{:.3}",
+            self.episode,
+            self.agent_steps,
+            self.frames,
+            self.reward,
+            self.length,
+            self.epsilon,
+            self.mean_loss,
+            self.mean_max_q,
+            self.wall_seconds
+        )
+    }
+}
+
+/// `argmax_a Q(s, a)` for the observer's current stack `s`: writes the normalised stack into
+/// `input` (`[1, 88, 80, k]`) and runs a batch-1 forward pass.
+pub fn greedy(
+    net: &mut Sequential<f32>,
+    observer: &Observer,
+    table: &[f32; 256],
+    input: &mut Tensor<f32>,
+) -> usize {
+    observer.write_input(table, input.data_mut());
+    argmax(net.forward(input).data())
+}
+
+/// Plays one episode with an ε-greedy policy and no learning (evaluation); `on_step` sees the
+/// game after every step (to record it). Returns the score and the number of steps.
+#[allow(clippy::too_many_arguments)]
+pub fn play_evaluation_episode<G: Game>(
+    game: &mut G,
+    net: &mut Sequential<f32>,
+    observer: &mut Observer,
+    table: &[f32; 256],
+    input: &mut Tensor<f32>,
+    epsilon: f32,
+    rng: &mut impl Rng,
+    mut on_step: impl FnMut(&G),
+) -> (f64, u64) {
+    game.reset();
+    observer.reset(game);
+    on_step(game);
+    let (mut score, mut steps) = (0.0, 0);
+    loop {
+        let action = if rng.random::<f32>() < epsilon {
+            rng.random_range(0..game.n_actions())
+        } else {
+            greedy(net, observer, table, input)
+        };
+        let r = game.step(action);
+        observer.step(game);
+        on_step(game);
+        score += r.reward as f64;
+        steps += 1;
+        if r.terminal || r.truncated {
+            return (score, steps);
+        }
+    }
+}
+
+/// Random streams of a run, all derived from its seed.
+fn stream(seed: u64, id: u64) -> ChaCha8Rng {
+    let mut r = ChaCha8Rng::seed_from_u64(seed);
+    r.set_stream(id);
+    r
+}
+
+/// A DQN agent playing and learning one game.
+pub struct Agent<G: Game> {
+    /// The run's configuration.
+    pub config: Config,
+    /// The game.
+    pub game: G,
+    /// Frame composition and stacking for acting.
+    pub observer: Observer,
+    /// The replay memory.
+    pub replay: Replay,
+    /// Networks and optimizer.
+    pub learner: Learner,
+    /// Progress.
+    pub counters: Counters,
+    /// ε-greedy coin flips and random actions.
+    explore_rng: ChaCha8Rng,
+    /// Minibatch sampling.
+    sample_rng: ChaCha8Rng,
+    /// u8 pixel → network input.
+    table: [f32; 256],
+    /// `[1, 88, 80, k]`: the acting input.
+    input: Tensor<f32>,
+    /// The minibatch buffers.
+    batch: Batch,
+}
+
+impl<G: Game> Agent<G> {
+    /// A fresh agent: networks initialised from the config's seed, empty replay memory.
+    pub fn new(config: Config, game: G) -> Self {
+        let learner = Learner::from_config(&config, game.n_actions(), &mut stream(config.seed, 1));
+        Self::with_learner(config, game, learner, Counters::default())
+    }
+
+    /// An agent that continues from a learner and counters (a checkpoint).
+    pub fn with_learner(config: Config, game: G, learner: Learner, counters: Counters) -> Self {
+        let input = config.input_shape();
+        Agent {
+            observer: Observer::new(config.pipeline),
+            replay: Replay::new(config.replay_capacity, config.pipeline.channels()),
+            table: config.normalization.table(),
+            input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
+            batch: Batch::new(config.batch_size, input),
+            explore_rng: stream(config.seed, 2 + 2 * counters.episodes),
+            sample_rng: stream(config.seed, 3 + 2 * counters.episodes),
+            learner,
+            counters,
+            game,
+            config,
+        }
+    }
+
+    /// ε now.
+    pub fn epsilon(&self) -> f32 {
+        self.config.epsilon(self.counters.agent_steps)
+    }
+
+    /// `argmax_a Q(current stack, a)` with the acting network (the online one, or the lagged
+    /// target network if the config reproduces the notebook's swap).
+    pub fn greedy_action(&mut self) -> usize {
+        let net = if self.config.act_with_target_network {
+            &mut self.learner.target
+        } else {
+            &mut self.learner.online
+        };
+        greedy(net, &self.observer, &self.table, &mut self.input)
+    }
+
+    /// Plays one episode, learning as it goes, and returns its metrics row.
+    pub fn play_episode(&mut self) -> EpisodeRow {
+        let start = Instant::now();
+        let c = &self.config;
+        let (train_every, learning_starts, target_update) =
+            (c.train_every, c.learning_starts, c.target_update);
+        let clip = c.clip_rewards;
+        self.game.reset();
+        let first = self.observer.reset(&self.game);
+        self.replay.push_start(first);
+        let (mut score, mut length, mut loss_sum, mut q_sum, mut n_train) =
+            (0.0f64, 0u64, 0.0f64, 0.0f64, 0u32);
+        let last_action = loop {
+            let eps = self.epsilon();
+            let action = if self.explore_rng.random::<f32>() < eps {
+                self.explore_rng.random_range(0..self.game.n_actions())
+            } else {
+                self.greedy_action()
+            };
+            let r = self.game.step(action);
+            let frame = self.observer.step(&self.game);
+            let reward = if clip {
+                r.reward.clamp(-1.0, 1.0)
+            } else {
+                r.reward
+            };
+            self.replay.push_step(action, reward, r.terminal, frame);
+            score += r.reward as f64;
+            length += 1;
+            self.counters.agent_steps += 1;
+            self.counters.frames += r.frames as u64;
+            let t = self.counters.agent_steps;
+            if t > learning_starts
+                && t % train_every == 0
+                && self.replay.can_sample(self.batch.len())
+            {
+                self.replay
+                    .sample(&mut self.sample_rng, &self.table, &mut self.batch);
+                let s = self.learner.train_step(&self.batch);
+                self.counters.train_steps += 1;
+                loss_sum += s.loss as f64;
+                q_sum += s.mean_max_q as f64;
+                n_train += 1;
+            }
+            if t % target_update == 0 {
+                self.learner.update_target();
+            }
+            if r.terminal || r.truncated {
+                break action;
+            }
+        };
+        if self.config.fake_terminal_transition {
+            // The notebook's extra transition: the final state again, marked terminal.
+            let last = self
+                .observer
+                .stack()
+                .get(self.observer.stack().len() - 1)
+                .to_vec();
+            self.replay.push_step(last_action, 0.0, true, &last);
+        }
+        self.counters.episodes += 1;
+        self.counters.wall_seconds += start.elapsed().as_secs_f64();
+        let mean = |s: f64| {
+            if n_train > 0 {
+                (s / n_train as f64) as f32
+            } else {
+                f32::NAN
+            }
+        };
+        EpisodeRow {
+            episode: self.counters.episodes,
+            agent_steps: self.counters.agent_steps,
+            frames: self.counters.frames,
+            reward: score,
+            length,
+            epsilon: self.epsilon(),
+            mean_loss: mean(loss_sum),
+            mean_max_q: mean(q_sum),
+            wall_seconds: self.counters.wall_seconds,
+        }
+    }
+}

@@ -1,0 +1,245 @@
+//! Every hyperparameter of a run, named once, and the presets.
+//!
+//! A run's configuration is resolved in three layers: a preset (`article` by default), then the
+//! keys of an optional TOML file, then command-line flags. Unknown keys and out-of-range values
+//! are errors, and the resolved configuration is saved with the run as `config.toml`.
+
+use crate::env::{EnvConfig, EnvMode, Normalization, Pipeline};
+use crate::layers::loss::LossKind;
+use anyhow::{bail, Context};
+use serde::{Deserialize, Serialize};
+
+/// The named configurations.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Preset {
+    /// The article's hyperparameters with the notebook's defects fixed: `stack-max`
+    /// composition, inputs in [-1, 1), actions from the online network.
+    #[default]
+    Article,
+    /// The same with one frame per state: the article's baseline.
+    ArticleVanilla,
+    /// The notebook's behaviour on purpose: running-max composition, inputs in [-2, 0), actions
+    /// picked by the lagged (target) network, a fake terminal transition stored per episode.
+    ArticleAsWritten,
+}
+
+impl Preset {
+    /// The preset's name as used on the command line and in config files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Article => "article",
+            Preset::ArticleVanilla => "article-vanilla",
+            Preset::ArticleAsWritten => "article-as-written",
+        }
+    }
+}
+
+/// Everything a training run depends on.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// The preset these values started from.
+    pub preset: Preset,
+    /// Seed of every random generator of the run (network init, exploration, replay sampling,
+    /// the emulator).
+    pub seed: u64,
+    /// Stop after this many episodes (the article: 800).
+    pub episodes: u64,
+    /// Or after this many emulator frames, whichever comes first (0: no frame limit).
+    pub max_frames: u64,
+    /// How frames become the network's input.
+    pub pipeline: Pipeline,
+    /// How u8 pixels map to network inputs.
+    pub normalization: Normalization,
+    /// Replay memory size in transitions (the article: 20 000).
+    pub replay_capacity: usize,
+    /// Minibatch size (the article: 48).
+    pub batch_size: usize,
+    /// Adam learning rate (the article: 1e-3).
+    pub learning_rate: f32,
+    /// Discount factor γ (the article: 0.97).
+    pub gamma: f32,
+    /// Agent steps between gradient steps (the article: 4).
+    pub train_every: u64,
+    /// Agent steps before learning starts (the article: 2000).
+    pub learning_starts: u64,
+    /// Agent steps between copies of the online network into the target network (the
+    /// article: 100).
+    pub target_update: u64,
+    /// Exploration rate at step 0.
+    pub epsilon_start: f32,
+    /// Exploration rate after the decay.
+    pub epsilon_end: f32,
+    /// Agent steps over which ε falls linearly (the article: 500 000).
+    pub epsilon_decay_steps: u64,
+    /// The regression loss (the article: MSE).
+    pub loss: LossKind,
+    /// Double DQN targets.
+    pub double_dqn: bool,
+    /// Clip gradients to this global norm (0: no clipping).
+    pub clip_grad_norm: f32,
+    /// Clip rewards to [-1, 1] (the Nature DQN; the article does not).
+    pub clip_rewards: bool,
+    /// The notebook's swap: pick actions with the lagged (target) network.
+    pub act_with_target_network: bool,
+    /// The notebook's extra transition at each episode end: the final state, the last action,
+    /// reward 0, marked terminal, leading to itself.
+    pub fake_terminal_transition: bool,
+    /// Episodes between checkpoints (the last one is always written).
+    pub checkpoint_every: u64,
+    /// Episodes between refreshes of the reward plot.
+    pub plot_every: u64,
+    /// The environment.
+    pub env: EnvConfig,
+}
+
+impl Config {
+    /// The complete configuration of a preset.
+    pub fn preset(p: Preset) -> Config {
+        let article = Config {
+            preset: p,
+            seed: 0,
+            episodes: 800,
+            max_frames: 0,
+            pipeline: Pipeline::StackMax,
+            normalization: Normalization::Symmetric,
+            replay_capacity: 20_000,
+            batch_size: 48,
+            learning_rate: 1e-3,
+            gamma: 0.97,
+            train_every: 4,
+            learning_starts: 2_000,
+            target_update: 100,
+            epsilon_start: 1.0,
+            epsilon_end: 0.05,
+            epsilon_decay_steps: 500_000,
+            loss: LossKind::Mse,
+            double_dqn: false,
+            clip_grad_norm: 0.0,
+            clip_rewards: false,
+            act_with_target_network: false,
+            fake_terminal_transition: false,
+            checkpoint_every: 25,
+            plot_every: 5,
+            env: EnvConfig::from_mode(EnvMode::V0),
+        };
+        match p {
+            Preset::Article => article,
+            Preset::ArticleVanilla => Config {
+                pipeline: Pipeline::Vanilla,
+                ..article
+            },
+            Preset::ArticleAsWritten => Config {
+                pipeline: Pipeline::StackRunningMax,
+                normalization: Normalization::ArticleCode,
+                act_with_target_network: true,
+                fake_terminal_transition: true,
+                ..article
+            },
+        }
+    }
+
+    /// Resolves a configuration: the preset (`preset`, else the file's `preset` key, else
+    /// `article`), overlaid with the keys of `toml_text`. Unknown keys are errors.
+    pub fn resolve(preset: Option<Preset>, toml_text: Option<&str>) -> anyhow::Result<Config> {
+        let file: toml::Table = match toml_text {
+            Some(t) => toml::from_str(t).context("config file is not valid TOML")?,
+            None => toml::Table::new(),
+        };
+        let file_preset = match file.get("preset") {
+            Some(v) => Some(
+                Preset::deserialize(v.clone())
+                    .map_err(|e| anyhow::anyhow!("config key `preset`: {e}"))?,
+            ),
+            None => None,
+        };
+        let p = preset.or(file_preset).unwrap_or_default();
+        let mut base = toml::Table::try_from(Config::preset(p)).expect("a config serialises");
+        merge(&mut base, file);
+        base.insert("preset".into(), toml::Value::String(p.name().into()));
+        let config: Config = base
+            .try_into()
+            .map_err(|e: toml::de::Error| anyhow::anyhow!("invalid config: {}", e.message()))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks every value's range.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        let c = self;
+        if c.episodes == 0 {
+            bail!("episodes must be at least 1");
+        }
+        if c.replay_capacity < c.batch_size + 8 {
+            bail!(
+                "replay_capacity ({}) must exceed batch_size + 8",
+                c.replay_capacity
+            );
+        }
+        if c.batch_size == 0 {
+            bail!("batch_size must be at least 1");
+        }
+        if !(c.learning_rate > 0.0 && c.learning_rate.is_finite()) {
+            bail!("learning_rate must be positive, got {}", c.learning_rate);
+        }
+        if !(0.0..=1.0).contains(&c.gamma) {
+            bail!("gamma must be in [0, 1], got {}", c.gamma);
+        }
+        if c.train_every == 0 || c.target_update == 0 {
+            bail!("train_every and target_update must be at least 1");
+        }
+        for (name, e) in [
+            ("epsilon_start", c.epsilon_start),
+            ("epsilon_end", c.epsilon_end),
+        ] {
+            if !(0.0..=1.0).contains(&e) {
+                bail!("{name} must be in [0, 1], got {e}");
+            }
+        }
+        if !(c.clip_grad_norm >= 0.0 && c.clip_grad_norm.is_finite()) {
+            bail!("clip_grad_norm must be >= 0, got {}", c.clip_grad_norm);
+        }
+        if c.checkpoint_every == 0 || c.plot_every == 0 {
+            bail!("checkpoint_every and plot_every must be at least 1");
+        }
+        c.env.validate()?;
+        Ok(())
+    }
+
+    /// ε at agent step `t`: linear from `epsilon_start` to `epsilon_end` over
+    /// `epsilon_decay_steps`, constant after.
+    pub fn epsilon(&self, t: u64) -> f32 {
+        if t >= self.epsilon_decay_steps {
+            return self.epsilon_end;
+        }
+        let frac = t as f32 / self.epsilon_decay_steps as f32;
+        self.epsilon_start + frac * (self.epsilon_end - self.epsilon_start)
+    }
+
+    /// The network input shape `[88, 80, k]`.
+    pub fn input_shape(&self) -> [usize; 3] {
+        [
+            crate::env::FRAME_HEIGHT,
+            crate::env::FRAME_WIDTH,
+            self.pipeline.channels(),
+        ]
+    }
+
+    /// The configuration as TOML text.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("a config serialises")
+    }
+}
+
+/// Overlays `top` on `base`, recursing into tables (so `[env]` keys override one by one).
+fn merge(base: &mut toml::Table, top: toml::Table) {
+    for (k, v) in top {
+        match (base.get_mut(&k), v) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => merge(b, t),
+            (_, v) => {
+                base.insert(k, v);
+            }
+        }
+    }
+}

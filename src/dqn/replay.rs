@@ -1,0 +1,183 @@
+//! Experience replay that stores each 88x80 frame once.
+//!
+//! A transition `(s, a, r, s', done)` with stacked states would store every frame `2k` times
+//! (k = 4 frames in `s` and again in `s'`). Instead the memory is a ring of *entries*, one per
+//! environment observation: entry `g` holds the composite frame seen at that time and, once the
+//! agent has acted on it, the action taken, the reward received and whether the step ended the
+//! episode. A state is rebuilt at sampling time as the last `k` frames up to an entry, repeating
+//! the episode's first frame where the episode is younger than `k` (as the frame stack does at
+//! reset), so consecutive episodes never mix.
+//!
+//! Memory: one frame is 7 040 bytes, plus 8 bytes of transition data, so 20 000 entries take
+//! 141 MB and 1 000 000 take 7.05 GB (the pages are touched as the ring fills, so the resident
+//! size grows with the entries actually written).
+
+use super::Batch;
+use crate::env::{write_stacked_input, FRAME_LEN};
+use rand::Rng;
+
+/// The replay memory. Entries are numbered by a global counter `g` that never wraps; entry `g`
+/// lives in slot `g % capacity`.
+pub struct Replay {
+    capacity: usize,
+    /// Frames per state (1 for `vanilla`, 4 for the stacks).
+    k: usize,
+    /// `[capacity, 88·80]` u8 frames.
+    frames: Vec<u8>,
+    actions: Vec<u8>,
+    rewards: Vec<f32>,
+    /// Whether the step from this entry ended the episode for good (no bootstrapping from `s'`).
+    dones: Vec<bool>,
+    /// Whether this entry is the first observation of an episode.
+    starts: Vec<bool>,
+    /// Whether the agent acted on this entry (so entry `g + 1` is its `s'`).
+    acted: Vec<bool>,
+    /// Entries written so far.
+    written: u64,
+    /// Scratch: the sampled entries.
+    picks: Vec<u64>,
+}
+
+impl Replay {
+    /// An empty memory of `capacity` entries (= transitions) and states of `k` frames.
+    pub fn new(capacity: usize, k: usize) -> Self {
+        assert!(
+            capacity > k + 1,
+            "replay capacity must exceed the stack size + 1"
+        );
+        Replay {
+            capacity,
+            k,
+            frames: vec![0; capacity * FRAME_LEN],
+            actions: vec![0; capacity],
+            rewards: vec![0.0; capacity],
+            dones: vec![false; capacity],
+            starts: vec![false; capacity],
+            acted: vec![false; capacity],
+            written: 0,
+            picks: Vec::new(),
+        }
+    }
+
+    /// The number of entries held (at most `capacity`).
+    pub fn len(&self) -> usize {
+        self.written.min(self.capacity as u64) as usize
+    }
+
+    /// Whether nothing has been stored.
+    pub fn is_empty(&self) -> bool {
+        self.written == 0
+    }
+
+    /// The capacity in entries.
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// Entries written since creation (the global counter).
+    pub fn written(&self) -> u64 {
+        self.written
+    }
+
+    fn slot(&self, g: u64) -> usize {
+        (g % self.capacity as u64) as usize
+    }
+
+    fn oldest(&self) -> u64 {
+        self.written.saturating_sub(self.capacity as u64)
+    }
+
+    fn push_frame(&mut self, frame: &[u8], start: bool) {
+        let s = self.slot(self.written);
+        self.frames[s * FRAME_LEN..][..FRAME_LEN].copy_from_slice(frame);
+        self.starts[s] = start;
+        self.acted[s] = false;
+        self.written += 1;
+    }
+
+    /// Stores the first observation of an episode.
+    pub fn push_start(&mut self, frame: &[u8]) {
+        self.push_frame(frame, true);
+    }
+
+    /// Records that the agent took `action` in the latest entry, received `reward`, and saw
+    /// `next_frame`; `done` means the episode ended for good (a time limit is not `done`: the
+    /// state still has a future, so its value is still bootstrapped).
+    pub fn push_step(&mut self, action: usize, reward: f32, done: bool, next_frame: &[u8]) {
+        assert!(self.written > 0, "push_start comes first");
+        let s = self.slot(self.written - 1);
+        self.actions[s] = u8::try_from(action).expect("action index fits a byte");
+        self.rewards[s] = reward;
+        self.dones[s] = done;
+        self.acted[s] = true;
+        self.push_frame(next_frame, false);
+    }
+
+    /// Whether entry `g` can be sampled: it and its successor are held, and it was acted on.
+    fn valid(&self, g: u64) -> bool {
+        g >= self.oldest() && g + 1 < self.written && self.acted[self.slot(g)]
+    }
+
+    /// The `k` frames of the state ending at entry `g`, oldest first, or `None` if they reach back
+    /// past the oldest entry held (the ring has overwritten them).
+    fn state_frames(&self, g: u64) -> Option<[&[u8]; 4]> {
+        let mut out: [&[u8]; 4] = [&[]; 4];
+        let mut e = g;
+        for i in (0..self.k).rev() {
+            out[i] = &self.frames[self.slot(e) * FRAME_LEN..][..FRAME_LEN];
+            if i > 0 && !self.starts[self.slot(e)] {
+                if e == self.oldest() {
+                    return None;
+                }
+                e -= 1;
+            }
+        }
+        Some(out)
+    }
+
+    /// Whether at least `n` transitions can be sampled.
+    pub fn can_sample(&self, n: usize) -> bool {
+        self.len() > n + self.k
+    }
+
+    /// Fills `batch` with transitions drawn uniformly (with replacement) from those held,
+    /// normalising frames with `table`.
+    pub fn sample(&mut self, rng: &mut impl Rng, table: &[f32; 256], batch: &mut Batch) {
+        assert!(self.k <= 4, "states of at most 4 frames");
+        assert!(
+            self.can_sample(batch.len()),
+            "too few transitions to sample"
+        );
+        let (lo, hi) = (self.oldest(), self.written - 1);
+        let mut picks = std::mem::take(&mut self.picks);
+        picks.clear();
+        while picks.len() < batch.len() {
+            let g = rng.random_range(lo..hi);
+            if self.valid(g) && self.state_frames(g).is_some() {
+                picks.push(g);
+            }
+        }
+        let per = FRAME_LEN * self.k;
+        for (i, &g) in picks.iter().enumerate() {
+            let s = self.slot(g);
+            batch.actions[i] = self.actions[s] as usize;
+            batch.rewards[i] = self.rewards[s];
+            batch.dones[i] = self.dones[s];
+            let state = self.state_frames(g).expect("checked");
+            write_stacked_input(
+                &state[..self.k],
+                table,
+                &mut batch.states.data_mut()[i * per..][..per],
+            );
+            let next = self
+                .state_frames(g + 1)
+                .expect("successor of a valid entry");
+            write_stacked_input(
+                &next[..self.k],
+                table,
+                &mut batch.next_states.data_mut()[i * per..][..per],
+            );
+        }
+        self.picks = picks;
+    }
+}

@@ -1,0 +1,116 @@
+//! Reward curves like the article's figures: each episode's score, faint, and its moving average.
+
+use anyhow::{anyhow, Context};
+use plotters::prelude::*;
+use std::path::Path;
+
+/// One run's curve: a label and `(episode, reward)` points.
+pub struct Curve {
+    /// Legend label.
+    pub label: String,
+    /// `(episode, reward)`, in episode order.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// The trailing moving average over `window` points (shorter at the start).
+pub fn moving_average(ys: &[f64], window: usize) -> Vec<f64> {
+    let mut out = Vec::with_capacity(ys.len());
+    let mut sum = 0.0;
+    for i in 0..ys.len() {
+        sum += ys[i];
+        if i >= window {
+            sum -= ys[i - window];
+        }
+        out.push(sum / (i + 1).min(window) as f64);
+    }
+    out
+}
+
+/// Reads `(episode, reward)` from a run's `metrics.csv`.
+pub fn read_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    let header = lines
+        .next()
+        .ok_or_else(|| anyhow!("{} is empty", path.display()))?;
+    let cols: Vec<&str> = header.split(',').collect();
+    let col = |name: &str| {
+        cols.iter()
+            .position(|c| *c == name)
+            .ok_or_else(|| anyhow!("{}: no `{name}` column", path.display()))
+    };
+    let (ie, ir) = (col("episode")?, col("reward")?);
+    let mut points = Vec::new();
+    for (n, line) in lines.enumerate() {
+        let f: Vec<&str> = line.split(',').collect();
+        let parse = |i: usize| -> anyhow::Result<f64> {
+            f.get(i)
+                .and_then(|v| v.parse().ok())
+                .ok_or_else(|| anyhow!("{}: line {} is malformed", path.display(), n + 2))
+        };
+        points.push((parse(ie)?, parse(ir)?));
+    }
+    Ok(points)
+}
+
+/// Draws reward curves (faint per-episode scores, bold moving averages over `window` episodes)
+/// into a PNG.
+pub fn plot_rewards(
+    curves: &[Curve],
+    title: &str,
+    window: usize,
+    out: &Path,
+) -> anyhow::Result<()> {
+    let root = BitMapBackend::new(out, (1000, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
+    let max_x = curves
+        .iter()
+        .flat_map(|c| c.points.iter().map(|p| p.0))
+        .fold(1.0, f64::max);
+    let max_y = curves
+        .iter()
+        .flat_map(|c| c.points.iter().map(|p| p.1))
+        .fold(10.0, f64::max);
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 24))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..max_x, 0.0..max_y * 1.05)
+        .map_err(|e| anyhow!("plot: {e}"))?;
+    chart
+        .configure_mesh()
+        .x_desc("episode")
+        .y_desc("reward per episode")
+        .draw()
+        .map_err(|e| anyhow!("plot: {e}"))?;
+    for (i, c) in curves.iter().enumerate() {
+        let color = Palette99::pick(i);
+        let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
+        let avg = moving_average(&ys, window);
+        chart
+            .draw_series(LineSeries::new(c.points.iter().copied(), color.mix(0.25)))
+            .map_err(|e| anyhow!("plot: {e}"))?;
+        chart
+            .draw_series(LineSeries::new(
+                c.points.iter().zip(avg).map(|(p, a)| (p.0, a)),
+                color.stroke_width(3),
+            ))
+            .map_err(|e| anyhow!("plot: {e}"))?
+            .label(format!("{} ({window}-episode mean)", c.label))
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperLeft)
+        .draw()
+        .map_err(|e| anyhow!("plot: {e}"))?;
+    root.present()
+        .map_err(|e| anyhow!("plot: cannot write {}: {e}", out.display()))?;
+    Ok(())
+}
