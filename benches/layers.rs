@@ -135,7 +135,7 @@ criterion_main!(benches);
 /// matrixmultiply against faer on the GEMMs of the article's layers at batch 48 (forward
 /// `cols·W`, weight gradient `colsᵀ·dY`, input gradient `dY·Wᵀ`), to choose a kernel per shape.
 fn gemm_kernels(c: &mut Criterion) {
-    use invaders::tensor::{gemm, gemm_faer, Op};
+    use invaders::tensor::{gemm_faer, gemm_matrixmultiply, Op};
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     // (name, M rows, K, N) of Y[M×N] = X[M×K]·W[K×N]
     let shapes = [
@@ -158,7 +158,7 @@ fn gemm_kernels(c: &mut Criterion) {
         group.throughput(Throughput::Elements(2 * (m * k * n) as u64));
         type G = fn(Op, Op, usize, usize, usize, f32, &[f32], &[f32], f32, &mut [f32]);
         for (kernel, f) in [
-            ("matrixmultiply", gemm::<f32> as G),
+            ("matrixmultiply", gemm_matrixmultiply::<f32> as G),
             ("faer", gemm_faer::<f32> as G),
         ] {
             group.bench_function(format!("{name}/forward/{kernel}"), |b| {

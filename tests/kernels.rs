@@ -5,8 +5,8 @@ mod common;
 use common::{rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
-    conv2d_reference, conv2d_reference_backward, gemm, gemm_reference, ConvGeom, Op, Padding,
-    Tensor,
+    conv2d_reference, conv2d_reference_backward, gemm, gemm_matrixmultiply, gemm_reference,
+    ConvGeom, Op, Padding, Tensor,
 };
 use proptest::prelude::*;
 
@@ -46,9 +46,12 @@ proptest! {
         let mut fast = c0.data().to_vec();
         if !accumulate { fast.fill(f32::NAN); }
         let mut slow = c0.data().to_vec();
+        let mut other = fast.clone();
         gemm(opa, opb, m, n, k, 0.5, a.data(), b.data(), beta, &mut fast);
+        gemm_matrixmultiply(opa, opb, m, n, k, 0.5, a.data(), b.data(), beta, &mut other);
         gemm_reference(opa, opb, m, n, k, 0.5, a.data(), b.data(), beta, &mut slow);
-        assert_close("C", &fast, &slow, 1e-5)?;
+        assert_close("C (faer)", &fast, &slow, 1e-5)?;
+        assert_close("C (matrixmultiply)", &other, &slow, 1e-5)?;
     }
 
     /// The `Conv2d` layer (im2col + GEMM, col2im) against the direct convolution and its direct

@@ -14,7 +14,7 @@ mod gemm;
 
 pub use conv::{col2im, conv2d_reference, conv2d_reference_backward, im2col, ConvGeom, Padding};
 pub use float::Float;
-pub use gemm::{gemm, gemm_faer, gemm_reference, Op};
+pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};
 
