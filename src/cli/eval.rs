@@ -1,49 +1,73 @@
 //! `invaders eval`: play whole episodes and summarise their scores.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use clap::{Args, ValueEnum};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use invaders::env::{EnvConfig, EnvMode, SpaceInvaders};
+use invaders::dqn::checkpoint;
+use invaders::dqn::play_evaluation_episode;
+use invaders::env::{EnvConfig, EnvMode, Observer, SpaceInvaders};
+use invaders::tensor::Tensor;
+
+/// The emulator's screen size.
+const SCREEN_W: usize = 160;
+const SCREEN_H: usize = 210;
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
     /// Play uniformly random actions (the baseline every agent must beat).
     #[arg(long)]
     random: bool,
-    /// A trained agent to evaluate (not available yet).
-    #[arg(long, value_name = "PATH")]
+    /// A checkpoint to evaluate (`RUN_DIR/checkpoint.safetensors`, or the run directory).
+    #[arg(long, value_name = "PATH", conflicts_with = "random")]
     checkpoint: Option<PathBuf>,
+    /// Exploration rate while evaluating a checkpoint.
+    #[arg(long, default_value_t = 0.05)]
+    epsilon: f32,
+    /// Record the first episode as an animated GIF at the emulator's full 210x160 colour.
+    #[arg(long, value_name = "FILE")]
+    gif: Option<PathBuf>,
+    /// Worker threads for the kernels (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
     /// Number of episodes.
     #[arg(long, default_value_t = 30)]
     episodes: u32,
     /// Seed of the environment (the agent's random choices use a stream derived from it).
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Environment mode.
-    #[arg(long, value_enum, default_value_t = EnvMode::V0)]
-    mode: EnvMode,
+    /// Environment mode (default: v0 for --random, the run's own for --checkpoint).
+    #[arg(long, value_enum)]
+    mode: Option<EnvMode>,
     /// Space Invaders ROM to use instead of the bundled one.
     #[arg(long, value_name = "PATH")]
     rom: Option<PathBuf>,
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
-    if !args.random {
-        if args.checkpoint.is_some() {
-            bail!("evaluating a --checkpoint is not available yet; use --random for the baseline");
-        }
-        bail!("eval needs --checkpoint PATH (not available yet) or --random");
-    }
+    super::train::set_threads(args.threads)?;
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
+    if !(0.0..=1.0).contains(&args.epsilon) {
+        bail!("--epsilon must be in [0, 1], got {}", args.epsilon);
+    }
+    if let Some(path) = &args.checkpoint {
+        return run_checkpoint(args, path);
+    }
+    if !args.random {
+        bail!("eval needs --checkpoint PATH or --random");
+    }
+    if args.gif.is_some() {
+        bail!("--gif records a checkpoint's play; use it with --checkpoint");
+    }
+    let mode = args.mode.unwrap_or(EnvMode::V0);
     let config = EnvConfig {
         rom: args.rom.clone(),
-        ..EnvConfig::from_mode(args.mode)
+        ..EnvConfig::from_mode(mode)
     };
     let mut env = SpaceInvaders::new(&config, args.seed).context("cannot start Space Invaders")?;
     let mut agent = ChaCha8Rng::seed_from_u64(args.seed);
@@ -78,8 +102,7 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     let s = Summary::of(&scores);
     println!(
         "random agent, mode {}, {} episodes, seed {}: mean {:.1} std {:.1} min {} max {}",
-        args.mode
-            .to_possible_value()
+        mode.to_possible_value()
             .expect("modes are named")
             .get_name(),
         s.n,
@@ -90,6 +113,146 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
         s.max
     );
     Ok(())
+}
+
+/// Plays `args.episodes` episodes with a checkpoint's online network, ε-greedy.
+fn run_checkpoint(args: &EvalArgs, path: &Path) -> anyhow::Result<()> {
+    let file = if path.is_dir() {
+        path.join("checkpoint.safetensors")
+    } else {
+        path.to_path_buf()
+    };
+    let ckpt = checkpoint::load(&file)?;
+    let config = ckpt.config;
+    let mut env_config = config.env.clone();
+    if let Some(mode) = args.mode {
+        env_config = EnvConfig {
+            rom: env_config.rom,
+            ..EnvConfig::from_mode(mode)
+        };
+    }
+    if args.rom.is_some() {
+        env_config.rom = args.rom.clone();
+    }
+    let mut env =
+        SpaceInvaders::new(&env_config, args.seed).context("cannot start Space Invaders")?;
+    if env.n_actions() != ckpt.learner.n_actions() {
+        bail!(
+            "the checkpoint has {} actions but the game has {}",
+            ckpt.learner.n_actions(),
+            env.n_actions()
+        );
+    }
+    let mut net = ckpt.learner.online;
+    let mut observer = Observer::new(config.pipeline);
+    let table = config.normalization.table();
+    let [h, w, c] = config.input_shape();
+    let mut input = Tensor::zeros(&[1, h, w, c]);
+    let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
+    rng.set_stream(1);
+    let mut gif = match &args.gif {
+        Some(p) => Some(GifRecorder::create(p)?),
+        None => None,
+    };
+    let mut scores = Vec::with_capacity(args.episodes as usize);
+    for episode in 0..args.episodes {
+        let mut recorder = if episode == 0 { gif.as_mut() } else { None };
+        let mut record_error = None;
+        let (score, steps) = play_evaluation_episode(
+            &mut env,
+            &mut net,
+            &mut observer,
+            &table,
+            &mut input,
+            args.epsilon,
+            &mut rng,
+            |g| {
+                if let (Some(r), None) = (recorder.as_deref_mut(), &record_error) {
+                    if let Err(e) = r.frame(g.screen_rgb()) {
+                        record_error = Some(e);
+                    }
+                }
+            },
+        );
+        if let Some(e) = record_error {
+            return Err(e);
+        }
+        println!(
+            "episode {:>3}: score {score:>6} steps {steps:>5}",
+            episode + 1
+        );
+        scores.push(score);
+    }
+    if let (Some(g), Some(p)) = (gif, &args.gif) {
+        g.finish()?;
+        println!("recorded episode 1 to {}", p.display());
+    }
+    let s = Summary::of(&scores);
+    println!(
+        "checkpoint {} (preset {}, {} episodes trained), epsilon {}, {} episodes, seed {}: mean {:.1} std {:.1} min {} max {}",
+        file.display(),
+        config.preset.name(),
+        ckpt.counters.episodes,
+        args.epsilon,
+        s.n,
+        args.seed,
+        s.mean,
+        s.std,
+        s.min,
+        s.max
+    );
+    Ok(())
+}
+
+/// Writes an animated GIF frame by frame into a temporary file, renamed into place at the end.
+struct GifRecorder {
+    encoder: gif::Encoder<std::io::BufWriter<std::fs::File>>,
+    tmp: PathBuf,
+    path: PathBuf,
+}
+
+impl GifRecorder {
+    fn create(path: &Path) -> anyhow::Result<Self> {
+        let dir = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let name = path
+            .file_name()
+            .ok_or_else(|| anyhow::anyhow!("--gif {} is not a file path", path.display()))?;
+        let tmp = dir.join(format!(".{}.tmp", name.to_string_lossy()));
+        let file = std::fs::File::create(&tmp)
+            .with_context(|| format!("cannot create {}", tmp.display()))?;
+        let mut encoder = gif::Encoder::new(
+            std::io::BufWriter::new(file),
+            SCREEN_W as u16,
+            SCREEN_H as u16,
+            &[],
+        )?;
+        encoder.set_repeat(gif::Repeat::Infinite)?;
+        Ok(GifRecorder {
+            encoder,
+            tmp,
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// Appends one 210x160 RGB screen, shown for 1/20 s (an agent step is 2 to 4 frames at 60 Hz).
+    fn frame(&mut self, rgb: &[u8]) -> anyhow::Result<()> {
+        let mut frame = gif::Frame::from_rgb_speed(SCREEN_W as u16, SCREEN_H as u16, rgb, 10);
+        frame.delay = 5;
+        self.encoder
+            .write_frame(&frame)
+            .context("cannot write the GIF")
+    }
+
+    fn finish(self) -> anyhow::Result<()> {
+        let GifRecorder { encoder, tmp, path } = self;
+        let mut w = encoder.into_inner().context("cannot finish the GIF")?;
+        std::io::Write::flush(&mut w)?;
+        drop(w);
+        std::fs::rename(&tmp, &path).with_context(|| format!("cannot write {}", path.display()))
+    }
 }
 
 /// Mean, population standard deviation, min and max of episode scores.

@@ -4,6 +4,7 @@
 use clap::{Parser, Subcommand};
 
 mod eval;
+mod plot;
 mod train;
 
 /// A from-scratch DQN that learns Atari Space Invaders.
@@ -21,6 +22,8 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Play episodes and print score statistics (mean, std, min, max).
     Eval(eval::EvalArgs),
+    /// Draw the reward curves of one or more runs on one figure.
+    Plot(plot::PlotArgs),
 }
 
 /// Runs the chosen subcommand.
@@ -28,5 +31,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Train(args) => train::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Plot(args) => plot::run(&args),
     }
 }

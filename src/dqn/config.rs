@@ -57,9 +57,9 @@ pub struct Config {
     /// Minibatch size (the article: 48).
     pub batch_size: usize,
     /// Adam learning rate (the article: 1e-3).
-    pub learning_rate: f32,
+    pub learning_rate: f64,
     /// Discount factor γ (the article: 0.97).
-    pub gamma: f32,
+    pub gamma: f64,
     /// Agent steps between gradient steps (the article: 4).
     pub train_every: u64,
     /// Agent steps before learning starts (the article: 2000).
@@ -68,9 +68,9 @@ pub struct Config {
     /// article: 100).
     pub target_update: u64,
     /// Exploration rate at step 0.
-    pub epsilon_start: f32,
+    pub epsilon_start: f64,
     /// Exploration rate after the decay.
-    pub epsilon_end: f32,
+    pub epsilon_end: f64,
     /// Agent steps over which ε falls linearly (the article: 500 000).
     pub epsilon_decay_steps: u64,
     /// The regression loss (the article: MSE).
@@ -78,7 +78,7 @@ pub struct Config {
     /// Double DQN targets.
     pub double_dqn: bool,
     /// Clip gradients to this global norm (0: no clipping).
-    pub clip_grad_norm: f32,
+    pub clip_grad_norm: f64,
     /// Clip rewards to [-1, 1] (the Nature DQN; the article does not).
     pub clip_rewards: bool,
     /// The notebook's swap: pick actions with the lagged (target) network.
@@ -211,10 +211,10 @@ impl Config {
     /// `epsilon_decay_steps`, constant after.
     pub fn epsilon(&self, t: u64) -> f32 {
         if t >= self.epsilon_decay_steps {
-            return self.epsilon_end;
+            return self.epsilon_end as f32;
         }
-        let frac = t as f32 / self.epsilon_decay_steps as f32;
-        self.epsilon_start + frac * (self.epsilon_end - self.epsilon_start)
+        let frac = t as f64 / self.epsilon_decay_steps as f64;
+        (self.epsilon_start + frac * (self.epsilon_end - self.epsilon_start)) as f32
     }
 
     /// The network input shape `[88, 80, k]`.

@@ -118,13 +118,13 @@ impl Learner {
         let mut l = Learner::new(
             config.input_shape(),
             n_actions,
-            config.learning_rate,
-            config.gamma,
+            config.learning_rate as f32,
+            config.gamma as f32,
             rng,
         );
         l.loss = config.loss;
         l.double = config.double_dqn;
-        l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm);
+        l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm as f32);
         l
     }
 
