@@ -158,9 +158,10 @@ impl Config {
         let mut base = toml::Table::try_from(Config::preset(p)).expect("a config serialises");
         merge(&mut base, file);
         base.insert("preset".into(), toml::Value::String(p.name().into()));
-        let config: Config = base
-            .try_into()
-            .map_err(|e: toml::de::Error| anyhow::anyhow!("invalid config: {}", e.message()))?;
+        // Deserialising from text (not from the table) makes errors quote the offending line.
+        let merged = toml::to_string(&base).expect("a table serialises");
+        let config: Config =
+            toml::from_str(&merged).map_err(|e| anyhow::anyhow!("invalid config: {e}"))?;
         config.validate()?;
         Ok(config)
     }

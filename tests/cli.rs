@@ -1,0 +1,255 @@
+//! The `invaders` binary end to end: a short Space Invaders training run, its run directory,
+//! evaluation, resume, plotting, and every bad-input path giving a clear error and a non-zero
+//! exit without touching earlier results.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn invaders(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_invaders"))
+        .args(args)
+        .env_remove("RUST_BACKTRACE")
+        .output()
+        .expect("the binary runs")
+}
+
+fn ok(out: &Output) -> String {
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "command failed:\n{text}");
+    text
+}
+
+/// Asserts a failure whose message contains `needle`.
+fn fails_with(out: &Output, needle: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "expected a failure, got success: {err}"
+    );
+    assert!(
+        err.contains(needle),
+        "error should mention `{needle}`:\n{err}"
+    );
+    assert!(
+        !err.contains("panicked"),
+        "a panic is not a clear error:\n{err}"
+    );
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("invaders-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// A small but real configuration: short episodes (cut at 150 agent steps), learning from step 60.
+const QUICK: &str = "learning_starts = 60\nreplay_capacity = 400\nbatch_size = 8\ncheckpoint_every = 1\nplot_every = 1\n[env]\nmax_episode_steps = 150\n";
+
+fn metrics_rows(dir: &Path) -> Vec<Vec<String>> {
+    let text = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "episode,agent_steps,emulator_frames,reward,length,epsilon,mean_loss,mean_max_q,wall_seconds"
+    );
+    lines
+        .map(|l| l.split(',').map(str::to_string).collect())
+        .collect()
+}
+
+#[test]
+fn train_eval_resume_plot() {
+    let root = tmp("run");
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = root.join("quick.toml");
+    std::fs::write(&cfg, QUICK).unwrap();
+    let run = root.join("run");
+    let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
+    ok(&invaders(&[
+        "train",
+        "--config",
+        cfg_s,
+        "--episodes",
+        "2",
+        "--seed",
+        "5",
+        "--threads",
+        "1",
+        "--out",
+        run_s,
+    ]));
+    for f in [
+        "config.toml",
+        "metrics.csv",
+        "checkpoint.safetensors",
+        "rewards.png",
+    ] {
+        assert!(run.join(f).is_file(), "{f} missing");
+    }
+    let rows = metrics_rows(&run);
+    assert_eq!(rows.len(), 2);
+    assert_eq!(rows[0][0], "1");
+    assert_eq!(rows[1][0], "2");
+    let steps: u64 = rows[1][1].parse().unwrap();
+    assert!(steps > 150, "two episodes of up to 150 steps: {steps}");
+    assert_ne!(rows[1][6], "NaN", "learning started in episode 2");
+    let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(
+        saved.contains("seed = 5") && saved.contains("max_episode_steps = 150"),
+        "{saved}"
+    );
+
+    // Evaluation of the checkpoint, with a GIF.
+    let gif = root.join("play.gif");
+    let text = ok(&invaders(&[
+        "eval",
+        "--checkpoint",
+        run_s,
+        "--episodes",
+        "2",
+        "--gif",
+        gif.to_str().unwrap(),
+    ]));
+    assert!(
+        text.contains("mean")
+            && text.contains("std")
+            && text.contains("min")
+            && text.contains("max"),
+        "{text}"
+    );
+    let bytes = std::fs::read(&gif).unwrap();
+    assert!(bytes.starts_with(b"GIF89a") && bytes.len() > 10_000);
+    assert_eq!(u16::from_le_bytes([bytes[6], bytes[7]]), 160, "GIF width");
+    assert_eq!(u16::from_le_bytes([bytes[8], bytes[9]]), 210, "GIF height");
+
+    // Resume continues from the saved counters.
+    ok(&invaders(&[
+        "train",
+        "--resume",
+        run_s,
+        "--episodes",
+        "3",
+        "--threads",
+        "1",
+    ]));
+    let rows = metrics_rows(&run);
+    assert_eq!(rows.len(), 3);
+    assert_eq!(rows[2][0], "3");
+    let steps3: u64 = rows[2][1].parse().unwrap();
+    assert!(
+        steps3 > steps,
+        "agent steps continue: {steps3} after {steps}"
+    );
+
+    // Plot of two runs on one figure.
+    let png = root.join("cmp.png");
+    ok(&invaders(&[
+        "plot",
+        run_s,
+        run_s,
+        "--out",
+        png.to_str().unwrap(),
+    ]));
+    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+
+    // A non-empty --out is refused and left as it was.
+    let before = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
+    fails_with(
+        &invaders(&[
+            "train",
+            "--config",
+            cfg_s,
+            "--episodes",
+            "1",
+            "--out",
+            run_s,
+        ]),
+        "not empty",
+    );
+    assert_eq!(
+        std::fs::read(run.join("checkpoint.safetensors")).unwrap(),
+        before
+    );
+    assert_eq!(metrics_rows(&run).len(), 3);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+#[test]
+fn bad_inputs_give_clear_errors() {
+    let root = tmp("bad");
+    std::fs::create_dir_all(&root).unwrap();
+    let path = |n: &str| root.join(n).to_str().unwrap().to_string();
+    fails_with(&invaders(&["train", "--no-such-flag"]), "--no-such-flag");
+    fails_with(&invaders(&["train", "--preset", "nature"]), "nature");
+    fails_with(
+        &invaders(&["train", "--config", &path("missing.toml")]),
+        "cannot read config file",
+    );
+    std::fs::write(root.join("unknown.toml"), "gama = 0.5\n").unwrap();
+    fails_with(
+        &invaders(&[
+            "train",
+            "--config",
+            &path("unknown.toml"),
+            "--out",
+            &path("r1"),
+        ]),
+        "gama",
+    );
+    std::fs::write(root.join("range.toml"), "gamma = 1.5\n").unwrap();
+    fails_with(
+        &invaders(&[
+            "train",
+            "--config",
+            &path("range.toml"),
+            "--out",
+            &path("r2"),
+        ]),
+        "gamma",
+    );
+    fails_with(
+        &invaders(&["train", "--threads", "0", "--out", &path("r3")]),
+        "--threads",
+    );
+    fails_with(
+        &invaders(&["train", "--episodes", "0", "--out", &path("r4")]),
+        "episodes",
+    );
+    fails_with(
+        &invaders(&["train", "--resume", &path("nothing-here")]),
+        "checkpoint",
+    );
+    std::fs::write(
+        root.join("corrupt.safetensors"),
+        b"\x10\x00\x00\x00\x00\x00\x00\x00{\"a\":1}",
+    )
+    .unwrap();
+    fails_with(
+        &invaders(&["eval", "--checkpoint", &path("corrupt.safetensors")]),
+        "not a valid checkpoint",
+    );
+    fails_with(&invaders(&["eval"]), "--checkpoint");
+    fails_with(
+        &invaders(&["eval", "--random", "--episodes", "0"]),
+        "--episodes",
+    );
+    fails_with(
+        &invaders(&["eval", "--random", "--rom", &path("no.bin")]),
+        "no.bin",
+    );
+    fails_with(
+        &invaders(&["plot", &path("nothing-here"), "--out", &path("x.png")]),
+        "metrics.csv",
+    );
+    for r in ["r1", "r2", "r3", "r4"] {
+        assert!(
+            !root.join(r).exists() || std::fs::read_dir(root.join(r)).unwrap().next().is_none(),
+            "{r} written"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -1,0 +1,337 @@
+//! The DQN machinery: learning a toy game end to end, the replay memory's stacks, the
+//! configuration, and checkpoints.
+
+mod common;
+
+use invaders::dqn::checkpoint::{self, Counters};
+use invaders::dqn::{argmax, greedy, Agent, Batch, Config, Preset, Replay};
+use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
+use invaders::tensor::Tensor;
+
+/// A corridor of `LEN` cells drawn as a bright vertical band at the agent's cell. Actions: 0 =
+/// left, 1 = right. Reaching the last cell gives reward 1 and ends the episode; every other step
+/// gives 0; episodes are cut after `LIMIT` steps. The optimal policy walks right: return 1 in
+/// `LEN − 1` steps, and `Q*(cell i, right) = γ^(LEN − 2 − i)`.
+struct Corridor {
+    pos: usize,
+    steps: u32,
+    frame: Vec<u8>,
+}
+
+const LEN: usize = 4;
+const LIMIT: u32 = 12;
+
+impl Corridor {
+    fn new() -> Self {
+        let mut c = Corridor {
+            pos: 0,
+            steps: 0,
+            frame: vec![0; FRAME_LEN],
+        };
+        c.draw();
+        c
+    }
+    fn draw(&mut self) {
+        let band = FRAME_WIDTH / LEN;
+        for (i, p) in self.frame.iter_mut().enumerate() {
+            *p = if (i % FRAME_WIDTH) / band == self.pos {
+                255
+            } else {
+                0
+            };
+        }
+    }
+}
+
+impl Game for Corridor {
+    fn n_actions(&self) -> usize {
+        2
+    }
+    fn reset(&mut self) {
+        self.pos = 0;
+        self.steps = 0;
+        self.draw();
+    }
+    fn step(&mut self, action: usize) -> StepResult {
+        self.pos = if action == 1 {
+            self.pos + 1
+        } else {
+            self.pos.saturating_sub(1)
+        };
+        self.steps += 1;
+        self.draw();
+        let terminal = self.pos == LEN - 1;
+        StepResult {
+            reward: if terminal { 1.0 } else { 0.0 },
+            terminal,
+            truncated: !terminal && self.steps >= LIMIT,
+            lives: 1,
+            frames: 1,
+        }
+    }
+    fn last_two_frames(&self) -> (&[u8], &[u8]) {
+        (&self.frame, &self.frame)
+    }
+    fn observation(&self) -> &[u8] {
+        &self.frame
+    }
+}
+
+fn toy_config() -> Config {
+    let mut c = Config::preset(Preset::Article);
+    c.pipeline = Pipeline::Vanilla;
+    c.replay_capacity = 1_000;
+    c.batch_size = 16;
+    c.gamma = 0.9;
+    c.learning_starts = 64;
+    c.train_every = 1;
+    c.target_update = 25;
+    c.epsilon_decay_steps = 600;
+    c.epsilon_end = 0.1;
+    c.seed = 3;
+    c
+}
+
+/// Replay, target network, loss and optimizer together: the agent learns the optimal policy of
+/// the corridor and Q-values near γ^k.
+#[test]
+fn dqn_learns_a_toy_corridor() {
+    let mut agent = Agent::new(toy_config(), Corridor::new());
+    for _ in 0..120 {
+        agent.play_episode();
+    }
+    // Greedy play from the start walks straight to the goal.
+    let mut game = Corridor::new();
+    let mut observer = Observer::new(Pipeline::Vanilla);
+    let table = agent.config.normalization.table();
+    let mut input = Tensor::zeros(&[1, 88, 80, 1]);
+    game.reset();
+    observer.reset(&game);
+    let (mut ret, mut steps) = (0.0, 0);
+    loop {
+        let a = greedy(&mut agent.learner.online, &observer, &table, &mut input);
+        let r = game.step(a);
+        observer.step(&game);
+        ret += r.reward;
+        steps += 1;
+        if r.terminal || r.truncated {
+            break;
+        }
+    }
+    assert_eq!((ret, steps), (1.0, LEN - 1), "greedy return and length");
+    // And its value estimates are close to the true ones, γ^(LEN-2-i) for moving right.
+    for cell in 0..LEN - 1 {
+        game.pos = cell;
+        game.draw();
+        observer.reset(&game);
+        observer.write_input(&table, input.data_mut());
+        let q = agent.learner.online.forward(&input).data().to_vec();
+        let want = 0.9f32.powi((LEN - 2 - cell) as i32);
+        assert_eq!(argmax(&q), 1, "cell {cell}: Q = {q:?}");
+        assert!(
+            (q[1] - want).abs() < 0.15,
+            "cell {cell}: Q(right) = {} vs {want}",
+            q[1]
+        );
+    }
+}
+
+fn frame(v: u8) -> Vec<u8> {
+    vec![v; FRAME_LEN]
+}
+
+/// States are rebuilt from single frames: the last 4 of the same episode, the first frame
+/// repeated at an episode's start, never a frame of the previous episode; `s'` is the state one
+/// entry later; terminal and time-limit flags go where they belong.
+#[test]
+fn replay_rebuilds_stacks_within_episodes() {
+    let mut replay = Replay::new(64, 4);
+    // Episode A: frames 10, 11, 12 (terminal). Episode B: frames 20..=29.
+    replay.push_start(&frame(10));
+    replay.push_step(1, 1.0, false, &frame(11));
+    replay.push_step(2, 2.0, true, &frame(12));
+    replay.push_start(&frame(20));
+    for i in 1..10u8 {
+        replay.push_step(i as usize % 6, i as f32, false, &frame(20 + i));
+    }
+    let mut table = [0.0f32; 256];
+    for (i, t) in table.iter_mut().enumerate() {
+        *t = i as f32;
+    }
+    let mut batch = Batch::new(8, [88, 80, 4]);
+    let mut rng = common::rng(1);
+    let px =
+        |t: &Tensor<f32>, b: usize| -> Vec<f32> { t.data()[b * FRAME_LEN * 4..][..4].to_vec() };
+    for _ in 0..80 {
+        replay.sample(&mut rng, &table, &mut batch);
+        for b in 0..8 {
+            let (s, s2) = (px(&batch.states, b), px(&batch.next_states, b));
+            let newest = s[3] as u8;
+            let expect = |newest: u8, first: u8| -> Vec<f32> {
+                (0..4)
+                    .map(|i| newest.saturating_sub(3 - i).max(first) as f32)
+                    .collect()
+            };
+            let first = if newest >= 20 { 20 } else { 10 };
+            assert_eq!(s, expect(newest, first), "state ending at {newest}");
+            assert_eq!(s2, expect(newest + 1, first), "next state after {newest}");
+            assert!(
+                newest != 12 && newest != 29,
+                "entries without a successor are never sampled"
+            );
+            match newest {
+                10 => assert_eq!(
+                    (batch.actions[b], batch.rewards[b], batch.dones[b]),
+                    (1, 1.0, false)
+                ),
+                11 => assert_eq!(
+                    (batch.actions[b], batch.rewards[b], batch.dones[b]),
+                    (2, 2.0, true)
+                ),
+                n => {
+                    let i = n - 20 + 1;
+                    assert_eq!(
+                        (batch.actions[b], batch.rewards[b], batch.dones[b]),
+                        (i as usize % 6, i as f32, false)
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// When the ring wraps, overwritten frames are never used, even through a state's history.
+#[test]
+fn replay_ring_never_uses_overwritten_frames() {
+    let mut replay = Replay::new(16, 4);
+    replay.push_start(&frame(0));
+    for i in 1..100u32 {
+        replay.push_step(0, i as f32, false, &frame((i % 250) as u8));
+    }
+    assert_eq!(replay.len(), 16);
+    let mut table = [0.0f32; 256];
+    for (i, t) in table.iter_mut().enumerate() {
+        *t = i as f32;
+    }
+    let mut batch = Batch::new(8, [88, 80, 4]);
+    let mut rng = common::rng(2);
+    for _ in 0..50 {
+        replay.sample(&mut rng, &table, &mut batch);
+        for b in 0..8 {
+            let s = &batch.states.data()[b * FRAME_LEN * 4..][..4];
+            // The oldest frame held is 84 (entries 84..=99); a state's 4 frames are consecutive.
+            assert!(s[0] >= 84.0, "state {s:?} uses an overwritten frame");
+            assert_eq!([s[1] - s[0], s[2] - s[1], s[3] - s[2]], [1.0, 1.0, 1.0]);
+            assert_eq!(
+                batch.rewards[b],
+                s[3] + 1.0,
+                "the reward of the step from the newest frame"
+            );
+        }
+    }
+}
+
+#[test]
+fn presets_differ_as_documented() {
+    let a = Config::preset(Preset::Article);
+    assert_eq!(
+        (a.replay_capacity, a.batch_size, a.learning_rate, a.gamma),
+        (20_000, 48, 1e-3, 0.97)
+    );
+    assert_eq!(
+        (a.train_every, a.learning_starts, a.target_update),
+        (4, 2000, 100)
+    );
+    assert_eq!(
+        (
+            a.epsilon_start,
+            a.epsilon_end,
+            a.epsilon_decay_steps,
+            a.episodes
+        ),
+        (1.0, 0.05, 500_000, 800)
+    );
+    assert_eq!(a.pipeline, Pipeline::StackMax);
+    assert!(!a.act_with_target_network && !a.fake_terminal_transition);
+    let v = Config::preset(Preset::ArticleVanilla);
+    assert_eq!(v.pipeline, Pipeline::Vanilla);
+    assert_eq!(v.input_shape(), [88, 80, 1]);
+    let w = Config::preset(Preset::ArticleAsWritten);
+    assert_eq!(w.pipeline, Pipeline::StackRunningMax);
+    assert!(w.act_with_target_network && w.fake_terminal_transition);
+    assert_eq!(w.normalization.apply(0), -2.0);
+    assert!((a.epsilon(250_000) - 0.525).abs() < 1e-6 && a.epsilon(10_000_000) == 0.05);
+}
+
+#[test]
+fn config_files_override_and_reject_bad_keys() {
+    let c = Config::resolve(
+        None,
+        Some("preset = \"article-vanilla\"\ngamma = 0.5\n[env]\nsticky_prob = 0.0\n"),
+    )
+    .unwrap();
+    assert_eq!(
+        (c.preset, c.gamma, c.env.sticky_prob),
+        (Preset::ArticleVanilla, 0.5, 0.0)
+    );
+    assert_eq!(
+        c.env.frame_skip_min, 2,
+        "other env keys keep the preset's values"
+    );
+    // A command-line preset wins over the file's.
+    let c = Config::resolve(Some(Preset::Article), Some("preset = \"article-vanilla\"")).unwrap();
+    assert_eq!(c.preset, Preset::Article);
+    let err = |t: &str| format!("{:#}", Config::resolve(None, Some(t)).unwrap_err());
+    assert!(err("gama = 0.5").contains("gama"), "{}", err("gama = 0.5"));
+    assert!(err("[env]\nstickyprob = 1").contains("stickyprob"));
+    assert!(err("gamma = 2.0").contains("gamma"));
+    assert!(err("batch_size = \"big\"").contains("batch_size"));
+    assert!(err("preset = \"nature\"").contains("preset"));
+    assert!(err("[env]\nframe_skip_min = 0").contains("frame_skip"));
+    assert!(err("not toml at all = = =").contains("TOML"));
+    // The resolved config survives its own TOML.
+    let c = Config::preset(Preset::ArticleAsWritten);
+    assert_eq!(Config::resolve(None, Some(&c.to_toml())).unwrap(), c);
+}
+
+#[test]
+fn checkpoints_round_trip_and_refuse_damage() {
+    let mut agent = Agent::new(toy_config(), Corridor::new());
+    for _ in 0..15 {
+        agent.play_episode();
+    }
+    let counters = agent.counters;
+    assert!(agent.learner.adam.t > 0);
+    let bytes = checkpoint::to_bytes(&agent.config, &counters, &agent.learner).unwrap();
+    let back = checkpoint::from_bytes(&bytes).unwrap();
+    assert_eq!(back.config, agent.config);
+    assert_eq!(back.counters, counters);
+    assert_eq!(back.learner.adam.t, agent.learner.adam.t);
+    for (a, b) in back
+        .learner
+        .online
+        .params()
+        .zip(agent.learner.online.params())
+    {
+        assert_eq!(a.value, b.value, "{}", a.name);
+    }
+    for (a, b) in back
+        .learner
+        .target
+        .params()
+        .zip(agent.learner.target.params())
+    {
+        assert_eq!(a.value, b.value, "{}", a.name);
+    }
+    assert_eq!(back.learner.adam.m, agent.learner.adam.m);
+    assert_eq!(back.learner.adam.v, agent.learner.adam.v);
+    // Damaged files are refused with an error, never a panic.
+    for cut in [0, 7, 100, bytes.len() / 2, bytes.len() - 1] {
+        assert!(
+            checkpoint::from_bytes(&bytes[..cut]).is_err(),
+            "truncated at {cut}"
+        );
+    }
+    assert!(checkpoint::from_bytes(b"definitely not a checkpoint").is_err());
+    let _ = Counters::default();
+}
