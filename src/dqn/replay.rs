@@ -8,9 +8,11 @@
 //! the episode's first frame where the episode is younger than `k` (as the frame stack does at
 //! reset), so consecutive episodes never mix.
 //!
-//! Memory: one frame is 7 040 bytes, plus 8 bytes of transition data, so 20 000 entries take
-//! 141 MB and 1 000 000 take 7.05 GB (the pages are touched as the ring fills, so the resident
-//! size grows with the entries actually written).
+//! Memory: one frame is 7 040 bytes, plus 8 bytes of transition data per entry. Measured with
+//! `cargo run --release --example replay_memory -- N` (resident set size when full): 20 000
+//! transitions take 134 MiB and 1 000 000 take 6 722 MiB (7.05 GB), against about 9 GB for the
+//! notebook's float64 stacks of 20 000. Pages are touched as the ring fills, so the resident size
+//! grows with the entries actually written.
 
 use super::Batch;
 use crate::env::{write_stacked_input, FRAME_LEN};
