@@ -3,6 +3,7 @@
 
 use clap::{Parser, Subcommand};
 
+mod bench;
 mod eval;
 mod plot;
 mod train;
@@ -24,6 +25,8 @@ pub enum Command {
     Eval(eval::EvalArgs),
     /// Draw the reward curves of one or more runs on one figure.
     Plot(plot::PlotArgs),
+    /// Time the train step, acting, the emulator and end-to-end training.
+    Bench(bench::BenchArgs),
 }
 
 /// Runs the chosen subcommand.
@@ -32,5 +35,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => train::run(&args),
         Command::Eval(args) => eval::run(&args),
         Command::Plot(args) => plot::run(&args),
+        Command::Bench(args) => bench::run(&args),
     }
 }

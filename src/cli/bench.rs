@@ -1,0 +1,155 @@
+//! `invaders bench`: the figures that matter for training speed, in one command.
+//!
+//! Times (medians over repeated runs) the article network's train step at batch 48, its batch-1
+//! forward pass (acting), the emulator's frames per second with the `article` preset's pipeline,
+//! and end-to-end agent steps per second of the `article` preset with learning on.
+
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::Args;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use invaders::dqn::{Agent, Batch, Config, Learner, Preset};
+use invaders::env::{Observer, SpaceInvaders};
+use invaders::tensor::Tensor;
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Worker threads for the kernels (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    json: bool,
+    /// Train steps to time.
+    #[arg(long, default_value_t = 30)]
+    steps: usize,
+}
+
+fn median(mut xs: Vec<f64>) -> f64 {
+    xs.sort_by(f64::total_cmp);
+    xs[xs.len() / 2]
+}
+
+pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
+    super::train::set_threads(args.threads)?;
+    let threads = rayon::current_num_threads();
+    let config = Config::preset(Preset::Article);
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let input = config.input_shape();
+
+    // The train step on a random batch.
+    let mut learner = Learner::from_config(&config, 6, &mut rng);
+    let mut batch = Batch::new(config.batch_size, input);
+    for v in batch
+        .states
+        .data_mut()
+        .iter_mut()
+        .chain(batch.next_states.data_mut())
+    {
+        *v = rng.random_range(-1.0..1.0);
+    }
+    for i in 0..batch.len() {
+        batch.actions[i] = rng.random_range(0..6);
+        batch.rewards[i] = rng.random_range(0.0..10.0);
+        batch.dones[i] = rng.random_bool(0.05);
+    }
+    for _ in 0..3 {
+        learner.train_step(&batch);
+    }
+    let step_ms = median(
+        (0..args.steps.max(1))
+            .map(|_| {
+                let t = Instant::now();
+                learner.train_step(&batch);
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect(),
+    );
+    let macs = learner.online.macs() as f64;
+    let first = learner.online.layers()[0].macs() as f64;
+    let flops = 2.0 * config.batch_size as f64 * (3.0 * macs + (macs - first));
+    let gflops = flops / (step_ms * 1e-3) / 1e9;
+
+    // Acting: a batch-1 forward pass.
+    let x1 = Tensor::from_vec(
+        &[1, input[0], input[1], input[2]],
+        batch.states.data()[..input.iter().product()].to_vec(),
+    );
+    for _ in 0..20 {
+        learner.online.forward(&x1);
+    }
+    let act_ms = median(
+        (0..300)
+            .map(|_| {
+                let t = Instant::now();
+                learner.online.forward(&x1);
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect(),
+    );
+
+    // The emulator with the article's pipeline and input normalisation, random actions.
+    let mut env = SpaceInvaders::new(&config.env, 0).context("cannot start Space Invaders")?;
+    let mut observer = Observer::new(config.pipeline);
+    let table = config.normalization.table();
+    let mut buf = vec![0.0f32; observer.input_len()];
+    env.reset();
+    observer.reset(&env);
+    let (mut frames, mut steps) = (0u64, 0u64);
+    let t = Instant::now();
+    while steps < 5_000 {
+        let r = env.step(rng.random_range(0..env.n_actions()));
+        observer.step(&env);
+        observer.write_input(&table, &mut buf);
+        frames += r.frames as u64;
+        steps += 1;
+        if r.terminal || r.truncated {
+            env.reset();
+            observer.reset(&env);
+        }
+    }
+    let env_secs = t.elapsed().as_secs_f64();
+    let env_fps = frames as f64 / env_secs;
+    let env_steps_per_s = steps as f64 / env_secs;
+
+    // End to end: the article preset with learning on from step 500.
+    let mut e2e = Config::preset(Preset::Article);
+    e2e.learning_starts = 500;
+    e2e.replay_capacity = 5_000;
+    let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
+    let mut agent = Agent::new(e2e, env);
+    while agent.counters.agent_steps < 600 {
+        agent.play_episode();
+    }
+    let (s0, t0) = (agent.counters.agent_steps, Instant::now());
+    while agent.counters.agent_steps < s0 + 2_000 {
+        agent.play_episode();
+    }
+    let agent_steps_per_s = (agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64();
+    let env_share = agent_steps_per_s / env_steps_per_s;
+
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "threads": threads,
+                "train_step_ms": step_ms,
+                "train_step_gflops": gflops,
+                "act_ms": act_ms,
+                "env_frames_per_s": env_fps,
+                "agent_steps_per_s": agent_steps_per_s,
+                "env_share_of_training": env_share,
+            })
+        );
+    } else {
+        println!("threads                 {threads}");
+        println!("train step (batch 48)   {step_ms:.2} ms  ({gflops:.1} GFLOP/s)");
+        println!("act (batch-1 forward)   {act_ms:.3} ms");
+        println!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
+        println!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
+    }
+    Ok(())
+}
