@@ -6,6 +6,7 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod eval;
 mod plot;
+mod show;
 mod train;
 
 /// A from-scratch DQN that learns Atari Space Invaders.
@@ -27,6 +28,8 @@ pub enum Command {
     Plot(plot::PlotArgs),
     /// Time the train step, acting, the emulator and end-to-end training.
     Bench(bench::BenchArgs),
+    /// Draw what the network sees: a raw screen, its preprocessing, and each pipeline's stack.
+    ShowPreprocessing(show::ShowArgs),
 }
 
 /// Runs the chosen subcommand.
@@ -36,5 +39,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(&args),
         Command::Plot(args) => plot::run(&args),
         Command::Bench(args) => bench::run(&args),
+        Command::ShowPreprocessing(args) => show::run(&args),
     }
 }
