@@ -114,3 +114,91 @@ pub fn plot_rewards(
         .map_err(|e| anyhow!("plot: cannot write {}: {e}", out.display()))?;
     Ok(())
 }
+
+/// Several seeds of one configuration: a label and each seed's `(episode, reward)` points.
+pub struct Group {
+    /// Legend label.
+    pub label: String,
+    /// One curve per seed.
+    pub seeds: Vec<Vec<(f64, f64)>>,
+}
+
+/// The per-episode mean over seeds of each seed's `window`-episode moving average, with the
+/// lowest and highest seed, over the episodes every seed reached: `(episode, mean, low, high)`.
+pub fn mean_band(seeds: &[Vec<(f64, f64)>], window: usize) -> Vec<(f64, f64, f64, f64)> {
+    let n = seeds.iter().map(Vec::len).min().unwrap_or(0);
+    let avgs: Vec<Vec<f64>> = seeds
+        .iter()
+        .map(|s| moving_average(&s.iter().map(|p| p.1).collect::<Vec<_>>(), window))
+        .collect();
+    (0..n)
+        .map(|i| {
+            let vals: Vec<f64> = avgs.iter().map(|a| a[i]).collect();
+            let mean = vals.iter().sum::<f64>() / vals.len() as f64;
+            let lo = vals.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            (seeds[0][i].0, mean, lo, hi)
+        })
+        .collect()
+}
+
+/// Draws each group's mean moving average over seeds as a line, with a shaded band from the
+/// lowest to the highest seed.
+pub fn plot_groups(groups: &[Group], title: &str, window: usize, out: &Path) -> anyhow::Result<()> {
+    let e = |err: DrawingAreaErrorKind<_>| anyhow!("plot: {err}");
+    let bands: Vec<Vec<(f64, f64, f64, f64)>> =
+        groups.iter().map(|g| mean_band(&g.seeds, window)).collect();
+    let root = BitMapBackend::new(out, (1000, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(e)?;
+    let max_x = bands
+        .iter()
+        .flat_map(|b| b.iter().map(|p| p.0))
+        .fold(1.0, f64::max);
+    let max_y = bands
+        .iter()
+        .flat_map(|b| b.iter().map(|p| p.3))
+        .fold(10.0, f64::max);
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 24))
+        .margin(15)
+        .x_label_area_size(45)
+        .y_label_area_size(60)
+        .build_cartesian_2d(0.0..max_x, 0.0..max_y * 1.05)
+        .map_err(e)?;
+    chart
+        .configure_mesh()
+        .x_desc("episode")
+        .y_desc(format!(
+            "reward per episode ({window}-episode moving average)"
+        ))
+        .draw()
+        .map_err(e)?;
+    for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
+        let color = Palette99::pick(i);
+        let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
+        outline.extend(band.iter().rev().map(|p| (p.0, p.2)));
+        chart
+            .draw_series(std::iter::once(Polygon::new(outline, color.mix(0.15))))
+            .map_err(e)?;
+        chart
+            .draw_series(LineSeries::new(
+                band.iter().map(|p| (p.0, p.1)),
+                color.stroke_width(3),
+            ))
+            .map_err(e)?
+            .label(format!("{} (mean of {} seeds)", g.label, g.seeds.len()))
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .position(SeriesLabelPosition::UpperLeft)
+        .draw()
+        .map_err(e)?;
+    root.present()
+        .map_err(|err| anyhow!("plot: cannot write {}: {err}", out.display()))?;
+    Ok(())
+}

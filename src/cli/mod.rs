@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod eval;
+mod experiment;
 mod plot;
 mod show;
 mod train;
@@ -30,6 +31,9 @@ pub enum Command {
     Bench(bench::BenchArgs),
     /// Draw what the network sees: a raw screen, its preprocessing, and each pipeline's stack.
     ShowPreprocessing(show::ShowArgs),
+    /// Reproduce one of the article's experiments.
+    #[command(subcommand)]
+    Experiment(experiment::Experiment),
 }
 
 /// Runs the chosen subcommand.
@@ -40,5 +44,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Plot(args) => plot::run(&args),
         Command::Bench(args) => bench::run(&args),
         Command::ShowPreprocessing(args) => show::run(&args),
+        Command::Experiment(e) => experiment::run(&e),
     }
 }
