@@ -5,7 +5,7 @@ mod common;
 
 use common::rng;
 use invaders::layers::init::{Distribution, FanMode, VarianceScaling, TRUNCATED_NORMAL_STDDEV};
-use invaders::layers::Param;
+use invaders::layers::{Dense, Param, Sequential};
 use invaders::optim::{clip_grad_norm, global_grad_norm, Adam, Sgd};
 use invaders::tensor::Tensor;
 
@@ -111,24 +111,34 @@ fn adam_matches_closed_form() {
 
 #[test]
 fn sgd_and_clipping() {
-    let mut ps = [
-        Param::<f64>::zeros("a".into(), &[2]),
-        Param::<f64>::zeros("b".into(), &[1]),
-    ];
-    ps[0].grad.data_mut().copy_from_slice(&[3.0, 0.0]);
-    ps[1].grad.data_mut().copy_from_slice(&[4.0]);
-    assert_eq!(global_grad_norm(ps.iter()), 5.0);
+    // A dense layer 2 -> 1: a weight of 2 values and a bias of 1, with gradients (3, 0) and 4.
+    let mut net = Sequential::<f64>::new();
+    net.push(Dense::new("d", 2, 1));
+    {
+        let mut ps = net.params_mut();
+        ps.next()
+            .unwrap()
+            .grad
+            .data_mut()
+            .copy_from_slice(&[3.0, 0.0]);
+        ps.next().unwrap().grad.data_mut().copy_from_slice(&[4.0]);
+    }
+    assert_eq!(global_grad_norm(net.params()), 5.0);
     // Below the threshold nothing changes.
-    assert_eq!(clip_grad_norm(ps.iter_mut(), 10.0), 5.0);
-    assert_eq!(ps[1].grad.data(), &[4.0]);
+    assert_eq!(clip_grad_norm(&mut net, 10.0), 5.0);
+    assert_eq!(net.params().nth(1).unwrap().grad.data(), &[4.0]);
     // Above it the whole vector is scaled to the threshold.
-    assert_eq!(clip_grad_norm(ps.iter_mut(), 1.0), 5.0);
-    assert!((global_grad_norm(ps.iter()) - 1.0).abs() < 1e-15);
+    assert_eq!(clip_grad_norm(&mut net, 1.0), 5.0);
+    assert!((global_grad_norm(net.params()) - 1.0).abs() < 1e-15);
+    let g: Vec<f64> = net.params().flat_map(|p| p.grad.data().to_vec()).collect();
     assert!(
-        (ps[0].grad.data()[0] - 0.6).abs() < 1e-15 && (ps[1].grad.data()[0] - 0.8).abs() < 1e-15
+        (g[0] - 0.6).abs() < 1e-15 && g[1] == 0.0 && (g[2] - 0.8).abs() < 1e-15,
+        "{g:?}"
     );
-    Sgd::new(0.5).step(ps.iter_mut());
+    Sgd::new(0.5).step(net.params_mut());
+    let v: Vec<f64> = net.params().flat_map(|p| p.value.data().to_vec()).collect();
     assert!(
-        (ps[0].value.data()[0] + 0.3).abs() < 1e-15 && (ps[1].value.data()[0] + 0.4).abs() < 1e-15
+        (v[0] + 0.3).abs() < 1e-15 && (v[2] + 0.4).abs() < 1e-15,
+        "{v:?}"
     );
 }

@@ -188,7 +188,7 @@ impl Learner {
         self.online.zero_grad();
         self.online.backward(&batch.states, &self.dq, false);
         let grad_norm = match self.clip_norm {
-            Some(max) => clip_grad_norm(self.online.params_mut(), max),
+            Some(max) => clip_grad_norm(&mut self.online, max),
             None => crate::optim::global_grad_norm(self.online.params()),
         };
         self.adam.step(self.online.params_mut());

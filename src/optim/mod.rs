@@ -9,7 +9,7 @@ mod sgd;
 pub use adam::Adam;
 pub use sgd::Sgd;
 
-use crate::layers::Param;
+use crate::layers::{Param, Sequential};
 use crate::tensor::Float;
 
 /// The global L2 norm of all gradients: `sqrt(Σ_p Σ_i g_p[i]²)`.
@@ -23,18 +23,14 @@ pub fn global_grad_norm<'a, T: Float>(params: impl Iterator<Item = &'a Param<T>>
     sum.sqrt()
 }
 
-/// Clipping by global norm (`tf.clip_by_global_norm`): if the global norm `‖g‖` exceeds
-/// `max_norm`, every gradient is multiplied by `max_norm / ‖g‖`, which shortens the whole update
-/// without changing its direction. Returns the norm before clipping.
-pub fn clip_grad_norm<'a, T: Float>(
-    params: impl Iterator<Item = &'a mut Param<T>>,
-    max_norm: T,
-) -> T {
-    let mut params: Vec<&mut Param<T>> = params.collect();
-    let norm = global_grad_norm(params.iter().map(|p| &**p));
+/// Clipping by global norm (`tf.clip_by_global_norm`): if the global norm `‖g‖` of the network's
+/// gradients exceeds `max_norm`, every gradient is multiplied by `max_norm / ‖g‖`, which shortens
+/// the whole update without changing its direction. Returns the norm before clipping.
+pub fn clip_grad_norm<T: Float>(net: &mut Sequential<T>, max_norm: T) -> T {
+    let norm = global_grad_norm(net.params());
     if norm > max_norm {
         let s = max_norm / norm;
-        for p in params.iter_mut() {
+        for p in net.params_mut() {
             for g in p.grad.data_mut() {
                 *g *= s;
             }
