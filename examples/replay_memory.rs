@@ -18,7 +18,10 @@ fn rss_mb() -> f64 {
 }
 
 fn main() {
-    let n: usize = std::env::args().nth(1).and_then(|a| a.parse().ok()).unwrap_or(20_000);
+    let n: usize = std::env::args()
+        .nth(1)
+        .and_then(|a| a.parse().ok())
+        .unwrap_or(20_000);
     let before = rss_mb();
     let mut replay = Replay::new(n, 4);
     let after_alloc = rss_mb();
