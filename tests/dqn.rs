@@ -98,7 +98,7 @@ fn toy_config() -> Config {
 fn dqn_learns_a_toy_corridor() {
     let mut agent = Agent::new(toy_config(), Corridor::new());
     for _ in 0..120 {
-        agent.play_episode();
+        agent.play_episode().unwrap();
     }
     // Greedy play from the start walks straight to the goal.
     let mut game = Corridor::new();
@@ -298,11 +298,18 @@ fn config_files_override_and_reject_bad_keys() {
 fn checkpoints_round_trip_and_refuse_damage() {
     let mut agent = Agent::new(toy_config(), Corridor::new());
     for _ in 0..15 {
-        agent.play_episode();
+        agent.play_episode().unwrap();
     }
     let counters = agent.counters;
     assert!(agent.learner.adam.t > 0);
-    let bytes = checkpoint::to_bytes(&agent.config, &counters, &agent.learner).unwrap();
+    let bytes = checkpoint::to_bytes(
+        &agent.config,
+        &counters,
+        &agent.learner,
+        &agent.state(),
+        None,
+    )
+    .unwrap();
     let back = checkpoint::from_bytes(&bytes).unwrap();
     assert_eq!(back.config, agent.config);
     assert_eq!(back.counters, counters);

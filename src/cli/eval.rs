@@ -9,6 +9,7 @@ use rand_chacha::ChaCha8Rng;
 
 use invaders::dqn::checkpoint;
 use invaders::dqn::play_evaluation_episode;
+use invaders::dqn::Preset;
 use invaders::env::{EnvConfig, EnvMode, Observer, SpaceInvaders};
 use invaders::tensor::Tensor;
 
@@ -24,6 +25,10 @@ pub struct EvalArgs {
     /// A checkpoint to evaluate (`RUN_DIR/checkpoint.safetensors`, or the run directory).
     #[arg(long, value_name = "PATH", conflicts_with = "random")]
     checkpoint: Option<PathBuf>,
+    /// Refuse a checkpoint trained with another preset (its network's input shape differs for
+    /// `article-vanilla`).
+    #[arg(long, value_enum, requires = "checkpoint")]
+    preset: Option<Preset>,
     /// Exploration rate while evaluating a checkpoint.
     #[arg(long, default_value_t = 0.05)]
     epsilon: f32,
@@ -123,6 +128,10 @@ fn run_checkpoint(args: &EvalArgs, path: &Path) -> anyhow::Result<()> {
         path.to_path_buf()
     };
     let ckpt = checkpoint::load(&file)?;
+    if let Some(p) = args.preset {
+        ckpt.expect_preset(p)
+            .with_context(|| format!("{} does not fit --preset", file.display()))?;
+    }
     let config = ckpt.config;
     let mut env_config = config.env.clone();
     if let Some(mode) = args.mode {

@@ -5,6 +5,7 @@
 //!   config.toml              the resolved configuration
 //!   metrics.csv              one row per episode (see `EpisodeRow::HEADER`)
 //!   checkpoint.safetensors   the latest checkpoint (replaced atomically)
+//!   replay-E.safetensors     the replay memory saved with it (unless checkpoint_replay = false)
 //!   rewards.png              reward per episode with a 100-episode moving average
 //! ```
 
@@ -23,7 +24,8 @@ use invaders::plot::{plot_rewards, Curve};
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {
-    /// The configuration to start from.
+    /// The configuration to start from (with --resume: the preset the run must have been
+    /// trained with, checked).
     #[arg(long, value_enum)]
     preset: Option<Preset>,
     /// A TOML file overriding any configuration key (see `config.toml` in a run directory).
@@ -48,6 +50,16 @@ pub struct TrainArgs {
     /// --frames may extend the budget).
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
+    /// Print the resident memory (VmRSS) every N episodes, to check it stays flat.
+    #[arg(long, value_name = "N")]
+    log_rss: Option<u64>,
+}
+
+/// The process's resident memory in KiB (`VmRSS` of /proc/self/status; Linux only).
+fn rss_kib() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    line.split_whitespace().nth(1)?.parse().ok()
 }
 
 /// Sets the size of rayon's global pool (every kernel runs on it).
@@ -80,11 +92,15 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     set_threads(args.threads)?;
     let (mut config, dir, resumed) = match &args.resume {
         Some(dir) => {
-            let ckpt = checkpoint::load(&dir.join("checkpoint.safetensors"))?;
-            if args.preset.is_some() || args.config.is_some() || args.seed.is_some() {
-                bail!("--resume keeps the run's configuration: drop --preset, --config and --seed");
+            if args.config.is_some() || args.seed.is_some() {
+                bail!("--resume keeps the run's configuration: drop --config and --seed");
             }
-            (ckpt.config.clone(), dir.clone(), Some(ckpt))
+            let (ckpt, replay) = checkpoint::load_run(dir)?;
+            if let Some(p) = args.preset {
+                ckpt.expect_preset(p)
+                    .with_context(|| format!("cannot resume {} with --preset", dir.display()))?;
+            }
+            (ckpt.config.clone(), dir.clone(), Some((ckpt, replay)))
         }
         None => {
             let text = match &args.config {
@@ -118,10 +134,15 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let env =
         SpaceInvaders::new(&config.env, config.seed).context("cannot start Space Invaders")?;
     let mut agent = match resumed {
-        Some(ckpt) => Agent::with_learner(config.clone(), env, ckpt.learner, ckpt.counters),
+        Some((mut ckpt, replay)) => {
+            // A longer budget given on the command line is part of the resumed config.
+            ckpt.config = config.clone();
+            Agent::resume(env, ckpt, replay)
+                .with_context(|| format!("cannot resume {}", dir.display()))?
+        }
         None => Agent::new(config.clone(), env),
     };
-    train_loop(&mut agent, &dir)
+    train_loop(&mut agent, &dir, args.log_rss)
 }
 
 fn prepare_new_dir(dir: &Path) -> anyhow::Result<()> {
@@ -166,9 +187,14 @@ fn reopen_metrics(path: &Path, episodes: u64) -> anyhow::Result<(std::fs::File, 
     Ok((file, points))
 }
 
-fn train_loop(agent: &mut Agent<SpaceInvaders>, dir: &Path) -> anyhow::Result<()> {
+fn train_loop(
+    agent: &mut Agent<SpaceInvaders>,
+    dir: &Path,
+    log_rss: Option<u64>,
+) -> anyhow::Result<()> {
     let config = agent.config.clone();
-    let ckpt_path = dir.join("checkpoint.safetensors");
+    let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
+    let mut saved_episode = agent.counters.episodes;
     let (mut metrics, mut points) =
         reopen_metrics(&dir.join("metrics.csv"), agent.counters.episodes)?;
     let tty = std::io::stderr().is_terminal();
@@ -210,7 +236,16 @@ fn train_loop(agent: &mut Agent<SpaceInvaders>, dir: &Path) -> anyhow::Result<()
             || (config.max_frames > 0 && a.counters.frames >= config.max_frames)
     };
     while !done(agent) {
-        let row = agent.play_episode();
+        let row = agent.play_episode().with_context(|| {
+            if ckpt_path.exists() {
+                format!(
+                    "run stopped; the last good checkpoint {} (episode {saved_episode}) is left as it was",
+                    ckpt_path.display()
+                )
+            } else {
+                "run stopped before its first checkpoint".to_string()
+            }
+        })?;
         writeln!(metrics, "{}", row.csv()).context("cannot append to metrics.csv")?;
         points.push((row.episode as f64, row.reward));
         let last100 = &points[points.len().saturating_sub(100)..];
@@ -233,7 +268,21 @@ fn train_loop(agent: &mut Agent<SpaceInvaders>, dir: &Path) -> anyhow::Result<()
         }
         let finished = done(agent);
         if finished || row.episode.is_multiple_of(config.checkpoint_every) {
-            checkpoint::save(&ckpt_path, &config, &agent.counters, &agent.learner)?;
+            checkpoint::save_run(dir, agent).with_context(|| {
+                format!("cannot save the checkpoint of episode {}", row.episode)
+            })?;
+            saved_episode = row.episode;
+        }
+        if let Some(n) = log_rss.filter(|&n| n > 0) {
+            if row.episode.is_multiple_of(n) {
+                match rss_kib() {
+                    Some(kib) => eprintln!(
+                        "rss: episode {} agent_steps {} VmRSS {kib} kB",
+                        row.episode, row.agent_steps
+                    ),
+                    None => eprintln!("rss: unavailable (no /proc/self/status)"),
+                }
+            }
         }
         if finished || row.episode.is_multiple_of(config.plot_every) {
             write_plot(dir, &config, &points);

@@ -15,11 +15,12 @@
 //! until the game is over or the step limit is hit
 //! ```
 
-use super::checkpoint::Counters;
+use super::checkpoint::{AgentState, Checkpoint, Counters};
 use super::{argmax, Batch, Config, Learner, Replay};
-use crate::env::{Game, Observer};
+use crate::env::{Game, Observer, FRAME_LEN};
 use crate::layers::Sequential;
 use crate::tensor::Tensor;
+use anyhow::{bail, Context};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
@@ -173,6 +174,65 @@ impl<G: Game> Agent<G> {
         }
     }
 
+    /// Continues a run from a checkpoint: its learner and counters, every random generator, the
+    /// observer, the game's state (if saved) and `replay` (if saved; else an empty memory).
+    /// `game` must be built with the checkpoint's environment settings.
+    pub fn resume(game: G, ckpt: Checkpoint, replay: Option<Replay>) -> anyhow::Result<Self> {
+        let Checkpoint {
+            config,
+            counters,
+            learner,
+            agent: state,
+            ..
+        } = ckpt;
+        if learner.n_actions() != game.n_actions() {
+            bail!(
+                "the checkpoint's network has {} actions, the game {}",
+                learner.n_actions(),
+                game.n_actions()
+            );
+        }
+        let mut agent = Self::with_learner(config, game, learner, counters);
+        if let Some(r) = replay {
+            if r.capacity() != agent.replay.capacity()
+                || r.frames_per_state() != agent.replay.frames_per_state()
+            {
+                bail!("the saved replay memory does not match the configuration");
+            }
+            agent.replay = r;
+        }
+        if let Some(g) = &state.game {
+            agent
+                .game
+                .restore_state(g)
+                .context("cannot restore the game's saved state")?;
+        }
+        let k = agent.config.pipeline.channels();
+        if state.composite.len() != FRAME_LEN || state.stack.len() != k * FRAME_LEN {
+            bail!("the saved observer does not match the configuration");
+        }
+        let frames: Vec<&[u8]> = state.stack.chunks_exact(FRAME_LEN).collect();
+        agent.observer.restore(&state.composite, &frames);
+        agent.explore_rng = state.explore_rng;
+        agent.sample_rng = state.sample_rng;
+        Ok(agent)
+    }
+
+    /// Everything besides the learner, counters and replay that a checkpoint needs to continue
+    /// this agent exactly.
+    pub fn state(&self) -> AgentState {
+        let stack = self.observer.stack();
+        AgentState {
+            explore_rng: self.explore_rng.clone(),
+            sample_rng: self.sample_rng.clone(),
+            composite: self.observer.composer_frame().to_vec(),
+            stack: (0..stack.len())
+                .flat_map(|i| stack.get(i).to_vec())
+                .collect(),
+            game: self.game.save_state(),
+        }
+    }
+
     /// ε now.
     pub fn epsilon(&self) -> f32 {
         self.config.epsilon(self.counters.agent_steps)
@@ -190,7 +250,12 @@ impl<G: Game> Agent<G> {
     }
 
     /// Plays one episode, learning as it goes, and returns its metrics row.
-    pub fn play_episode(&mut self) -> EpisodeRow {
+    ///
+    /// # Errors
+    /// If training diverges: a gradient step gives a non-finite loss, gradient norm or weight.
+    /// The error names the agent step and the train step; the agent is then unusable (its
+    /// weights are not finite), and nothing has been saved.
+    pub fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
         let start = Instant::now();
         let c = &self.config;
         let (train_every, learning_starts, target_update) =
@@ -229,6 +294,22 @@ impl<G: Game> Agent<G> {
                     .sample(&mut self.sample_rng, &self.table, &mut self.batch);
                 let s = self.learner.train_step(&self.batch);
                 self.counters.train_steps += 1;
+                let what = if !s.loss.is_finite() {
+                    Some(format!("the loss is {}", s.loss))
+                } else if !s.grad_norm.is_finite() {
+                    Some(format!("the gradient norm is {}", s.grad_norm))
+                } else {
+                    self.learner
+                        .non_finite_param()
+                        .map(|p| format!("weight {p} is not finite"))
+                };
+                if let Some(what) = what {
+                    bail!(
+                        "training diverged at agent step {t}, train step {} (episode {}): {what}",
+                        self.counters.train_steps,
+                        self.counters.episodes + 1
+                    );
+                }
                 loss_sum += s.loss as f64;
                 q_sum += s.mean_max_q as f64;
                 n_train += 1;
@@ -258,7 +339,7 @@ impl<G: Game> Agent<G> {
                 f32::NAN
             }
         };
-        EpisodeRow {
+        Ok(EpisodeRow {
             episode: self.counters.episodes,
             agent_steps: self.counters.agent_steps,
             frames: self.counters.frames,
@@ -268,6 +349,6 @@ impl<G: Game> Agent<G> {
             mean_loss: mean(loss_sum),
             mean_max_q: mean(q_sum),
             wall_seconds: self.counters.wall_seconds,
-        }
+        })
     }
 }

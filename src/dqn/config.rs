@@ -9,6 +9,11 @@ use crate::layers::loss::LossKind;
 use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 
+/// The largest replay memory a configuration may ask for (about 70 GB of frames).
+pub const MAX_REPLAY: usize = 10_000_000;
+/// The largest minibatch a configuration may ask for.
+pub const MAX_BATCH: usize = 4_096;
+
 /// The named configurations.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
@@ -88,6 +93,10 @@ pub struct Config {
     pub fake_terminal_transition: bool,
     /// Episodes between checkpoints (the last one is always written).
     pub checkpoint_every: u64,
+    /// Save the replay memory with each checkpoint (`replay-*.safetensors` beside it, up to
+    /// 7 KB per transition), so that a resumed run continues exactly as if never stopped. Without
+    /// it a resumed run starts with an empty memory: see `dqn::checkpoint` for what then differs.
+    pub checkpoint_replay: bool,
     /// Episodes between refreshes of the reward plot.
     pub plot_every: u64,
     /// The environment.
@@ -121,6 +130,7 @@ impl Config {
             act_with_target_network: false,
             fake_terminal_transition: false,
             checkpoint_every: 25,
+            checkpoint_replay: true,
             plot_every: 5,
             env: EnvConfig::from_mode(EnvMode::V0),
         };
@@ -180,6 +190,16 @@ impl Config {
         }
         if c.batch_size == 0 {
             bail!("batch_size must be at least 1");
+        }
+        // Upper bounds keep an absurd value a clear error instead of an allocation failure.
+        if c.replay_capacity > MAX_REPLAY {
+            bail!(
+                "replay_capacity ({}) must be at most {MAX_REPLAY} (7 KB each)",
+                c.replay_capacity
+            );
+        }
+        if c.batch_size > MAX_BATCH {
+            bail!("batch_size ({}) must be at most {MAX_BATCH}", c.batch_size);
         }
         if !(c.learning_rate > 0.0 && c.learning_rate.is_finite()) {
             bail!("learning_rate must be positive, got {}", c.learning_rate);

@@ -133,6 +133,18 @@ impl Learner {
         self.n_actions
     }
 
+    /// The first online-network parameter holding a NaN or an infinity, as `name[index]`.
+    /// (The target network only ever copies the online one.)
+    pub fn non_finite_param(&self) -> Option<String> {
+        self.online.params().find_map(|p| {
+            p.value
+                .data()
+                .iter()
+                .position(|x| !x.is_finite())
+                .map(|i| format!("{}[{i}]", p.name))
+        })
+    }
+
     /// Copies the online network into the target network.
     pub fn update_target(&mut self) {
         self.target.copy_params_from(&self.online);

@@ -18,6 +18,13 @@ use super::Batch;
 use crate::env::{write_stacked_input, FRAME_LEN};
 use rand::Rng;
 
+/// Replay flag bit: the step from this entry ended the episode.
+pub const FLAG_DONE: u8 = 1;
+/// Replay flag bit: this entry is the first observation of an episode.
+pub const FLAG_START: u8 = 2;
+/// Replay flag bit: the agent acted on this entry.
+pub const FLAG_ACTED: u8 = 4;
+
 /// The replay memory. Entries are numbered by a global counter `g` that never wraps; entry `g`
 /// lives in slot `g % capacity`.
 pub struct Replay {
@@ -140,6 +147,82 @@ impl Replay {
     /// Whether at least `n` transitions can be sampled.
     pub fn can_sample(&self, n: usize) -> bool {
         self.len() > n + self.k
+    }
+
+    /// Frames per state.
+    pub fn frames_per_state(&self) -> usize {
+        self.k
+    }
+
+    /// The held entries for a checkpoint, in slot order (row `g % capacity` holds entry `g`):
+    /// `(frames [len · 88·80], actions [len], rewards [len], flags [len])` with flag bits
+    /// [`FLAG_DONE`], [`FLAG_START`], [`FLAG_ACTED`].
+    pub fn parts(&self) -> (&[u8], &[u8], &[f32], Vec<u8>) {
+        let len = self.len();
+        let flags = (0..len)
+            .map(|s| {
+                let mut f = 0;
+                if self.dones[s] {
+                    f |= FLAG_DONE;
+                }
+                if self.starts[s] {
+                    f |= FLAG_START;
+                }
+                if self.acted[s] {
+                    f |= FLAG_ACTED;
+                }
+                f
+            })
+            .collect();
+        (
+            &self.frames[..len * FRAME_LEN],
+            &self.actions[..len],
+            &self.rewards[..len],
+            flags,
+        )
+    }
+
+    /// Replaces the contents with `parts` as made by [`parts`](Self::parts) of a memory of the
+    /// same capacity that had written `written` entries. Every length and flag is checked first;
+    /// on error nothing is changed.
+    pub fn restore(
+        &mut self,
+        written: u64,
+        frames: &[u8],
+        actions: &[u8],
+        rewards: &[f32],
+        flags: &[u8],
+    ) -> Result<(), String> {
+        let len = written.min(self.capacity as u64) as usize;
+        if frames.len() != len * FRAME_LEN
+            || actions.len() != len
+            || rewards.len() != len
+            || flags.len() != len
+        {
+            return Err(format!(
+                "{written} entries written into a memory of {} need {len} rows of each array",
+                self.capacity
+            ));
+        }
+        if let Some(i) = flags
+            .iter()
+            .position(|f| f & !(FLAG_DONE | FLAG_START | FLAG_ACTED) != 0)
+        {
+            return Err(format!("unknown flag bits {:#x} in row {i}", flags[i]));
+        }
+        if let Some(i) = rewards.iter().position(|r| !r.is_finite()) {
+            return Err(format!("non-finite reward in row {i}"));
+        }
+        self.frames[..len * FRAME_LEN].copy_from_slice(frames);
+        self.actions[..len].copy_from_slice(actions);
+        self.rewards[..len].copy_from_slice(rewards);
+        for (s, &f) in flags.iter().enumerate() {
+            self.dones[s] = f & FLAG_DONE != 0;
+            self.starts[s] = f & FLAG_START != 0;
+            self.acted[s] = f & FLAG_ACTED != 0;
+        }
+        self.written = written;
+        Ok(())
     }
 
     /// Fills `batch` with transitions drawn uniformly (with replacement) from those held,

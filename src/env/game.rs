@@ -1,7 +1,7 @@
 //! What the agent needs from a game, so the same training loop drives Space Invaders and the
 //! small toy games of the tests.
 
-use super::{SpaceInvaders, StepResult};
+use super::{EnvError, SpaceInvaders, StepResult};
 
 /// An episodic game with a discrete action set and 88x80 grey frames.
 pub trait Game {
@@ -15,6 +15,17 @@ pub trait Game {
     fn last_two_frames(&self) -> (&[u8], &[u8]);
     /// The observation of the latest step (the last frame, or a max-pool of the two).
     fn observation(&self) -> &[u8];
+    /// Everything needed to continue the game bit-identically (for checkpoints), or `None` if
+    /// this game cannot be saved (then a resumed run starts it afresh).
+    fn save_state(&self) -> Option<Vec<u8>> {
+        None
+    }
+    /// Restores a state made by [`save_state`](Self::save_state).
+    fn restore_state(&mut self, _state: &[u8]) -> Result<(), EnvError> {
+        Err(EnvError::BadState(
+            "this game cannot restore a saved state".into(),
+        ))
+    }
 }
 
 impl Game for SpaceInvaders {
@@ -32,5 +43,11 @@ impl Game for SpaceInvaders {
     }
     fn observation(&self) -> &[u8] {
         SpaceInvaders::observation(self)
+    }
+    fn save_state(&self) -> Option<Vec<u8>> {
+        Some(SpaceInvaders::save_state(self))
+    }
+    fn restore_state(&mut self, state: &[u8]) -> Result<(), EnvError> {
+        SpaceInvaders::restore_state(self, state)
     }
 }

@@ -253,6 +253,25 @@ impl Observer {
         &mut self.composer
     }
 
+    /// Sets the latest composite and the stack (`stack`: `k` frames, oldest first), as saved in a
+    /// checkpoint, so that the next step continues exactly.
+    ///
+    /// # Panics
+    /// If a frame is not 88 x 80 or `stack` does not hold `k` frames.
+    pub fn restore(&mut self, composite: &[u8], stack: &[&[u8]]) {
+        assert_eq!(stack.len(), self.stack.len(), "one frame per stack slot");
+        self.composer.restore(composite);
+        self.stack.reset(stack[0]);
+        for f in &stack[1..] {
+            self.stack.push(f);
+        }
+    }
+
+    /// The latest composite frame.
+    pub fn composer_frame(&self) -> &[u8] {
+        self.composer.frame()
+    }
+
     /// The stack of the last `k` composites.
     pub fn stack(&self) -> &FrameStack {
         &self.stack

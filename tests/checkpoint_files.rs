@@ -1,0 +1,360 @@
+//! Loaders that refuse bad files: every kind of damage to a checkpoint or replay file gives an
+//! error (never a panic, never a partly loaded network). Deterministic cases name each kind of
+//! damage; property tests cover random truncation points, random byte flips in the header and
+//! random bytes.
+
+use std::collections::HashMap;
+use std::sync::OnceLock;
+
+use invaders::dqn::checkpoint::{self, Checkpoint};
+use invaders::dqn::{Agent, Config, Preset};
+use invaders::env::SpaceInvaders;
+use proptest::prelude::*;
+use safetensors::tensor::TensorView;
+use safetensors::{Dtype, SafeTensors};
+
+/// A real checkpoint and replay file: a short Space Invaders episode with learning.
+fn files() -> &'static (Vec<u8>, Vec<u8>) {
+    static FILES: OnceLock<(Vec<u8>, Vec<u8>)> = OnceLock::new();
+    FILES.get_or_init(|| {
+        let mut c = Config::preset(Preset::Article);
+        c.learning_starts = 20;
+        c.replay_capacity = 100;
+        c.batch_size = 4;
+        c.env.max_episode_steps = Some(40);
+        c.seed = 2;
+        let env = SpaceInvaders::new(&c.env, c.seed).unwrap();
+        let mut agent = Agent::new(c, env);
+        agent.play_episode().unwrap();
+        assert!(agent.learner.adam.t > 0);
+        let dir = std::env::temp_dir().join(format!("invaders-files-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        checkpoint::save_run(&dir, &agent).unwrap();
+        let ckpt = std::fs::read(dir.join(checkpoint::CHECKPOINT_FILE)).unwrap();
+        let replay = std::fs::read(dir.join("replay-1.safetensors")).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+        (ckpt, replay)
+    })
+}
+
+/// An owned copy of a safetensors file, to damage and serialise again.
+struct Owned {
+    tensors: Vec<(String, Dtype, Vec<usize>, Vec<u8>)>,
+    meta: HashMap<String, String>,
+}
+
+impl Owned {
+    fn parse(bytes: &[u8]) -> Owned {
+        let (_, header) = SafeTensors::read_metadata(bytes).unwrap();
+        let st = SafeTensors::deserialize(bytes).unwrap();
+        Owned {
+            tensors: st
+                .tensors()
+                .into_iter()
+                .map(|(n, v)| (n, v.dtype(), v.shape().to_vec(), v.data().to_vec()))
+                .collect(),
+            meta: header.metadata().clone().unwrap(),
+        }
+    }
+
+    fn bytes(&self) -> Vec<u8> {
+        let views: Vec<_> = self
+            .tensors
+            .iter()
+            .map(|(n, d, s, b)| (n.clone(), TensorView::new(*d, s.clone(), b).unwrap()))
+            .collect();
+        safetensors::serialize(views, &Some(self.meta.clone())).unwrap()
+    }
+
+    fn get(&mut self, name: &str) -> &mut (String, Dtype, Vec<usize>, Vec<u8>) {
+        self.tensors.iter_mut().find(|t| t.0 == name).unwrap()
+    }
+}
+
+fn ckpt_err(bytes: &[u8]) -> String {
+    match checkpoint::from_bytes(bytes) {
+        Ok(_) => panic!("a damaged checkpoint was accepted"),
+        Err(e) => format!("{e:#}"),
+    }
+}
+
+fn good() -> Checkpoint {
+    checkpoint::from_bytes(&files().0).unwrap()
+}
+
+#[test]
+fn the_real_files_load() {
+    let c = good();
+    assert_eq!(c.config.preset, Preset::Article);
+    assert!(c.agent.game.is_some());
+    let r = checkpoint::replay_from_bytes(&files().1, &c).unwrap();
+    assert_eq!(r.written(), 41);
+}
+
+/// Each kind of damage, with the words its error must contain.
+#[test]
+fn every_kind_of_damage_is_refused_clearly() {
+    let (ckpt, _) = files();
+    let mut cases: Vec<(&str, Vec<u8>, &str)> = Vec::new();
+    let damaged = |f: &dyn Fn(&mut Owned)| {
+        let mut o = Owned::parse(ckpt);
+        f(&mut o);
+        o.bytes()
+    };
+    cases.push(("empty file", Vec::new(), "not a safetensors file"));
+    cases.push((
+        "random bytes",
+        (0..5000u32).map(|i| (i * 7919 % 251) as u8).collect(),
+        "not a safetensors file",
+    ));
+    cases.push((
+        "truncated in the header",
+        ckpt[..200].to_vec(),
+        "not a safetensors file",
+    ));
+    cases.push((
+        "truncated in the data",
+        ckpt[..ckpt.len() - 1].to_vec(),
+        "not a safetensors file",
+    ));
+    cases.push((
+        "extra bytes",
+        [ckpt.as_slice(), b"xx"].concat(),
+        "not a safetensors file",
+    ));
+    cases.push((
+        "renamed tensor",
+        damaged(&|o| o.get("online.conv2.weight").0 = "online.conv2.kernel".into()),
+        "no tensor `online.conv2.weight`",
+    ));
+    cases.push((
+        "missing tensor",
+        damaged(&|o| o.tensors.retain(|t| t.0 != "adam.v.dense1.bias")),
+        "no tensor `adam.v.dense1.bias`",
+    ));
+    cases.push((
+        "extra tensor",
+        damaged(&|o| {
+            o.tensors
+                .push(("extra".into(), Dtype::U8, vec![1], vec![0]))
+        }),
+        "expected",
+    ));
+    cases.push((
+        "wrong shape",
+        damaged(&|o| o.get("target.dense1.bias").2 = vec![64, 2]),
+        "tensor `target.dense1.bias` has shape [64, 2], expected [128]",
+    ));
+    cases.push((
+        "wrong dtype",
+        damaged(&|o| {
+            let t = o.get("online.dense2.weight");
+            t.1 = Dtype::I32;
+        }),
+        "tensor `online.dense2.weight` has dtype I32, expected F32",
+    ));
+    cases.push((
+        "wrong observer dtype",
+        damaged(&|o| {
+            let t = o.get("observer.composite");
+            t.1 = Dtype::I16;
+            t.2 = vec![44, 80];
+        }),
+        "observer.composite",
+    ));
+    cases.push((
+        "non-finite weight",
+        damaged(&|o| o.get("online.conv1.bias").3[4..8].copy_from_slice(&f32::NAN.to_le_bytes())),
+        "non-finite value at index 1",
+    ));
+    cases.push((
+        "old format",
+        damaged(&|o| {
+            o.meta
+                .insert("format".into(), "invaders-checkpoint-1".into());
+        }),
+        "unknown checkpoint format `invaders-checkpoint-1`",
+    ));
+    cases.push((
+        "no config",
+        damaged(&|o| {
+            o.meta.remove("config");
+        }),
+        "metadata has no `config`",
+    ));
+    cases.push((
+        "config out of range",
+        damaged(&|o| {
+            let c = o.meta["config"].replace("gamma = 0.97", "gamma = 7.0");
+            o.meta.insert("config".into(), c);
+        }),
+        "gamma must be in [0, 1]",
+    ));
+    cases.push((
+        "another preset's config (1 channel)",
+        damaged(&|o| {
+            let c = o.meta["config"]
+                .replace("preset = \"article\"", "preset = \"article-vanilla\"")
+                .replace("pipeline = \"stack-max\"", "pipeline = \"vanilla\"");
+            o.meta.insert("config".into(), c);
+        }),
+        "tensor `online.conv1.weight` has shape [8, 8, 4, 32], expected [8, 8, 1, 32]",
+    ));
+    cases.push((
+        "bad counters",
+        damaged(&|o| {
+            o.meta
+                .insert("counters".into(), "{\"episodes\": -1}".into());
+        }),
+        "checkpoint counters",
+    ));
+    cases.push((
+        "bad generators",
+        damaged(&|o| {
+            o.meta.insert("rngs".into(), "{\"explore\": 3}".into());
+        }),
+        "checkpoint random generators",
+    ));
+    cases.push((
+        "replay file outside the run directory",
+        damaged(&|o| {
+            o.meta.insert("replay".into(), "../../etc/passwd".into());
+        }),
+        "bad replay file `../../etc/passwd`",
+    ));
+    cases.push((
+        "too many actions",
+        damaged(&|o| {
+            let t = o.get("online.dense2.bias");
+            t.2 = vec![0];
+            t.3.clear();
+        }),
+        "0 actions",
+    ));
+    for (what, bytes, needle) in &cases {
+        let e = ckpt_err(bytes);
+        assert!(e.contains(needle), "{what}: `{e}` lacks `{needle}`");
+    }
+    eprintln!("{} kinds of checkpoint damage refused", cases.len());
+
+    // The same preset check the CLI uses.
+    let c = good();
+    let e = c
+        .expect_preset(Preset::ArticleVanilla)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("trained with preset `article`, not `article-vanilla`"),
+        "{e}"
+    );
+    c.expect_preset(Preset::Article).unwrap();
+}
+
+#[test]
+fn damaged_replay_files_are_refused() {
+    let (_, replay) = files();
+    let c = good();
+    let damaged = |f: &dyn Fn(&mut Owned)| {
+        let mut o = Owned::parse(replay);
+        f(&mut o);
+        o.bytes()
+    };
+    let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+        (
+            "truncated",
+            replay[..replay.len() / 2].to_vec(),
+            "not a safetensors file",
+        ),
+        (
+            "another checkpoint's",
+            damaged(&|o| {
+                o.meta.insert("episodes".into(), "7".into());
+            }),
+            "saved at episode 7",
+        ),
+        (
+            "counter beyond the rows",
+            damaged(&|o| {
+                o.meta.insert("written".into(), "60".into());
+            }),
+            "tensor `replay.frames` has shape [41, 88, 80], expected [60, 88, 80]",
+        ),
+        (
+            "action out of range",
+            damaged(&|o| o.get("replay.actions").3[3] = 200),
+            "replay action 200 in row 3 is out of range",
+        ),
+        (
+            "unknown flags",
+            damaged(&|o| o.get("replay.flags").3[5] = 0x80),
+            "unknown flag bits 0x80 in row 5",
+        ),
+        (
+            "non-finite reward",
+            damaged(&|o| {
+                o.get("replay.rewards").3[0..4].copy_from_slice(&f32::INFINITY.to_le_bytes())
+            }),
+            "non-finite reward in row 0",
+        ),
+        (
+            "another capacity",
+            damaged(&|o| {
+                o.meta.insert("capacity".into(), "99".into());
+            }),
+            "capacity",
+        ),
+    ];
+    for (what, bytes, needle) in &cases {
+        let e = match checkpoint::replay_from_bytes(bytes, &c) {
+            Ok(_) => panic!("{what}: accepted"),
+            Err(e) => format!("{e:#}"),
+        };
+        assert!(e.contains(needle), "{what}: `{e}` lacks `{needle}`");
+    }
+    eprintln!("{} kinds of replay damage refused", cases.len());
+}
+
+/// Where the tensor data starts (8-byte length + JSON header).
+fn header_end(bytes: &[u8]) -> usize {
+    8 + u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+    /// Any truncation is an error.
+    #[test]
+    fn truncated_checkpoints_are_refused(frac in 0.0f64..1.0) {
+        let b = &files().0;
+        let cut = (frac * b.len() as f64) as usize;
+        prop_assert!(checkpoint::from_bytes(&b[..cut]).is_err());
+    }
+
+    /// Flipped bytes in the header never panic; a file that still loads is a whole, valid
+    /// checkpoint (a flipped digit of the seed, say, is still a valid config).
+    #[test]
+    fn header_byte_flips_never_panic(flips in prop::collection::vec((any::<prop::sample::Index>(), 1u8..=255), 1..4)) {
+        let mut b = files().0.clone();
+        let end = header_end(&b);
+        for (i, x) in &flips {
+            let at = i.index(end);
+            b[at] ^= x;
+        }
+        if let Ok(c) = checkpoint::from_bytes(&b) {
+            c.config.validate().unwrap();
+            prop_assert!(c.learner.non_finite_param().is_none());
+        }
+    }
+
+    /// Random bytes, with or without a plausible header length, are refused.
+    #[test]
+    fn random_bytes_are_refused(mut bytes in prop::collection::vec(any::<u8>(), 0..4096), len in 0u64..4000) {
+        prop_assert!(checkpoint::from_bytes(&bytes).is_err());
+        if bytes.len() >= 8 {
+            bytes[..8].copy_from_slice(&len.to_le_bytes());
+            prop_assert!(checkpoint::from_bytes(&bytes).is_err());
+        }
+        let c = good();
+        prop_assert!(checkpoint::replay_from_bytes(&bytes, &c).is_err());
+    }
+}

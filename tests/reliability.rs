@@ -1,0 +1,440 @@
+//! Runs that survive: real `invaders train` processes killed with SIGKILL and resumed, an
+//! interrupted run resumed to the same weights and metrics as an uninterrupted one, divergence
+//! stopping the run, and write failures (a blocked path, a full disk) keeping the previous
+//! checkpoint.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use invaders::dqn::checkpoint::{self, CHECKPOINT_FILE};
+use safetensors::SafeTensors;
+
+fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_invaders"));
+    c.env_remove("RUST_BACKTRACE");
+    c
+}
+
+fn invaders(args: &[&str]) -> Output {
+    bin().args(args).output().expect("the binary runs")
+}
+
+fn text(out: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+fn ok(out: &Output) {
+    assert!(out.status.success(), "command failed:\n{}", text(out));
+}
+
+/// Asserts a clear failure: exit code 1, every `needles` in the message, no panic.
+fn fails_with(out: &Output, needles: &[&str]) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(1), "expected exit code 1:\n{err}");
+    for n in needles {
+        assert!(err.contains(n), "error should mention `{n}`:\n{err}");
+    }
+    assert!(
+        !err.contains("panicked"),
+        "a panic is not a clear error:\n{err}"
+    );
+    err
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("invaders-rel-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A fast but complete configuration: short episodes, learning from step 40, a replay memory
+/// that wraps within a few episodes, ε still mostly random so both branches run.
+const FAST: &str = "learning_starts = 40\nreplay_capacity = 300\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\n[env]\nmax_episode_steps = 60\n";
+
+fn write_config(root: &Path, extra: &str) -> String {
+    let p = root.join("config.toml");
+    std::fs::write(&p, format!("{extra}{FAST}")).unwrap();
+    p.to_str().unwrap().to_string()
+}
+
+fn new_run(cfg: &str, out: &Path, episodes: u64) -> Output {
+    invaders(&[
+        "train",
+        "--config",
+        cfg,
+        "--seed",
+        "11",
+        "--threads",
+        "1",
+        "--episodes",
+        &episodes.to_string(),
+        "--out",
+        out.to_str().unwrap(),
+    ])
+}
+
+fn resume_args(dir: &Path, episodes: u64) -> Vec<String> {
+    [
+        "train",
+        "--resume",
+        dir.to_str().unwrap(),
+        "--threads",
+        "1",
+        "--episodes",
+        &episodes.to_string(),
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
+/// metrics.csv rows without the wall-time column.
+fn rows(dir: &Path) -> Vec<String> {
+    std::fs::read_to_string(dir.join("metrics.csv"))
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.rsplit_once(',').unwrap().0.to_string())
+        .collect()
+}
+
+/// Every tensor of a safetensors file, by name, as raw bytes.
+fn tensors(path: &Path) -> Vec<(String, Vec<u8>)> {
+    let bytes = std::fs::read(path).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let mut out: Vec<_> = st
+        .tensors()
+        .into_iter()
+        .map(|(n, v)| (n, v.data().to_vec()))
+        .collect();
+    out.sort();
+    out
+}
+
+/// Asserts that two run directories hold bit-identical checkpoints (every tensor, the random
+/// generators, counters but wall time), replay files and metrics (but wall time).
+fn assert_same_run(a: &Path, b: &Path) {
+    let (ca, ra) = checkpoint::load_run(a).unwrap();
+    let (cb, rb) = checkpoint::load_run(b).unwrap();
+    let (mut ka, mut kb) = (ca.counters, cb.counters);
+    ka.wall_seconds = 0.0;
+    kb.wall_seconds = 0.0;
+    assert_eq!(ka, kb, "counters");
+    assert_eq!(ca.agent, cb.agent, "random generators, observer, emulator");
+    assert_eq!(ca.learner.adam.t, cb.learner.adam.t);
+    let (ta, tb) = (
+        tensors(&a.join(CHECKPOINT_FILE)),
+        tensors(&b.join(CHECKPOINT_FILE)),
+    );
+    assert_eq!(ta.len(), tb.len());
+    for ((na, da), (nb, db)) in ta.iter().zip(&tb) {
+        assert_eq!(na, nb);
+        assert!(da == db, "tensor {na} differs");
+    }
+    let (ra, rb) = (ra.expect("replay saved"), rb.expect("replay saved"));
+    assert_eq!(ra.written(), rb.written());
+    assert!(ra.parts() == rb.parts(), "replay memories differ");
+    assert_eq!(rows(a), rows(b), "metrics rows");
+}
+
+/// 6 episodes straight against 3, then a resume to 6: the same weights (both networks, Adam),
+/// replay memory, generators, emulator, counters and metrics rows, bit for bit.
+#[test]
+fn resumed_run_matches_uninterrupted_run_exactly() {
+    let root = tmp("exact");
+    let cfg = write_config(&root, "");
+    let (straight, split) = (root.join("straight"), root.join("split"));
+    ok(&new_run(&cfg, &straight, 6));
+    ok(&new_run(&cfg, &split, 3));
+    assert_eq!(rows(&split).len(), 3);
+    let args = resume_args(&split, 6);
+    ok(&invaders(
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+    ));
+    let (c, replay) = checkpoint::load_run(&straight).unwrap();
+    assert_eq!(c.counters.episodes, 6);
+    assert!(
+        c.counters.train_steps > 20,
+        "learning ran: {:?}",
+        c.counters
+    );
+    assert!(replay.unwrap().written() > 300, "the replay ring wrapped");
+    assert_same_run(&straight, &split);
+    // Only the latest replay file is kept.
+    let replays: Vec<_> = std::fs::read_dir(&split)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains("replay"))
+        .collect();
+    assert_eq!(replays, ["replay-6.safetensors"]);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Without the replay memory in checkpoints a run still resumes (counters, generators and
+/// networks restored) with an empty memory, and no replay file is written.
+#[test]
+fn resume_without_replay_starts_an_empty_memory() {
+    let root = tmp("noreplay");
+    let cfg = write_config(&root, "checkpoint_replay = false\n");
+    let run = root.join("run");
+    ok(&new_run(&cfg, &run, 2));
+    let args = resume_args(&run, 3);
+    ok(&invaders(
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+    ));
+    let (c, replay) = checkpoint::load_run(&run).unwrap();
+    assert!(replay.is_none());
+    assert_eq!(c.counters.episodes, 3);
+    assert_eq!(rows(&run).len(), 3);
+    assert!(std::fs::read_dir(&run)
+        .unwrap()
+        .flatten()
+        .all(|e| !e.file_name().to_string_lossy().contains("replay")));
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// A tiny seeded generator for kill times (no dependency on the library's).
+struct XorShift(u64);
+impl XorShift {
+    fn below(&mut self, n: u64) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0 % n
+    }
+}
+
+/// SIGKILL at seeded random moments, five times: each time the run directory holds a checkpoint
+/// and replay file that load, `--resume` continues from them, and the finished run is bit for
+/// bit the run that was never interrupted.
+#[test]
+fn sigkill_at_random_moments_never_loses_the_run() {
+    const EPISODES: u64 = 10;
+    let root = tmp("kill");
+    let cfg = write_config(&root, "");
+    let (run, reference) = (root.join("run"), root.join("reference"));
+    let mut rng = XorShift(0x9E37_79B9_7F4A_7C15);
+    let mut kills = 0;
+    let mut last_episodes = 0;
+    for round in 0..5 {
+        let mut cmd = bin();
+        if round == 0 {
+            cmd.args([
+                "train",
+                "--config",
+                &cfg,
+                "--seed",
+                "11",
+                "--threads",
+                "1",
+                "--episodes",
+                &EPISODES.to_string(),
+                "--out",
+                run.to_str().unwrap(),
+            ]);
+        } else {
+            cmd.args(resume_args(&run, EPISODES));
+        }
+        let mut child = cmd
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        if round == 0 {
+            let t = Instant::now();
+            while !run.join(CHECKPOINT_FILE).exists() {
+                assert!(t.elapsed() < Duration::from_secs(60), "no first checkpoint");
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        }
+        std::thread::sleep(Duration::from_millis(rng.below(900)));
+        if child.try_wait().unwrap().is_none() {
+            child.kill().unwrap(); // SIGKILL on Unix
+            kills += 1;
+        }
+        child.wait().unwrap();
+        let (c, replay) =
+            checkpoint::load_run(&run).unwrap_or_else(|e| panic!("after kill {kills}: {e:#}"));
+        assert!(replay.is_some());
+        assert!(c.counters.episodes >= last_episodes, "progress kept");
+        assert!(rows(&run).len() as u64 >= c.counters.episodes);
+        last_episodes = c.counters.episodes;
+        if last_episodes == EPISODES {
+            break;
+        }
+    }
+    assert!(kills >= 3, "only {kills} kills landed");
+    let args = resume_args(&run, EPISODES);
+    ok(&invaders(
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+    ));
+    let episodes: Vec<u64> = rows(&run)
+        .iter()
+        .map(|r| r.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(episodes, (1..=EPISODES).collect::<Vec<_>>());
+    ok(&new_run(&cfg, &reference, EPISODES));
+    assert_same_run(&reference, &run);
+    eprintln!("survived {kills} SIGKILLs");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// An absurd learning rate (allowed by validation) makes training diverge: the run stops with a
+/// message naming the agent and train step, exits 1, and the last good checkpoint is intact.
+#[test]
+fn divergence_stops_the_run_and_keeps_the_last_good_checkpoint() {
+    let root = tmp("nan");
+    // Learning starts in episode 2 (episodes are at most 60 steps).
+    let cfg = root.join("nan.toml");
+    std::fs::write(
+        &cfg,
+        FAST.replace("learning_starts = 40", "learning_starts = 61")
+            .replace("batch_size = 8", "batch_size = 8\nlearning_rate = 1e30"),
+    )
+    .unwrap();
+    let run = root.join("run");
+    let out = new_run(cfg.to_str().unwrap(), &run, 5);
+    let err = fails_with(
+        &out,
+        &[
+            "training diverged at agent step",
+            "train step",
+            "last good checkpoint",
+            "episode 1",
+        ],
+    );
+    let (c, _) = checkpoint::load_run(&run).unwrap();
+    assert_eq!(c.counters.episodes, 1, "{err}");
+    assert_eq!(c.counters.train_steps, 0);
+    assert_eq!(rows(&run).len(), 1);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// A checkpoint that cannot be written (its temporary path is taken by a directory) stops the
+/// run with a clear error and leaves the previous checkpoint and replay file intact; so does a
+/// wrong preset on resume or eval.
+#[test]
+fn write_failure_keeps_the_previous_checkpoint() {
+    let root = tmp("blocked");
+    let cfg = write_config(&root, "");
+    let run = root.join("run");
+    ok(&new_run(&cfg, &run, 1));
+    let before = std::fs::read(run.join(CHECKPOINT_FILE)).unwrap();
+    let blocker = run.join(format!(".{CHECKPOINT_FILE}.tmp"));
+    std::fs::create_dir(&blocker).unwrap();
+    std::fs::write(blocker.join("x"), b"x").unwrap();
+    let args = resume_args(&run, 3);
+    fails_with(
+        &invaders(&args.iter().map(String::as_str).collect::<Vec<_>>()),
+        &[
+            "cannot save the checkpoint of episode 2",
+            "previous version is kept",
+        ],
+    );
+    assert_eq!(std::fs::read(run.join(CHECKPOINT_FILE)).unwrap(), before);
+    let (c, replay) = checkpoint::load_run(&run).unwrap();
+    assert_eq!(c.counters.episodes, 1);
+    assert!(replay.is_some());
+    assert!(
+        !run.join("replay-2.safetensors").exists(),
+        "the orphan replay file is removed"
+    );
+    std::fs::remove_dir_all(&blocker).unwrap();
+
+    // Another preset's run is refused on resume and on eval.
+    let r = run.to_str().unwrap();
+    fails_with(
+        &invaders(&[
+            "train",
+            "--resume",
+            r,
+            "--preset",
+            "article-vanilla",
+            "--episodes",
+            "2",
+        ]),
+        &["trained with preset `article`, not `article-vanilla`"],
+    );
+    fails_with(
+        &invaders(&[
+            "eval",
+            "--checkpoint",
+            r,
+            "--preset",
+            "article-as-written",
+            "--episodes",
+            "1",
+        ]),
+        &["trained with preset `article`, not `article-as-written`"],
+    );
+    assert_eq!(std::fs::read(run.join(CHECKPOINT_FILE)).unwrap(), before);
+    // The matching preset is accepted.
+    ok(&invaders(&[
+        "train",
+        "--resume",
+        r,
+        "--preset",
+        "article",
+        "--episodes",
+        "2",
+        "--threads",
+        "1",
+    ]));
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Unmounts on drop, so a failing assertion does not leave a mount behind.
+struct Mount(PathBuf);
+impl Drop for Mount {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// A full disk (a small tmpfs) while saving: a clear error naming the disk's complaint, and the
+/// previous checkpoint intact. Needs mount privileges; skipped (with a note) without them.
+#[test]
+fn full_disk_keeps_the_previous_checkpoint() {
+    let root = tmp("full");
+    let cfg = write_config(&root, "");
+    let disk = root.join("disk");
+    std::fs::create_dir(&disk).unwrap();
+    // One checkpoint (14.5 MB) and its replay file (2 MB) fit; a second pair being written
+    // beside them does not.
+    let mounted = Command::new("mount")
+        .args(["-t", "tmpfs", "-o", "size=24m", "tmpfs"])
+        .arg(&disk)
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !mounted {
+        eprintln!("note: cannot mount a tmpfs here; the full-disk case is not exercised");
+        return;
+    }
+    let _guard = Mount(disk.clone());
+    let run = disk.join("run");
+    let err = fails_with(
+        &new_run(&cfg, &run, 3),
+        &["cannot save the checkpoint of episode 2", "No space left"],
+    );
+    let (c, replay) = checkpoint::load_run(&run).unwrap_or_else(|e| panic!("{e:#}\n{err}"));
+    assert_eq!(c.counters.episodes, 1);
+    assert!(replay.is_some());
+    let names: Vec<_> = std::fs::read_dir(&run)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(
+        names.iter().all(|n| !n.ends_with(".tmp")),
+        "temporaries removed: {names:?}"
+    );
+    drop(_guard);
+    let _ = std::fs::remove_dir_all(&root);
+}
