@@ -122,11 +122,11 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
     let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
     let mut agent = Agent::new(e2e, env);
     while agent.counters.agent_steps < 600 {
-        agent.play_episode();
+        agent.play_episode()?;
     }
     let (s0, t0) = (agent.counters.agent_steps, Instant::now());
     while agent.counters.agent_steps < s0 + 2_000 {
-        agent.play_episode();
+        agent.play_episode()?;
     }
     let agent_steps_per_s = (agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64();
     let env_share = agent_steps_per_s / env_steps_per_s;
