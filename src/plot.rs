@@ -1,6 +1,7 @@
 //! Reward curves like the article's figures: each episode's score, faint, and its moving average.
 
 use anyhow::{anyhow, Context};
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use std::path::Path;
 
@@ -62,8 +63,6 @@ pub fn plot_rewards(
     window: usize,
     out: &Path,
 ) -> anyhow::Result<()> {
-    let root = BitMapBackend::new(out, (1000, 600)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
     let max_x = curves
         .iter()
         .flat_map(|c| c.points.iter().map(|p| p.0))
@@ -72,46 +71,66 @@ pub fn plot_rewards(
         .iter()
         .flat_map(|c| c.points.iter().map(|p| p.1))
         .fold(10.0, f64::max);
+    figure(out, title, "reward per episode", (max_x, max_y), |chart| {
+        for (i, c) in curves.iter().enumerate() {
+            let color = Palette99::pick(i);
+            let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
+            let avg = moving_average(&ys, window);
+            chart.draw_series(LineSeries::new(c.points.iter().copied(), color.mix(0.25)))?;
+            chart
+                .draw_series(LineSeries::new(
+                    c.points.iter().zip(avg).map(|(p, a)| (p.0, a)),
+                    color.stroke_width(3),
+                ))?
+                .label(format!("{} ({window}-episode mean)", c.label))
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+                });
+        }
+        Ok(())
+    })
+}
+
+type Chart<'a, 'b> =
+    ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+type DrawResult =
+    Result<(), DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>>;
+
+/// A 1000x600 figure of reward against episode with axes up to `max` and a legend; `draw` adds
+/// the series. Every figure of the project goes through here.
+fn figure(
+    out: &Path,
+    title: &str,
+    y_desc: &str,
+    max: (f64, f64),
+    draw: impl FnOnce(&mut Chart<'_, '_>) -> DrawResult,
+) -> anyhow::Result<()> {
+    let e = |err: DrawingAreaErrorKind<_>| anyhow!("plot: {err}");
+    let root = BitMapBackend::new(out, (1000, 600)).into_drawing_area();
+    root.fill(&WHITE).map_err(e)?;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 24))
         .margin(15)
         .x_label_area_size(45)
         .y_label_area_size(60)
-        .build_cartesian_2d(0.0..max_x, 0.0..max_y * 1.05)
-        .map_err(|e| anyhow!("plot: {e}"))?;
+        .build_cartesian_2d(0.0..max.0, 0.0..max.1 * 1.05)
+        .map_err(e)?;
     chart
         .configure_mesh()
         .x_desc("episode")
-        .y_desc("reward per episode")
+        .y_desc(y_desc)
         .draw()
-        .map_err(|e| anyhow!("plot: {e}"))?;
-    for (i, c) in curves.iter().enumerate() {
-        let color = Palette99::pick(i);
-        let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
-        let avg = moving_average(&ys, window);
-        chart
-            .draw_series(LineSeries::new(c.points.iter().copied(), color.mix(0.25)))
-            .map_err(|e| anyhow!("plot: {e}"))?;
-        chart
-            .draw_series(LineSeries::new(
-                c.points.iter().zip(avg).map(|(p, a)| (p.0, a)),
-                color.stroke_width(3),
-            ))
-            .map_err(|e| anyhow!("plot: {e}"))?
-            .label(format!("{} ({window}-episode mean)", c.label))
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
-            });
-    }
+        .map_err(e)?;
+    draw(&mut chart).map_err(e)?;
     chart
         .configure_series_labels()
         .background_style(WHITE.mix(0.8))
         .border_style(BLACK)
         .position(SeriesLabelPosition::UpperLeft)
         .draw()
-        .map_err(|e| anyhow!("plot: {e}"))?;
+        .map_err(e)?;
     root.present()
-        .map_err(|e| anyhow!("plot: cannot write {}: {e}", out.display()))?;
+        .map_err(|err| anyhow!("plot: cannot write {}: {err}", out.display()))?;
     Ok(())
 }
 
@@ -145,11 +164,8 @@ pub fn mean_band(seeds: &[Vec<(f64, f64)>], window: usize) -> Vec<(f64, f64, f64
 /// Draws each group's mean moving average over seeds as a line, with a shaded band from the
 /// lowest to the highest seed.
 pub fn plot_groups(groups: &[Group], title: &str, window: usize, out: &Path) -> anyhow::Result<()> {
-    let e = |err: DrawingAreaErrorKind<_>| anyhow!("plot: {err}");
     let bands: Vec<Vec<(f64, f64, f64, f64)>> =
         groups.iter().map(|g| mean_band(&g.seeds, window)).collect();
-    let root = BitMapBackend::new(out, (1000, 600)).into_drawing_area();
-    root.fill(&WHITE).map_err(e)?;
     let max_x = bands
         .iter()
         .flat_map(|b| b.iter().map(|p| p.0))
@@ -158,47 +174,23 @@ pub fn plot_groups(groups: &[Group], title: &str, window: usize, out: &Path) -> 
         .iter()
         .flat_map(|b| b.iter().map(|p| p.3))
         .fold(10.0, f64::max);
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 24))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(60)
-        .build_cartesian_2d(0.0..max_x, 0.0..max_y * 1.05)
-        .map_err(e)?;
-    chart
-        .configure_mesh()
-        .x_desc("episode")
-        .y_desc(format!(
-            "reward per episode ({window}-episode moving average)"
-        ))
-        .draw()
-        .map_err(e)?;
-    for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
-        let color = Palette99::pick(i);
-        let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
-        outline.extend(band.iter().rev().map(|p| (p.0, p.2)));
-        chart
-            .draw_series(std::iter::once(Polygon::new(outline, color.mix(0.15))))
-            .map_err(e)?;
-        chart
-            .draw_series(LineSeries::new(
-                band.iter().map(|p| (p.0, p.1)),
-                color.stroke_width(3),
-            ))
-            .map_err(e)?
-            .label(format!("{} (mean of {} seeds)", g.label, g.seeds.len()))
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
-            });
-    }
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.8))
-        .border_style(BLACK)
-        .position(SeriesLabelPosition::UpperLeft)
-        .draw()
-        .map_err(e)?;
-    root.present()
-        .map_err(|err| anyhow!("plot: cannot write {}: {err}", out.display()))?;
-    Ok(())
+    let y_desc = format!("reward per episode ({window}-episode moving average)");
+    figure(out, title, &y_desc, (max_x, max_y), |chart| {
+        for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
+            let color = Palette99::pick(i);
+            let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
+            outline.extend(band.iter().rev().map(|p| (p.0, p.2)));
+            chart.draw_series(std::iter::once(Polygon::new(outline, color.mix(0.15))))?;
+            chart
+                .draw_series(LineSeries::new(
+                    band.iter().map(|p| (p.0, p.1)),
+                    color.stroke_width(3),
+                ))?
+                .label(format!("{} (mean of {} seeds)", g.label, g.seeds.len()))
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+                });
+        }
+        Ok(())
+    })
 }

@@ -222,14 +222,7 @@ struct GifRecorder {
 
 impl GifRecorder {
     fn create(path: &Path) -> anyhow::Result<Self> {
-        let dir = path
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        let name = path
-            .file_name()
-            .ok_or_else(|| anyhow::anyhow!("--gif {} is not a file path", path.display()))?;
-        let tmp = dir.join(format!(".{}.tmp", name.to_string_lossy()));
+        let tmp = checkpoint::tmp_path(path).context("--gif")?;
         let file = std::fs::File::create(&tmp)
             .with_context(|| format!("cannot create {}", tmp.display()))?;
         let mut encoder = gif::Encoder::new(

@@ -165,7 +165,9 @@ fn view(t: &Tensor<f32>) -> Result<TensorView<'_>, safetensors::SafeTensorError>
     )
 }
 
-fn tmp_path(path: &Path) -> anyhow::Result<std::path::PathBuf> {
+/// The temporary file an atomic write of `path` goes through: `.NAME.tmp` in the same directory
+/// (the same filesystem, so the final rename is atomic).
+pub fn tmp_path(path: &Path) -> anyhow::Result<std::path::PathBuf> {
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
