@@ -319,7 +319,7 @@ pub(crate) mod avx512 {
         }
         // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
         let mr = match n.min(64).div_ceil(16) {
-            1 | 2 => 12,
+            1 | 2 => 8,
             3 => 8,
             _ => 6,
         };
