@@ -2,7 +2,8 @@
 
 use super::{Layer, Param};
 use crate::tensor::{
-    col2im, fill_iota, gemm, im2col, pad_input, ConvGeom, Float, GatherGemm, Init, Op, Tensor,
+    col2im, fill_iota, gemm, im2col, pad_input, unpad_input, ConvGeom, Float, GatherGemm, Init, Op,
+    ScatterGemm, Tensor,
 };
 
 /// `y = conv(x, W) + b`: see [`crate::tensor::ConvGeom`] for the defining sum and the shapes.
@@ -15,8 +16,8 @@ use crate::tensor::{
 /// ([`crate::tensor::GatherGemm`]) on a zero-padded copy of the input instead: no im2col matrix is
 /// written (16x the input for conv1, 21 MB at batch 48), the forward product starts from the
 /// bias, and the weight gradient reduces over all output pixels straight from the padded input.
-/// The input gradient still forms `dcols = dY·Wᵀ` (by the same kernel, with `Wᵀ` packed) and
-/// scatters it with col2im.
+/// The input gradient `dY·Wᵀ` (with `Wᵀ` packed) is added tile by tile straight onto a padded
+/// input gradient ([`crate::tensor::ScatterGemm`], col2im fused), whose interior is then `dX`.
 pub struct Conv2d<T> {
     name: String,
     /// The geometry (input and output sizes, strides, padding).
@@ -39,6 +40,8 @@ pub struct Conv2d<T> {
     dy_rows: Vec<usize>,
     iota: Vec<usize>,
     wt: Vec<T>,
+    /// Fast path: the input gradient with respect to `xpad`.
+    dxpad: Vec<T>,
 }
 
 impl<T: Float> Conv2d<T> {
@@ -62,6 +65,7 @@ impl<T: Float> Conv2d<T> {
             dy_rows: Vec::new(),
             iota: Vec::new(),
             wt: Vec::new(),
+            dxpad: Vec::new(),
         }
     }
 
@@ -110,20 +114,23 @@ impl<T: Float> Conv2d<T> {
             }
             fill_iota(&mut self.dy_rows, m, g.cout);
             fill_iota(&mut self.iota, g.cout, 1);
-            self.dcols.resize(m * k, T::zero());
-            T::gather_gemm(GatherGemm {
+            // dxpad[pixels[m] + patch[k]] += dcols[m, k], image by image (col2im fused).
+            self.dxpad.clear();
+            self.dxpad.resize(self.xpad.len(), T::zero());
+            T::scatter_gemm(ScatterGemm {
                 a: dy.data(),
                 p: &self.dy_rows,
                 q: &self.iota,
                 b: &self.wt,
                 ldb: k,
                 n: k,
-                c: &mut self.dcols,
-                ldc: k,
-                init: Init::Zero,
+                out: &mut self.dxpad,
+                out_rows: &self.pixels,
+                out_cols: &self.patch,
+                groups: n,
             });
             self.dx.set_shape(&[n, g.h, g.w, g.cin]);
-            col2im(&g, n, &self.dcols, self.dx.data_mut());
+            unpad_input(&g, n, &self.dxpad, self.dx.data_mut());
         }
     }
 }

@@ -221,6 +221,23 @@ pub fn pad_input<T: Float>(g: &ConvGeom, n: usize, x: &[T], xpad: &mut Vec<T>) {
         });
 }
 
+/// The interior of a padded `[N, HP, WP, Cin]` tensor ([`ConvGeom::padded`]) into `x[N, H, W,
+/// Cin]`: the inverse of [`pad_input`] (and the adjoint's last step: gradient that landed on
+/// padding is dropped). Parallel over images.
+pub fn unpad_input<T: Float>(g: &ConvGeom, n: usize, xpad: &[T], x: &mut [T]) {
+    let (hp, wp) = g.padded();
+    let (c, il) = (g.cin, g.in_len());
+    assert_eq!(x.len(), n * il, "unpad_input: input size");
+    assert_eq!(xpad.len(), n * hp * wp * c, "unpad_input: padded size");
+    x.par_chunks_mut(il)
+        .zip(xpad.par_chunks(hp * wp * c))
+        .for_each(|(x, xp)| {
+            for (y, row) in x.chunks_exact_mut(g.w * c).enumerate() {
+                row.copy_from_slice(&xp[((y + g.pad_top) * wp + g.pad_left) * c..][..g.w * c]);
+            }
+        });
+}
+
 /// The adjoint of [`im2col`]: `dx[N, H, W, Cin] = Σ` of every `dcols` entry onto the input value
 /// it was copied from (padding entries are dropped). Overwrites `dx`. Parallel over images.
 pub fn col2im<T: Float>(g: &ConvGeom, n: usize, dcols: &[T], dx: &mut [T]) {

@@ -4,7 +4,7 @@
 //! checks run the very same code in `f64`, where central finite differences are accurate to
 //! about 1e-9, so a tolerance can be tight enough to catch a single wrong index.
 
-use super::gather::{gather_gemm_portable, GatherGemm};
+use super::gather::{gather_gemm_portable, scatter_gemm_portable, GatherGemm, ScatterGemm};
 use std::fmt::{Debug, Display};
 use std::iter::Sum;
 use std::ops::{AddAssign, MulAssign, SubAssign};
@@ -41,6 +41,12 @@ pub trait Float:
     /// else the portable loops.
     fn gather_gemm(g: GatherGemm<'_, Self>) {
         gather_gemm_portable(g)
+    }
+
+    /// The scatter GEMM of [`crate::tensor::ScatterGemm`]: SIMD where [`Float::simd`], else the
+    /// portable loops.
+    fn scatter_gemm(g: ScatterGemm<'_, Self>) {
+        scatter_gemm_portable(g)
     }
 
     /// `C = alpha * A * B + beta * C` on strided matrices, by `matrixmultiply`.
@@ -141,6 +147,14 @@ impl Float for f32 {
             super::gather::avx512::gather_gemm(g)
         } else {
             gather_gemm_portable(g)
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    fn scatter_gemm(g: ScatterGemm<'_, f32>) {
+        if Self::simd() {
+            super::gather::avx512::scatter_gemm(g)
+        } else {
+            scatter_gemm_portable(g)
         }
     }
     unsafe fn gemm_raw(

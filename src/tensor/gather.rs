@@ -80,6 +80,85 @@ impl<T: Float> GatherGemm<'_, T> {
     }
 }
 
+/// A gather GEMM whose rows are added onto scattered, possibly overlapping places of `out`:
+///
+/// ```text
+/// out[out_rows[r] + out_cols[j]] += Σ_t a[p[r] + q[t]] · b[t·ldb + j]      r < p.len(), j < n
+/// ```
+///
+/// A convolution's input gradient with col2im fused in: `a = dY`, `b = Wᵀ`, `out` the padded
+/// input gradient, `out_rows`/`out_cols` the pixel and patch offsets of the forward gather, so
+/// the `[N·OH·OW, K]` matrix `dcols` is never stored. Rows come in `groups` equal groups (images)
+/// that each write only to their own `1/groups` of `out`, one task per group, rows added in order.
+pub struct ScatterGemm<'a, T> {
+    pub a: &'a [T],
+    pub p: &'a [usize],
+    pub q: &'a [usize],
+    pub b: &'a [T],
+    pub ldb: usize,
+    pub n: usize,
+    pub out: &'a mut [T],
+    pub out_rows: &'a [usize],
+    pub out_cols: &'a [usize],
+    pub groups: usize,
+}
+
+impl<T: Float> ScatterGemm<'_, T> {
+    /// Panics unless every index is inside its slice and each group's rows stay in its part.
+    pub fn check(&self) {
+        let (rows, steps) = (self.p.len(), self.q.len());
+        if rows == 0 || self.n == 0 {
+            return;
+        }
+        assert!(
+            self.groups > 0 && rows % self.groups == 0 && self.out.len() % self.groups == 0,
+            "scatter_gemm: groups"
+        );
+        assert_eq!(self.out_rows.len(), rows, "scatter_gemm: out_rows");
+        assert!(self.out_cols.len() >= self.n, "scatter_gemm: out_cols");
+        let (grows, glen) = (rows / self.groups, self.out.len() / self.groups);
+        let cmax = self.out_cols[..self.n].iter().copied().max().unwrap_or(0);
+        for (r, &o) in self.out_rows.iter().enumerate() {
+            let g = r / grows;
+            assert!(
+                o >= g * glen && o + cmax < (g + 1) * glen,
+                "scatter_gemm: row {r} leaves its group"
+            );
+        }
+        if steps > 0 {
+            assert!(self.n <= self.ldb, "scatter_gemm: n > ldb");
+            assert!(
+                self.b.len() >= (steps - 1) * self.ldb + self.n,
+                "scatter_gemm: B too short"
+            );
+            let pmax = self.p.iter().copied().max().unwrap_or(0);
+            let qmax = self.q.iter().copied().max().unwrap_or(0);
+            assert!(
+                pmax + qmax < self.a.len(),
+                "scatter_gemm: A index out of range"
+            );
+        }
+    }
+}
+
+/// The portable scatter GEMM (fallback and test oracle): each row's sums, then added in row order.
+pub fn scatter_gemm_portable<T: Float>(g: ScatterGemm<'_, T>) {
+    g.check();
+    let mut row = vec![T::zero(); g.n];
+    for (r, &pr) in g.p.iter().enumerate() {
+        row.fill(T::zero());
+        for (t, &qt) in g.q.iter().enumerate() {
+            let av = g.a[pr + qt];
+            for (cv, &bv) in row.iter_mut().zip(&g.b[t * g.ldb..][..g.n]) {
+                *cv = av.mul_add(bv, *cv);
+            }
+        }
+        for (j, &v) in row.iter().enumerate() {
+            g.out[g.out_rows[r] + g.out_cols[j]] += v;
+        }
+    }
+}
+
 /// The portable kernel: plain loops in the same summation order as the fast one (the fallback
 /// where AVX-512 is missing, and the oracle for it in the tests).
 pub fn gather_gemm_portable<T: Float>(g: GatherGemm<'_, T>) {
@@ -152,6 +231,7 @@ pub(crate) mod avx512 {
     /// writable up to the masked width, and a `Bias` pointer readable likewise.
     #[target_feature(enable = "avx512f")]
     #[inline]
+    #[allow(clippy::too_many_arguments)]
     unsafe fn tile<const MR: usize, const NV: usize>(
         a: *const f32,
         p: &[usize],
@@ -159,16 +239,17 @@ pub(crate) mod avx512 {
         b: *const f32,
         ldb: usize,
         c: *mut f32,
-        ldc: usize,
+        crow: &[usize],
         masks: [u16; NV],
         start: Start,
+        add: bool,
     ) {
         let mut acc = [[_mm512_setzero_ps(); NV]; MR];
         for r in 0..MR {
             for v in 0..NV {
                 acc[r][v] = match start {
                     Start::Zero => _mm512_setzero_ps(),
-                    Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(r * ldc + 16 * v)),
+                    Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
                     Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
                 };
             }
@@ -191,9 +272,17 @@ pub(crate) mod avx512 {
             }
             brow = brow.add(ldb);
         }
+        // With `add`, row by row (load, add, store), so rows whose destinations overlap (a
+        // scatter onto overlapping windows) each see the previous row's sum.
         for r in 0..MR {
             for v in 0..NV {
-                _mm512_mask_storeu_ps(c.add(r * ldc + 16 * v), masks[v], acc[r][v]);
+                let dst = c.add(crow[r] + 16 * v);
+                let val = if add {
+                    _mm512_add_ps(_mm512_maskz_loadu_ps(masks[v], dst), acc[r][v])
+                } else {
+                    acc[r][v]
+                };
+                _mm512_mask_storeu_ps(dst, masks[v], val);
             }
         }
     }
@@ -213,16 +302,34 @@ pub(crate) mod avx512 {
         b: *const f32,
         ldb: usize,
         c: *mut f32,
-        ldc: usize,
+        crow: &[usize],
         m: [u16; 4],
         start: Start,
+        add: bool,
     ) {
         match nv {
-            1 => tile::<MR, 1>(a, p, q, b, ldb, c, ldc, [m[0]], start),
-            2 => tile::<MR, 2>(a, p, q, b, ldb, c, ldc, [m[0], m[1]], start),
-            3 => tile::<MR, 3>(a, p, q, b, ldb, c, ldc, [m[0], m[1], m[2]], start),
-            _ => tile::<MR, 4>(a, p, q, b, ldb, c, ldc, m, start),
+            1 => tile::<MR, 1>(a, p, q, b, ldb, c, crow, [m[0]], start, add),
+            2 => tile::<MR, 2>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, add),
+            3 => tile::<MR, 3>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, add),
+            _ => tile::<MR, 4>(a, p, q, b, ldb, c, crow, m, start, add),
         }
+    }
+
+    /// Lane masks of the 64-column panel starting at `j0` of an `n`-column product, and its
+    /// width in vectors.
+    fn panel_masks(n: usize, j0: usize) -> ([u16; 4], usize) {
+        let w = (n - j0).min(64);
+        let nv = w.div_ceil(16);
+        let mut m = [0u16; 4];
+        for (v, mv) in m.iter_mut().enumerate().take(nv) {
+            let lanes = (w - 16 * v).min(16);
+            *mv = if lanes == 16 {
+                0xffff
+            } else {
+                (1u16 << lanes) - 1
+            };
+        }
+        (m, nv)
     }
 
     /// Rows `0..p.len()` of one task's block of `C` (`c` points at its first row).
@@ -259,17 +366,7 @@ pub(crate) mod avx512 {
             while r < nr {
                 let full = nr - r >= mr;
                 for j0 in (0..n).step_by(64) {
-                    let w = (n - j0).min(64);
-                    let nv = w.div_ceil(16);
-                    let mut m = [0u16; 4];
-                    for (v, mv) in m.iter_mut().enumerate().take(nv) {
-                        let lanes = (w - 16 * v).min(16);
-                        *mv = if lanes == 16 {
-                            0xffff
-                        } else {
-                            (1u16 << lanes) - 1
-                        };
-                    }
+                    let (m, nv) = panel_masks(n, j0);
                     let st = match start {
                         Start::Bias(bias) => Start::Bias(bias.add(j0)),
                         s => s,
@@ -277,23 +374,162 @@ pub(crate) mod avx512 {
                     let cp = c.add(r * ldc + j0);
                     let bp = bb.add(j0);
                     let ap = a.as_ptr();
+                    let crow: [usize; 8] = std::array::from_fn(|i| i * ldc);
                     if full {
                         let pr = &p[r..r + mr];
                         match mr {
-                            12 => tile_nv::<12>(nv, ap, pr, qb, bp, ldb, cp, ldc, m, st),
-                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, ldc, m, st),
-                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, ldc, m, st),
+                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
+                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
                         }
                     } else {
                         for rr in r..nr {
                             let pr = &p[rr..rr + 1];
                             let cp = c.add(rr * ldc + j0);
-                            tile_nv::<1>(nv, ap, pr, qb, bp, ldb, cp, ldc, m, st);
+                            tile_nv::<1>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false);
                         }
                     }
                 }
                 r += mr;
             }
+        }
+    }
+
+    /// Register-tile height for an `n`-column product: `MR·NV ≤ 24` accumulators. (12 × 2 for
+    /// conv1's 32 columns spilled: LLVM hoists all 12 broadcasts, 38 live zmm.)
+    fn tile_rows(n: usize) -> usize {
+        match n.min(64).div_ceil(16) {
+            1..=3 => 8,
+            _ => 6,
+        }
+    }
+
+    /// [`super::ScatterGemm`] on AVX-512, one rayon task per group. Call only if [`available`].
+    pub fn scatter_gemm(g: super::ScatterGemm<'_, f32>) {
+        assert!(available(), "scatter_gemm: AVX-512F and FMA needed");
+        g.check();
+        let super::ScatterGemm {
+            a,
+            p,
+            q,
+            b,
+            ldb,
+            n,
+            out,
+            out_rows,
+            out_cols,
+            groups,
+        } = g;
+        if p.is_empty() || n == 0 {
+            return;
+        }
+        let (grows, glen) = (p.len() / groups, out.len() / groups);
+        let mr = tile_rows(n);
+        // Whether each 64-column panel lands on consecutive outputs (then tiles add straight
+        // into `out`; otherwise through a buffer, element by element).
+        let contiguous = |j0: usize| {
+            let w = (n - j0).min(64);
+            (0..w).all(|j| out_cols[j0 + j] == out_cols[j0] + j)
+        };
+        out.par_chunks_mut(glen).enumerate().for_each(|(gi, o)| {
+            let rows = &p[gi * grows..][..grows];
+            let orows = &out_rows[gi * grows..][..grows];
+            let base = gi * glen;
+            // SAFETY: AVX-512F checked; `check` proved every `a` and `b` index in bounds and
+            // every output index of this group's rows inside `o` (its `glen` values), which
+            // no other task touches.
+            unsafe {
+                scatter_task(
+                    mr,
+                    a,
+                    rows,
+                    q,
+                    b,
+                    ldb,
+                    n,
+                    o,
+                    orows,
+                    base,
+                    out_cols,
+                    &contiguous,
+                )
+            }
+        });
+    }
+
+    /// One group's rows of a scatter GEMM.
+    ///
+    /// # Safety
+    /// AVX-512F available; the bounds of [`super::ScatterGemm::check`] hold, with `o` the group's
+    /// output slice starting at index `base` of the whole output.
+    #[target_feature(enable = "avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn scatter_task(
+        mr: usize,
+        a: &[f32],
+        p: &[usize],
+        q: &[usize],
+        b: &[f32],
+        ldb: usize,
+        n: usize,
+        o: &mut [f32],
+        orows: &[usize],
+        base: usize,
+        ocols: &[usize],
+        contiguous: &dyn Fn(usize) -> bool,
+    ) {
+        let nr = p.len();
+        let steps = q.len();
+        let ap = a.as_ptr();
+        let op = o.as_mut_ptr();
+        let mut buf = [0f32; 8 * 64];
+        let mut r = 0;
+        while r < nr {
+            let h = (nr - r).min(mr);
+            for j0 in (0..n).step_by(64) {
+                let (m, nv) = panel_masks(n, j0);
+                let w = (n - j0).min(64);
+                let direct = contiguous(j0);
+                for blk in 0..steps.div_ceil(TB).max(1) {
+                    let t0 = blk * TB;
+                    let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
+                    let bp = if qb.is_empty() {
+                        b.as_ptr()
+                    } else {
+                        b.as_ptr().add(t0 * ldb + j0)
+                    };
+                    let (cp, crow, add): (*mut f32, [usize; 8], bool) = if direct {
+                        let crow = std::array::from_fn(|i| {
+                            orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
+                        });
+                        (op, crow, true)
+                    } else {
+                        let crow = std::array::from_fn(|i| i * 64);
+                        (buf.as_mut_ptr(), crow, blk > 0)
+                    };
+                    let start = Start::Zero;
+                    if h == mr {
+                        let pr = &p[r..r + mr];
+                        match mr {
+                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                        }
+                    } else {
+                        for i in 0..h {
+                            let pr = &p[r + i..r + i + 1];
+                            let cr = &crow[i..i + 1];
+                            tile_nv::<1>(nv, ap, pr, qb, bp, ldb, cp, cr, m, start, add);
+                        }
+                    }
+                }
+                if !direct {
+                    for i in 0..h {
+                        for j in 0..w {
+                            *op.add(orows[r + i] + ocols[j0 + j] - base) += buf[i * 64 + j];
+                        }
+                    }
+                }
+            }
+            r += mr;
         }
     }
 
@@ -318,11 +554,7 @@ pub(crate) mod avx512 {
             return;
         }
         // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
-        let mr = match n.min(64).div_ceil(16) {
-            1 | 2 => 8,
-            3 => 8,
-            _ => 6,
-        };
+        let mr = tile_rows(n);
         // A few tasks per thread: enough to balance two cores (one of which may be busy), few
         // enough that each task's row tiles share every block of `b` rows (and, for a weight
         // gradient, of gathered input) while it is in cache. Any split gives the same bits.
