@@ -214,7 +214,7 @@ pub(crate) mod avx512 {
 
     /// Reduction steps per block: the block's `b` rows (at most 256 × 64 floats, 64 KiB) stay in
     /// L1/L2 while every row tile of a task runs over them.
-    const TB: usize = 256;
+    const TB: usize = 128;
 
     #[derive(Clone, Copy)]
     enum Start {
@@ -315,6 +315,39 @@ pub(crate) mod avx512 {
         }
     }
 
+    /// A tile of any height `h < 10` (the rows left over after the full tiles).
+    ///
+    /// # Safety
+    /// As [`tile_nv`] for `h` rows.
+    #[target_feature(enable = "avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile_any(
+        h: usize,
+        nv: usize,
+        a: *const f32,
+        p: &[usize],
+        q: &[usize],
+        b: *const f32,
+        ldb: usize,
+        c: *mut f32,
+        crow: &[usize],
+        m: [u16; 4],
+        start: Start,
+        add: bool,
+    ) {
+        match h {
+            1 => tile_nv::<1>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            2 => tile_nv::<2>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            3 => tile_nv::<3>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            4 => tile_nv::<4>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            5 => tile_nv::<5>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            6 => tile_nv::<6>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            7 => tile_nv::<7>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            8 => tile_nv::<8>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            _ => tile_nv::<9>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+        }
+    }
+
     /// Lane masks of the 64-column panel starting at `j0` of an `n`-column product, and its
     /// width in vectors.
     fn panel_masks(n: usize, j0: usize) -> ([u16; 4], usize) {
@@ -374,19 +407,17 @@ pub(crate) mod avx512 {
                     let cp = c.add(r * ldc + j0);
                     let bp = bb.add(j0);
                     let ap = a.as_ptr();
-                    let crow: [usize; 8] = std::array::from_fn(|i| i * ldc);
+                    let crow: [usize; 10] = std::array::from_fn(|i| i * ldc);
                     if full {
                         let pr = &p[r..r + mr];
                         match mr {
+                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
                             8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
                             _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
                         }
                     } else {
-                        for rr in r..nr {
-                            let pr = &p[rr..rr + 1];
-                            let cp = c.add(rr * ldc + j0);
-                            tile_nv::<1>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false);
-                        }
+                        let pr = &p[r..nr];
+                        tile_any(pr.len(), nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false);
                     }
                 }
                 r += mr;
@@ -398,7 +429,8 @@ pub(crate) mod avx512 {
     /// conv1's 32 columns spilled: LLVM hoists all 12 broadcasts, 38 live zmm.)
     fn tile_rows(n: usize) -> usize {
         match n.min(64).div_ceil(16) {
-            1..=3 => 8,
+            1 | 2 => 10,
+            3 => 8,
             _ => 6,
         }
     }
@@ -481,7 +513,7 @@ pub(crate) mod avx512 {
         let steps = q.len();
         let ap = a.as_ptr();
         let op = o.as_mut_ptr();
-        let mut buf = [0f32; 8 * 64];
+        let mut buf = [0f32; 10 * 64];
         let mut r = 0;
         while r < nr {
             let h = (nr - r).min(mr);
@@ -497,7 +529,7 @@ pub(crate) mod avx512 {
                     } else {
                         b.as_ptr().add(t0 * ldb + j0)
                     };
-                    let (cp, crow, add): (*mut f32, [usize; 8], bool) = if direct {
+                    let (cp, crow, add): (*mut f32, [usize; 10], bool) = if direct {
                         let crow = std::array::from_fn(|i| {
                             orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
                         });
@@ -510,15 +542,13 @@ pub(crate) mod avx512 {
                     if h == mr {
                         let pr = &p[r..r + mr];
                         match mr {
+                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
                             8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
                             _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
                         }
                     } else {
-                        for i in 0..h {
-                            let pr = &p[r + i..r + i + 1];
-                            let cr = &crow[i..i + 1];
-                            tile_nv::<1>(nv, ap, pr, qb, bp, ldb, cp, cr, m, start, add);
-                        }
+                        let pr = &p[r..r + h];
+                        tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add);
                     }
                 }
                 if !direct {
