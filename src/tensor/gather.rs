@@ -207,9 +207,15 @@ pub(crate) mod avx512 {
     use rayon::prelude::*;
     use std::arch::x86_64::*;
 
-    /// Whether this CPU runs the kernel.
+    /// Whether this CPU runs the kernel (and `INVADERS_NO_SIMD` is unset: the switch back to
+    /// im2col + faer, for A/B timing in one session and for running the portable path here).
     pub fn available() -> bool {
-        is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("fma")
+        static AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *AVAILABLE.get_or_init(|| {
+            is_x86_feature_detected!("avx512f")
+                && is_x86_feature_detected!("fma")
+                && std::env::var_os("INVADERS_NO_SIMD").is_none()
+        })
     }
 
     /// Reduction steps per block: the block's `b` rows (at most 256 × 64 floats, 64 KiB) stay in
