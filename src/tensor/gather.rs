@@ -404,7 +404,32 @@ pub(crate) mod avx512 {
             let mut r = 0;
             while r < nr {
                 let full = nr - r >= mr;
-                for j0 in (0..n).step_by(64) {
+                let mut wide = 0;
+                if nr - r == 1 {
+                    // A single row (dense1 at batch 1: a GEMV over 3.6 MB of weights, bound by
+                    // memory): 128-column panels, so each row of `b` is read in one sweep.
+                    while n - wide >= 128 {
+                        let st = match start {
+                            Start::Bias(bias) => Start::Bias(bias.add(wide)),
+                            s => s,
+                        };
+                        let (pr, cp) = (&p[r..r + 1], c.add(r * ldc + wide));
+                        tile::<1, 8>(
+                            a.as_ptr(),
+                            pr,
+                            qb,
+                            bb.add(wide),
+                            ldb,
+                            cp,
+                            &[0],
+                            [!0; 8],
+                            st,
+                            false,
+                        );
+                        wide += 128;
+                    }
+                }
+                for j0 in (wide..n).step_by(64) {
                     let (m, nv) = panel_masks(n, j0);
                     let st = match start {
                         Start::Bias(bias) => Start::Bias(bias.add(j0)),
