@@ -232,10 +232,10 @@ fn train_loop(agent: &mut Agent<SpaceInvaders>, dir: &Path) -> anyhow::Result<()
             eprintln!("{msg}");
         }
         let finished = done(agent);
-        if finished || row.episode % config.checkpoint_every == 0 {
+        if finished || row.episode.is_multiple_of(config.checkpoint_every) {
             checkpoint::save(&ckpt_path, &config, &agent.counters, &agent.learner)?;
         }
-        if finished || row.episode % config.plot_every == 0 {
+        if finished || row.episode.is_multiple_of(config.plot_every) {
             write_plot(dir, &config, &points);
         }
     }

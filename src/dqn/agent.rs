@@ -222,7 +222,7 @@ impl<G: Game> Agent<G> {
             self.counters.frames += r.frames as u64;
             let t = self.counters.agent_steps;
             if t > learning_starts
-                && t % train_every == 0
+                && t.is_multiple_of(train_every)
                 && self.replay.can_sample(self.batch.len())
             {
                 self.replay
@@ -233,7 +233,7 @@ impl<G: Game> Agent<G> {
                 q_sum += s.mean_max_q as f64;
                 n_train += 1;
             }
-            if t % target_update == 0 {
+            if t.is_multiple_of(target_update) {
                 self.learner.update_target();
             }
             if r.terminal || r.truncated {

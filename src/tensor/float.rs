@@ -49,13 +49,6 @@ pub trait Float:
         scatter_gemm_portable(g)
     }
 
-    /// `C = alpha * A * B + beta * C` on strided matrices, by `matrixmultiply`.
-    ///
-    /// A is `m x k` with row stride `rsa` and column stride `csa`, B is `k x n`, C is `m x n`.
-    ///
-    /// # Safety
-    /// Every index `i * rs + j * cs` reached for the given sizes must lie inside the allocation
-    /// behind each pointer, and C must not alias A or B. [`crate::tensor::gemm`] checks this.
     /// `C = alpha·op(A)·op(B) + (accumulate ? C : 0)` by faer, on row-major slices.
     #[allow(clippy::too_many_arguments)]
     fn gemm_faer(
@@ -71,6 +64,14 @@ pub trait Float:
         c: &mut [Self],
     );
 
+    /// `C = alpha * A * B + beta * C` on strided matrices, by `matrixmultiply`.
+    ///
+    /// A is `m x k` with row stride `rsa` and column stride `csa`, B is `k x n`, C is `m x n`.
+    ///
+    /// # Safety
+    /// Every index `i * rs + j * cs` reached for the given sizes must lie inside the allocation
+    /// behind each pointer, and C must not alias A or B. [`crate::tensor::gemm_matrixmultiply`]
+    /// checks this.
     #[allow(clippy::too_many_arguments)]
     unsafe fn gemm_raw(
         m: usize,

@@ -111,7 +111,9 @@ impl<T: Float> ScatterGemm<'_, T> {
             return;
         }
         assert!(
-            self.groups > 0 && rows % self.groups == 0 && self.out.len() % self.groups == 0,
+            self.groups > 0
+                && rows.is_multiple_of(self.groups)
+                && self.out.len().is_multiple_of(self.groups),
             "scatter_gemm: groups"
         );
         assert_eq!(self.out_rows.len(), rows, "scatter_gemm: out_rows");
