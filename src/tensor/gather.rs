@@ -557,52 +557,62 @@ pub(crate) mod avx512 {
         let ap = a.as_ptr();
         let op = o.as_mut_ptr();
         let mut buf = [0f32; 10 * 64];
-        let mut r = 0;
-        while r < nr {
-            let h = (nr - r).min(mr);
-            for j0 in (0..n).step_by(64) {
-                let (m, nv) = panel_masks(n, j0);
-                let w = (n - j0).min(64);
-                let direct = contiguous(j0);
-                for blk in 0..steps.div_ceil(TB).max(1) {
-                    let t0 = blk * TB;
-                    let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
-                    let bp = if qb.is_empty() {
-                        b.as_ptr()
-                    } else {
-                        b.as_ptr().add(t0 * ldb + j0)
-                    };
-                    let (cp, crow, add): (*mut f32, [usize; 10], bool) = if direct {
-                        let crow = std::array::from_fn(|i| {
-                            orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
-                        });
-                        (op, crow, true)
-                    } else {
-                        let crow = std::array::from_fn(|i| i * 64);
-                        (buf.as_mut_ptr(), crow, blk > 0)
-                    };
-                    let start = Start::Zero;
-                    if h == mr {
-                        let pr = &p[r..r + mr];
-                        match mr {
-                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
-                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
-                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+        // Panels outer, row tiles inner: one panel of `b` (64 steps × 64 columns, 16 KiB for a
+        // convolution's `Wᵀ`) stays in L1 across all the group's row tiles.
+        for j0 in (0..n).step_by(64) {
+            let mut r = 0;
+            while r < nr {
+                let h = (nr - r).min(mr);
+                {
+                    let (m, nv) = panel_masks(n, j0);
+                    let w = (n - j0).min(64);
+                    let direct = contiguous(j0);
+                    for blk in 0..steps.div_ceil(TB).max(1) {
+                        let t0 = blk * TB;
+                        let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
+                        let bp = if qb.is_empty() {
+                            b.as_ptr()
+                        } else {
+                            b.as_ptr().add(t0 * ldb + j0)
+                        };
+                        let (cp, crow, add): (*mut f32, [usize; 10], bool) = if direct {
+                            let crow = std::array::from_fn(|i| {
+                                orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
+                            });
+                            (op, crow, true)
+                        } else {
+                            let crow = std::array::from_fn(|i| i * 64);
+                            (buf.as_mut_ptr(), crow, blk > 0)
+                        };
+                        let start = Start::Zero;
+                        if h == mr {
+                            let pr = &p[r..r + mr];
+                            match mr {
+                                10 => {
+                                    tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add)
+                                }
+                                8 => {
+                                    tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add)
+                                }
+                                _ => {
+                                    tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add)
+                                }
+                            }
+                        } else {
+                            let pr = &p[r..r + h];
+                            tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add);
                         }
-                    } else {
-                        let pr = &p[r..r + h];
-                        tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add);
+                    }
+                    if !direct {
+                        for i in 0..h {
+                            for j in 0..w {
+                                *op.add(orows[r + i] + ocols[j0 + j] - base) += buf[i * 64 + j];
+                            }
+                        }
                     }
                 }
-                if !direct {
-                    for i in 0..h {
-                        for j in 0..w {
-                            *op.add(orows[r + i] + ocols[j0 + j] - base) += buf[i * 64 + j];
-                        }
-                    }
-                }
+                r += mr;
             }
-            r += mr;
         }
     }
 
