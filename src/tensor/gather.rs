@@ -201,10 +201,11 @@ pub fn fill_iota(v: &mut Vec<usize>, len: usize, step: usize) {
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx512 {
     //! The AVX-512 kernel: an `MR × 16·NV` block of `C` lives in `MR·NV ≤ 24` zmm registers for
-    //! a whole block of reduction steps; each step loads `NV` vectors of the `b` row and
-    //! broadcasts `MR` gathered `a` values, i.e. `MR + NV` loads per `MR·NV` FMAs. Shapes: `n ≤ 32`
-    //! (conv1's 32 channels) runs 12 × 2, `n = 64` (conv2, conv3) 6 × 4; wider `C` goes in panels
-    //! of 64 columns, the column tail under a mask.
+    //! a block of 128 reduction steps; each step loads `NV` vectors of the `b` row and broadcasts
+    //! `MR` gathered `a` values, i.e. `MR + NV` loads per `MR·NV` FMAs. Shapes: up to 32 columns
+    //! (conv1's 32 channels) run 10 × 2 (12 × 2 spilled), 48 run 8 × 3, 64 (conv2, conv3) 6 × 4;
+    //! wider `C` goes in panels of 64 columns with the column tail under a mask, except a lone
+    //! row (a GEMV) which takes 128-column panels. Leftover rows get one tile of their height.
     use super::{GatherGemm, Init};
     use rayon::prelude::*;
     use std::arch::x86_64::*;
@@ -563,51 +564,43 @@ pub(crate) mod avx512 {
             let mut r = 0;
             while r < nr {
                 let h = (nr - r).min(mr);
-                {
-                    let (m, nv) = panel_masks(n, j0);
-                    let w = (n - j0).min(64);
-                    let direct = contiguous(j0);
-                    for blk in 0..steps.div_ceil(TB).max(1) {
-                        let t0 = blk * TB;
-                        let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
-                        let bp = if qb.is_empty() {
-                            b.as_ptr()
-                        } else {
-                            b.as_ptr().add(t0 * ldb + j0)
-                        };
-                        let (cp, crow, add): (*mut f32, [usize; 10], bool) = if direct {
-                            let crow = std::array::from_fn(|i| {
-                                orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
-                            });
-                            (op, crow, true)
-                        } else {
-                            let crow = std::array::from_fn(|i| i * 64);
-                            (buf.as_mut_ptr(), crow, blk > 0)
-                        };
-                        let start = Start::Zero;
-                        if h == mr {
-                            let pr = &p[r..r + mr];
-                            match mr {
-                                10 => {
-                                    tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add)
-                                }
-                                8 => {
-                                    tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add)
-                                }
-                                _ => {
-                                    tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add)
-                                }
-                            }
-                        } else {
-                            let pr = &p[r..r + h];
-                            tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add);
+                let (m, nv) = panel_masks(n, j0);
+                let w = (n - j0).min(64);
+                let direct = contiguous(j0);
+                for blk in 0..steps.div_ceil(TB).max(1) {
+                    let t0 = blk * TB;
+                    let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
+                    let bp = if qb.is_empty() {
+                        b.as_ptr()
+                    } else {
+                        b.as_ptr().add(t0 * ldb + j0)
+                    };
+                    let (cp, crow, add): (*mut f32, [usize; 10], bool) = if direct {
+                        let crow = std::array::from_fn(|i| {
+                            orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
+                        });
+                        (op, crow, true)
+                    } else {
+                        let crow = std::array::from_fn(|i| i * 64);
+                        (buf.as_mut_ptr(), crow, blk > 0)
+                    };
+                    let start = Start::Zero;
+                    if h == mr {
+                        let pr = &p[r..r + mr];
+                        match mr {
+                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
                         }
+                    } else {
+                        let pr = &p[r..r + h];
+                        tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add);
                     }
-                    if !direct {
-                        for i in 0..h {
-                            for j in 0..w {
-                                *op.add(orows[r + i] + ocols[j0 + j] - base) += buf[i * 64 + j];
-                            }
+                }
+                if !direct {
+                    for i in 0..h {
+                        for j in 0..w {
+                            *op.add(orows[r + i] + ocols[j0 + j] - base) += buf[i * 64 + j];
                         }
                     }
                 }
