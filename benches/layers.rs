@@ -129,7 +129,7 @@ fn train_step(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, layers, train_step, gemm_kernels);
+criterion_group!(benches, layers, train_step, gemm_kernels, gather_kernels);
 criterion_main!(benches);
 
 /// matrixmultiply against faer on the GEMMs of the article's layers at batch 48 (forward
@@ -198,5 +198,111 @@ fn gemm_kernels(c: &mut Criterion) {
             });
         }
     }
+    group.finish();
+}
+
+/// The gather-GEMM kernels alone (what `Conv2d` and `Dense` run on AVX-512), on the article's
+/// shapes at batch 48: a convolution's forward product straight from the padded input, its weight
+/// gradient, and its input gradient with col2im fused (scatter GEMM); dense1's forward product.
+/// GFLOP/s as for the layers. `cargo bench --bench layers -- gather`.
+fn gather_kernels(c: &mut Criterion) {
+    use invaders::tensor::{fill_iota, pad_input, Float, GatherGemm, Init, ScatterGemm};
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut group = c.benchmark_group("gather");
+    group
+        .measurement_time(Duration::from_secs(2))
+        .warm_up_time(Duration::from_millis(500));
+    let n = 48;
+    for (name, [h, w, cin], cout, k, s) in [
+        ("conv1", [88, 80, 4], 32, 8, 4),
+        ("conv2", [22, 20, 32], 64, 4, 2),
+        ("conv3", [11, 10, 64], 64, 3, 1),
+    ] {
+        let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+        let x = random(&[n, h, w, cin], &mut rng);
+        let wt = random(&[g.patch_len(), cout], &mut rng);
+        let wtt = random(&[cout, g.patch_len()], &mut rng);
+        let bias = vec![0.1f32; cout];
+        let dy = random(&[n * g.out_pixels(), cout], &mut rng);
+        let (mut xpad, mut pixels, mut patch) = (Vec::new(), Vec::new(), Vec::new());
+        pad_input(&g, n, x.data(), &mut xpad);
+        g.gather_offsets(n, &mut pixels, &mut patch);
+        let (mut dy_rows, mut iota) = (Vec::new(), Vec::new());
+        fill_iota(&mut dy_rows, pixels.len(), cout);
+        fill_iota(&mut iota, cout, 1);
+        let mut y = vec![0.0f32; pixels.len() * cout];
+        let mut dw = vec![0.0f32; g.patch_len() * cout];
+        let mut dxpad = vec![0.0f32; xpad.len()];
+        group.throughput(Throughput::Elements(2 * (n * g.macs()) as u64));
+        group.bench_function(format!("{name}/forward"), |b| {
+            b.iter(|| {
+                f32::gather_gemm(GatherGemm {
+                    a: &xpad,
+                    p: &pixels,
+                    q: &patch,
+                    b: wt.data(),
+                    ldb: cout,
+                    n: cout,
+                    c: &mut y,
+                    ldc: cout,
+                    init: Init::Bias(&bias),
+                })
+            })
+        });
+        group.bench_function(format!("{name}/weight_grad"), |b| {
+            b.iter(|| {
+                f32::gather_gemm(GatherGemm {
+                    a: &xpad,
+                    p: &patch,
+                    q: &pixels,
+                    b: dy.data(),
+                    ldb: cout,
+                    n: cout,
+                    c: &mut dw,
+                    ldc: cout,
+                    init: Init::Accumulate,
+                })
+            })
+        });
+        group.bench_function(format!("{name}/input_grad"), |b| {
+            b.iter(|| {
+                f32::scatter_gemm(ScatterGemm {
+                    a: dy.data(),
+                    p: &dy_rows,
+                    q: &iota,
+                    b: wtt.data(),
+                    ldb: g.patch_len(),
+                    n: g.patch_len(),
+                    out: &mut dxpad,
+                    out_rows: &pixels,
+                    out_cols: &patch,
+                    groups: n,
+                })
+            })
+        });
+    }
+    let (ni, no) = (7040, 128);
+    let x = random(&[n, ni], &mut rng);
+    let wt = random(&[ni, no], &mut rng);
+    let (mut rows, mut steps) = (Vec::new(), Vec::new());
+    fill_iota(&mut rows, n, ni);
+    fill_iota(&mut steps, ni, 1);
+    let mut y = vec![0.0f32; n * no];
+    group.throughput(Throughput::Elements(2 * (n * ni * no) as u64));
+    group.bench_function("dense1/forward", |b| {
+        b.iter(|| {
+            f32::gather_gemm(GatherGemm {
+                a: x.data(),
+                p: &rows,
+                q: &steps,
+                b: wt.data(),
+                ldb: no,
+                n: no,
+                c: &mut y,
+                ldc: no,
+                init: Init::Zero,
+            })
+        })
+    });
     group.finish();
 }

@@ -5,8 +5,8 @@ mod common;
 use common::{rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
-    conv2d_reference, conv2d_reference_backward, gemm, gemm_matrixmultiply, gemm_reference,
-    ConvGeom, Op, Padding, Tensor,
+    conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
+    gemm_matrixmultiply, gemm_reference, ConvGeom, Float, GatherGemm, Init, Op, Padding, Tensor,
 };
 use proptest::prelude::*;
 
@@ -54,6 +54,53 @@ proptest! {
         assert_close("C (matrixmultiply)", &other, &slow, 1e-5)?;
     }
 
+    /// The gather GEMM (AVX-512 where the CPU has it) as a plain `A·B` and `Aᵀ·B` against the
+    /// reference GEMM, for each start (zero over NaN, accumulate, bias), at widths that cover
+    /// every panel width and masked tail and heights that leave row remainders (a lone row takes
+    /// 128-column panels); and bit-for-bit
+    /// against the portable loops, which sum in the same order.
+    #[test]
+    fn gather_gemm_matches_reference(
+        // Single rows (and 7 = one 6-row tile + 1) with wide C take the 128-column GEMV panels.
+        m in prop_oneof![1usize..3, Just(7usize), 1usize..80],
+        n in prop_oneof![1usize..150, 120usize..300],
+        k in 0usize..300, trans in any::<bool>(),
+        init in 0u8..3, seed in any::<u64>(),
+    ) {
+        let mut r = rng(seed);
+        let a = uniform::<f32>(&[(m * k).max(1)], &mut r);
+        let b = uniform::<f32>(&[(k * n).max(1)], &mut r);
+        let bias = uniform::<f32>(&[n], &mut r);
+        let c0 = uniform::<f32>(&[m * n], &mut r);
+        let (mut p, mut q) = (Vec::new(), Vec::new());
+        if trans {
+            fill_iota(&mut p, m, 1);
+            fill_iota(&mut q, k, m);
+        } else {
+            fill_iota(&mut p, m, k);
+            fill_iota(&mut q, k, 1);
+        }
+        let mut slow = c0.data().to_vec();
+        match init {
+            0 => slow.fill(0.0),
+            2 => for row in slow.chunks_exact_mut(n) { row.copy_from_slice(bias.data()) },
+            _ => {}
+        }
+        let opa = if trans { Op::T } else { Op::N };
+        gemm_reference(opa, Op::N, m, n, k, 1.0, a.data(), b.data(), 1.0, &mut slow);
+        let run = |portable: bool| {
+            let mut c = c0.data().to_vec();
+            if init == 0 { c.fill(f32::NAN); }
+            let init = match init { 0 => Init::Zero, 1 => Init::Accumulate, _ => Init::Bias(bias.data()) };
+            let g = GatherGemm { a: a.data(), p: &p, q: &q, b: b.data(), ldb: n, n, c: &mut c, ldc: n, init };
+            if portable { gather_gemm_portable(g) } else { f32::gather_gemm(g) }
+            c
+        };
+        let fast = run(false);
+        assert_close("C", &fast, &slow, 1e-5)?;
+        prop_assert_eq!(fast, run(true));
+    }
+
     /// The `Conv2d` layer (im2col + GEMM, col2im) against the direct convolution and its direct
     /// backward pass.
     #[test]
@@ -84,6 +131,56 @@ proptest! {
         assert_close("dx", layer.input_grad().data(), &dx, 1e-5)?;
         assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5)?;
         assert_close("db", layer.params()[1].grad.data(), &db, 1e-5)?;
+    }
+}
+
+/// The article's three convolutions at their exact shapes (batch 2), forward and backward, against
+/// the direct reference.
+#[test]
+fn article_convolutions_match_reference() {
+    for (i, (h, w, cin, cout, k, s)) in [
+        (88, 80, 4, 32, 8, 4),
+        (22, 20, 32, 64, 4, 2),
+        (11, 10, 64, 64, 3, 1),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+        let mut r = rng(i as u64);
+        let n = 2;
+        let mut layer = Conv2d::<f32>::new("c", g);
+        let wt = uniform::<f32>(&[k, k, cin, cout], &mut r);
+        let bt = uniform::<f32>(&[cout], &mut r);
+        layer.params_mut()[0]
+            .value
+            .data_mut()
+            .copy_from_slice(wt.data());
+        layer.params_mut()[1]
+            .value
+            .data_mut()
+            .copy_from_slice(bt.data());
+        let x = uniform::<f32>(&[n, h, w, cin], &mut r);
+        let dy = uniform::<f32>(&[n, g.oh, g.ow, cout], &mut r);
+        layer.forward(&x);
+        let mut y = vec![0.0; n * g.oh * g.ow * cout];
+        conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut y);
+        assert_close("y", layer.output().data(), &y, 1e-5).unwrap();
+        layer.backward(&x, &dy, true);
+        let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
+        conv2d_reference_backward(
+            &g,
+            n,
+            x.data(),
+            wt.data(),
+            dy.data(),
+            &mut dx,
+            &mut dw,
+            &mut db,
+        );
+        assert_close("dx", layer.input_grad().data(), &dx, 1e-5).unwrap();
+        assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5).unwrap();
+        assert_close("db", layer.params()[1].grad.data(), &db, 1e-5).unwrap();
     }
 }
 
@@ -125,4 +222,50 @@ fn batch_size_changes_are_consistent() {
     let one = Tensor::from_vec(&[1, 12, 10, 3], x.data()[..360].to_vec());
     layer.forward(&one);
     assert_eq!(layer.output().data(), &big.data()[..g.out_pixels() * 4]);
+}
+
+/// The fast convolution and dense layers give bit-identical results on 1, 2 and 3 threads: every
+/// output element is summed in a fixed order whatever the split into rayon tasks.
+#[test]
+fn results_do_not_depend_on_thread_count() {
+    use invaders::layers::Dense;
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut r = rng(11);
+            let mut out = Vec::new();
+            let g = ConvGeom::new(22, 20, 32, 64, 4, 4, (2, 2), Padding::Same).unwrap();
+            let mut conv = Conv2d::<f32>::new("c", g);
+            for p in conv.params_mut() {
+                let t = uniform::<f32>(p.value.shape(), &mut r);
+                p.value.data_mut().copy_from_slice(t.data());
+            }
+            let x = uniform::<f32>(&[6, 22, 20, 32], &mut r);
+            let dy = uniform::<f32>(&[6, g.oh, g.ow, 64], &mut r);
+            conv.forward(&x);
+            conv.backward(&x, &dy, true);
+            out.extend_from_slice(conv.output().data());
+            out.extend_from_slice(conv.input_grad().data());
+            out.extend_from_slice(conv.params()[0].grad.data());
+            let mut dense = Dense::<f32>::new("d", 700, 130);
+            for p in dense.params_mut() {
+                let t = uniform::<f32>(p.value.shape(), &mut r);
+                p.value.data_mut().copy_from_slice(t.data());
+            }
+            let x = uniform::<f32>(&[9, 700], &mut r);
+            let dy = uniform::<f32>(&[9, 130], &mut r);
+            dense.forward(&x);
+            dense.backward(&x, &dy, true);
+            out.extend_from_slice(dense.output().data());
+            out.extend_from_slice(dense.input_grad().data());
+            out.extend_from_slice(dense.params()[0].grad.data());
+            out
+        })
+    };
+    let one = run(1);
+    assert_eq!(one, run(2));
+    assert_eq!(one, run(3));
 }

@@ -2,6 +2,10 @@
 
 use super::Layer;
 use crate::tensor::{Float, Tensor};
+use rayon::prelude::*;
+
+/// Elements per rayon task: element-wise work, so any split gives the same result.
+const CHUNK: usize = 1 << 15;
 
 /// `y = max(x, 0)`, element-wise, any shape.
 pub struct Relu<T> {
@@ -35,9 +39,15 @@ impl<T: Float> Layer<T> for Relu<T> {
     /// `y = max(x, 0)`.
     fn forward(&mut self, x: &Tensor<T>) {
         self.y.set_shape(x.shape());
-        for (y, &x) in self.y.data_mut().iter_mut().zip(x.data()) {
-            *y = if x > T::zero() { x } else { T::zero() };
-        }
+        self.y
+            .data_mut()
+            .par_chunks_mut(CHUNK)
+            .zip(x.data().par_chunks(CHUNK))
+            .for_each(|(y, x)| {
+                for (y, &x) in y.iter_mut().zip(x) {
+                    *y = if x > T::zero() { x } else { T::zero() };
+                }
+            });
     }
 
     fn output(&self) -> &Tensor<T> {
@@ -51,15 +61,16 @@ impl<T: Float> Layer<T> for Relu<T> {
             return;
         }
         self.dx.set_shape(dy.shape());
-        let it = self
-            .dx
+        self.dx
             .data_mut()
-            .iter_mut()
-            .zip(dy.data())
-            .zip(self.y.data());
-        for ((dx, &dy), &y) in it {
-            *dx = if y > T::zero() { dy } else { T::zero() };
-        }
+            .par_chunks_mut(CHUNK)
+            .zip(dy.data().par_chunks(CHUNK))
+            .zip(self.y.data().par_chunks(CHUNK))
+            .for_each(|((dx, dy), y)| {
+                for ((dx, &dy), &y) in dx.iter_mut().zip(dy).zip(y) {
+                    *dx = if y > T::zero() { dy } else { T::zero() };
+                }
+            });
     }
 
     fn input_grad(&self) -> &Tensor<T> {

@@ -119,6 +119,38 @@ impl ConvGeom {
         self.out_pixels() * self.patch_len() * self.cout
     }
 
+    /// Height and width of the zero-padded input the gather kernels read: the padding above and
+    /// to the left, the image, and enough below and to the right for the last window.
+    pub fn padded(&self) -> (usize, usize) {
+        (
+            (self.pad_top + self.h).max((self.oh - 1) * self.sh + self.kh),
+            (self.pad_left + self.w).max((self.ow - 1) * self.sw + self.kw),
+        )
+    }
+
+    /// Offsets for the gather GEMM over the padded input `[N, HP, WP, Cin]`
+    /// ([`ConvGeom::padded`]): `pixels[m]` where output pixel `m = (i, oy, ox)`'s window starts,
+    /// `patch[k]` where patch element `k = (ky, kx, ci)` sits relative to that start, so
+    /// `cols[m, k] = xpad[pixels[m] + patch[k]]`. Reuses the vectors' buffers.
+    pub fn gather_offsets(&self, n: usize, pixels: &mut Vec<usize>, patch: &mut Vec<usize>) {
+        let (hp, wp) = self.padded();
+        let c = self.cin;
+        pixels.clear();
+        for i in 0..n {
+            for oy in 0..self.oh {
+                for ox in 0..self.ow {
+                    pixels.push(((i * hp + oy * self.sh) * wp + ox * self.sw) * c);
+                }
+            }
+        }
+        patch.clear();
+        for ky in 0..self.kh {
+            for kx in 0..self.kw {
+                patch.extend((0..c).map(|ci| (ky * wp + kx) * c + ci));
+            }
+        }
+    }
+
     /// The input row read by output row `oy` at filter row `ky`, if inside the image.
     #[inline]
     fn in_row(&self, oy: usize, ky: usize) -> Option<usize> {
@@ -160,6 +192,48 @@ pub fn im2col<T: Float>(g: &ConvGeom, n: usize, x: &[T], cols: &mut [T]) {
                         }
                     }
                 }
+            }
+        });
+}
+
+/// Copies `x[N, H, W, Cin]` into `xpad[N, HP, WP, Cin]` ([`ConvGeom::padded`]) with zeros
+/// around it. Parallel over images.
+pub fn pad_input<T: Float>(g: &ConvGeom, n: usize, x: &[T], xpad: &mut Vec<T>) {
+    let (hp, wp) = g.padded();
+    let (c, il) = (g.cin, g.in_len());
+    assert_eq!(x.len(), n * il, "pad_input: input size");
+    xpad.resize(n * hp * wp * c, T::zero());
+    xpad.par_chunks_mut(hp * wp * c)
+        .zip(x.par_chunks(il))
+        .for_each(|(xp, x)| {
+            for (iy, row) in xp.chunks_exact_mut(wp * c).enumerate() {
+                match iy.checked_sub(g.pad_top).filter(|&y| y < g.h) {
+                    Some(y) => {
+                        let (left, rest) = row.split_at_mut(g.pad_left * c);
+                        let (mid, right) = rest.split_at_mut(g.w * c);
+                        left.fill(T::zero());
+                        mid.copy_from_slice(&x[y * g.w * c..][..g.w * c]);
+                        right.fill(T::zero());
+                    }
+                    None => row.fill(T::zero()),
+                }
+            }
+        });
+}
+
+/// The interior of a padded `[N, HP, WP, Cin]` tensor ([`ConvGeom::padded`]) into `x[N, H, W,
+/// Cin]`: the inverse of [`pad_input`] (and the adjoint's last step: gradient that landed on
+/// padding is dropped). Parallel over images.
+pub fn unpad_input<T: Float>(g: &ConvGeom, n: usize, xpad: &[T], x: &mut [T]) {
+    let (hp, wp) = g.padded();
+    let (c, il) = (g.cin, g.in_len());
+    assert_eq!(x.len(), n * il, "unpad_input: input size");
+    assert_eq!(xpad.len(), n * hp * wp * c, "unpad_input: padded size");
+    x.par_chunks_mut(il)
+        .zip(xpad.par_chunks(hp * wp * c))
+        .for_each(|(x, xp)| {
+            for (y, row) in x.chunks_exact_mut(g.w * c).enumerate() {
+                row.copy_from_slice(&xp[((y + g.pad_top) * wp + g.pad_left) * c..][..g.w * c]);
             }
         });
 }

@@ -4,6 +4,7 @@
 //! checks run the very same code in `f64`, where central finite differences are accurate to
 //! about 1e-9, so a tolerance can be tight enough to catch a single wrong index.
 
+use super::gather::{gather_gemm_portable, scatter_gemm_portable, GatherGemm, ScatterGemm};
 use std::fmt::{Debug, Display};
 use std::iter::Sum;
 use std::ops::{AddAssign, MulAssign, SubAssign};
@@ -28,6 +29,25 @@ pub trait Float:
 
     /// Converts from `f64` (exact for `f64`, rounded for `f32`).
     fn of(x: f64) -> Self;
+
+    /// Whether [`Float::gather_gemm`] runs a SIMD kernel for this type on this CPU (f32 with
+    /// AVX-512F and FMA). The layers take their gather-GEMM formulation only then, and otherwise
+    /// keep im2col + faer, the generic path the f64 gradient checks exercise.
+    fn simd() -> bool {
+        false
+    }
+
+    /// The gather GEMM of [`crate::tensor::GatherGemm`]: the SIMD kernel where [`Float::simd`],
+    /// else the portable loops.
+    fn gather_gemm(g: GatherGemm<'_, Self>) {
+        gather_gemm_portable(g)
+    }
+
+    /// The scatter GEMM of [`crate::tensor::ScatterGemm`]: SIMD where [`Float::simd`], else the
+    /// portable loops.
+    fn scatter_gemm(g: ScatterGemm<'_, Self>) {
+        scatter_gemm_portable(g)
+    }
 
     /// `C = alpha·op(A)·op(B) + (accumulate ? C : 0)` by faer, on row-major slices.
     #[allow(clippy::too_many_arguments)]
@@ -116,6 +136,26 @@ impl Float for f32 {
     const DTYPE: &'static str = "F32";
     fn of(x: f64) -> Self {
         x as f32
+    }
+    #[cfg(target_arch = "x86_64")]
+    fn simd() -> bool {
+        super::gather::avx512::available()
+    }
+    #[cfg(target_arch = "x86_64")]
+    fn gather_gemm(g: GatherGemm<'_, f32>) {
+        if Self::simd() {
+            super::gather::avx512::gather_gemm(g)
+        } else {
+            gather_gemm_portable(g)
+        }
+    }
+    #[cfg(target_arch = "x86_64")]
+    fn scatter_gemm(g: ScatterGemm<'_, f32>) {
+        if Self::simd() {
+            super::gather::avx512::scatter_gemm(g)
+        } else {
+            scatter_gemm_portable(g)
+        }
     }
     unsafe fn gemm_raw(
         m: usize,

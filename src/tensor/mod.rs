@@ -10,10 +10,17 @@
 
 mod conv;
 mod float;
+mod gather;
 mod gemm;
 
-pub use conv::{col2im, conv2d_reference, conv2d_reference_backward, im2col, ConvGeom, Padding};
+pub use conv::{
+    col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, ConvGeom,
+    Padding,
+};
 pub use float::Float;
+pub use gather::{
+    fill_iota, gather_gemm_portable, scatter_gemm_portable, GatherGemm, Init, ScatterGemm,
+};
 pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};

@@ -1,0 +1,659 @@
+//! The "gather GEMM": one register-blocked kernel for every product of the network's layers.
+//!
+//! ```text
+//! C[r, j] (= init[r, j]) + Σ_t a[p[r] + q[t]] · b[t·ldb + j]      r < p.len(), t < q.len(), j < n
+//! ```
+//!
+//! The left operand is read through two offset tables, one per accumulator row (`p`) and one per
+//! reduction step (`q`), so the same kernel computes, without materialising anything:
+//! - a convolution's forward product `cols·W` straight from the (padded) input: `p[m]` is where
+//!   output pixel `m`'s receptive field starts, `q[k]` where patch element `k` sits relative to it
+//!   (implicit GEMM: im2col's 16x larger matrix for conv1 is never written);
+//! - its weight gradient `colsᵀ·dY` with the roles swapped (`p` = patch offsets, `q` = pixel
+//!   starts): `dW` is the accumulator, the reduction runs over all `N·OH·OW` pixels, and each row
+//!   of `dY` is one contiguous `b` row;
+//! - a plain row-major `A·B` (`p[r] = r·lda`, `q[t] = t`) and `Aᵀ·B` (`p[r] = r`, `q[t] = t·lda`).
+//!
+//! Every element of `C` is summed in the order `t = 0, 1, …` (after its initial value), whatever
+//! the tiling and the thread count, so results are bit-identical for any number of threads.
+
+use super::Float;
+
+/// What `C` starts from before the sum.
+#[derive(Clone, Copy, Debug)]
+pub enum Init<'a, T> {
+    /// Zero: `C` is overwritten (whatever it held, NaN included).
+    Zero,
+    /// `C`'s current values: the product is added to it.
+    Accumulate,
+    /// The same row vector (`n` values) for every row, e.g. a layer's bias.
+    Bias(&'a [T]),
+}
+
+/// The operands of one gather GEMM (see the module documentation).
+pub struct GatherGemm<'a, T> {
+    /// The gathered operand.
+    pub a: &'a [T],
+    /// One offset into `a` per row of `C`.
+    pub p: &'a [usize],
+    /// One offset into `a` per reduction step.
+    pub q: &'a [usize],
+    /// The right operand: row `t` is `b[t·ldb .. t·ldb + n]`.
+    pub b: &'a [T],
+    pub ldb: usize,
+    /// Columns of `C`.
+    pub n: usize,
+    /// The result: row `r` is `c[r·ldc .. r·ldc + n]`.
+    pub c: &'a mut [T],
+    pub ldc: usize,
+    pub init: Init<'a, T>,
+}
+
+impl<T: Float> GatherGemm<'_, T> {
+    /// Panics unless every index the product reaches is inside its slice.
+    pub fn check(&self) {
+        let (rows, steps) = (self.p.len(), self.q.len());
+        if rows == 0 || self.n == 0 {
+            return;
+        }
+        assert!(self.n <= self.ldc, "gather_gemm: n > ldc");
+        assert!(
+            self.c.len() >= (rows - 1) * self.ldc + self.n,
+            "gather_gemm: C too short"
+        );
+        if let Init::Bias(bias) = self.init {
+            assert!(bias.len() >= self.n, "gather_gemm: bias too short");
+        }
+        if steps > 0 {
+            assert!(self.n <= self.ldb, "gather_gemm: n > ldb");
+            assert!(
+                self.b.len() >= (steps - 1) * self.ldb + self.n,
+                "gather_gemm: B too short"
+            );
+            let pmax = self.p.iter().copied().max().unwrap_or(0);
+            let qmax = self.q.iter().copied().max().unwrap_or(0);
+            assert!(
+                pmax + qmax < self.a.len(),
+                "gather_gemm: A index out of range"
+            );
+        }
+    }
+}
+
+/// A gather GEMM whose rows are added onto scattered, possibly overlapping places of `out`:
+///
+/// ```text
+/// out[out_rows[r] + out_cols[j]] += Σ_t a[p[r] + q[t]] · b[t·ldb + j]      r < p.len(), j < n
+/// ```
+///
+/// A convolution's input gradient with col2im fused in: `a = dY`, `b = Wᵀ`, `out` the padded
+/// input gradient, `out_rows`/`out_cols` the pixel and patch offsets of the forward gather, so
+/// the `[N·OH·OW, K]` matrix `dcols` is never stored. Rows come in `groups` equal groups (images)
+/// that each write only to their own `1/groups` of `out`, one task per group, rows added in order.
+pub struct ScatterGemm<'a, T> {
+    pub a: &'a [T],
+    pub p: &'a [usize],
+    pub q: &'a [usize],
+    pub b: &'a [T],
+    pub ldb: usize,
+    pub n: usize,
+    pub out: &'a mut [T],
+    pub out_rows: &'a [usize],
+    pub out_cols: &'a [usize],
+    pub groups: usize,
+}
+
+impl<T: Float> ScatterGemm<'_, T> {
+    /// Panics unless every index is inside its slice and each group's rows stay in its part.
+    pub fn check(&self) {
+        let (rows, steps) = (self.p.len(), self.q.len());
+        if rows == 0 || self.n == 0 {
+            return;
+        }
+        assert!(
+            self.groups > 0
+                && rows.is_multiple_of(self.groups)
+                && self.out.len().is_multiple_of(self.groups),
+            "scatter_gemm: groups"
+        );
+        assert_eq!(self.out_rows.len(), rows, "scatter_gemm: out_rows");
+        assert!(self.out_cols.len() >= self.n, "scatter_gemm: out_cols");
+        let (grows, glen) = (rows / self.groups, self.out.len() / self.groups);
+        let cmax = self.out_cols[..self.n].iter().copied().max().unwrap_or(0);
+        for (r, &o) in self.out_rows.iter().enumerate() {
+            let g = r / grows;
+            assert!(
+                o >= g * glen && o + cmax < (g + 1) * glen,
+                "scatter_gemm: row {r} leaves its group"
+            );
+        }
+        if steps > 0 {
+            assert!(self.n <= self.ldb, "scatter_gemm: n > ldb");
+            assert!(
+                self.b.len() >= (steps - 1) * self.ldb + self.n,
+                "scatter_gemm: B too short"
+            );
+            let pmax = self.p.iter().copied().max().unwrap_or(0);
+            let qmax = self.q.iter().copied().max().unwrap_or(0);
+            assert!(
+                pmax + qmax < self.a.len(),
+                "scatter_gemm: A index out of range"
+            );
+        }
+    }
+}
+
+/// The portable scatter GEMM (fallback and test oracle): each row's sums, then added in row order.
+pub fn scatter_gemm_portable<T: Float>(g: ScatterGemm<'_, T>) {
+    g.check();
+    let mut row = vec![T::zero(); g.n];
+    for (r, &pr) in g.p.iter().enumerate() {
+        row.fill(T::zero());
+        for (t, &qt) in g.q.iter().enumerate() {
+            let av = g.a[pr + qt];
+            for (cv, &bv) in row.iter_mut().zip(&g.b[t * g.ldb..][..g.n]) {
+                *cv = av.mul_add(bv, *cv);
+            }
+        }
+        for (j, &v) in row.iter().enumerate() {
+            g.out[g.out_rows[r] + g.out_cols[j]] += v;
+        }
+    }
+}
+
+/// The portable kernel: plain loops in the same summation order as the fast one (the fallback
+/// where AVX-512 is missing, and the oracle for it in the tests).
+pub fn gather_gemm_portable<T: Float>(g: GatherGemm<'_, T>) {
+    g.check();
+    let GatherGemm {
+        a,
+        p,
+        q,
+        b,
+        ldb,
+        n,
+        c,
+        ldc,
+        init,
+    } = g;
+    for (r, &pr) in p.iter().enumerate() {
+        let row = &mut c[r * ldc..][..n];
+        match init {
+            Init::Zero => row.fill(T::zero()),
+            Init::Accumulate => {}
+            Init::Bias(bias) => row.copy_from_slice(&bias[..n]),
+        }
+        for (t, &qt) in q.iter().enumerate() {
+            let av = a[pr + qt];
+            for (cv, &bv) in row.iter_mut().zip(&b[t * ldb..][..n]) {
+                *cv = av.mul_add(bv, *cv);
+            }
+        }
+    }
+}
+
+/// Fills `v` with `0, step, 2·step, …` (`len` values), reusing its buffer.
+pub fn fill_iota(v: &mut Vec<usize>, len: usize, step: usize) {
+    v.clear();
+    v.extend((0..len).map(|i| i * step));
+}
+
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx512 {
+    //! The AVX-512 kernel: an `MR × 16·NV` block of `C` lives in `MR·NV ≤ 24` zmm registers for
+    //! a block of 128 reduction steps; each step loads `NV` vectors of the `b` row and broadcasts
+    //! `MR` gathered `a` values, i.e. `MR + NV` loads per `MR·NV` FMAs. Shapes: up to 32 columns
+    //! (conv1's 32 channels) run 10 × 2 (12 × 2 spilled), 48 run 8 × 3, 64 (conv2, conv3) 6 × 4;
+    //! wider `C` goes in panels of 64 columns with the column tail under a mask, except a lone
+    //! row (a GEMV) which takes 128-column panels. Leftover rows get one tile of their height.
+    use super::{GatherGemm, Init};
+    use rayon::prelude::*;
+    use std::arch::x86_64::*;
+
+    /// Whether this CPU runs the kernel (and `INVADERS_NO_SIMD` is unset: the switch back to
+    /// im2col + faer, for A/B timing in one session and for running the portable path here).
+    pub fn available() -> bool {
+        static AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *AVAILABLE.get_or_init(|| {
+            is_x86_feature_detected!("avx512f")
+                && is_x86_feature_detected!("fma")
+                && std::env::var_os("INVADERS_NO_SIMD").is_none()
+        })
+    }
+
+    /// Reduction steps per block: the block's `b` rows (at most 256 × 64 floats, 64 KiB) stay in
+    /// L1/L2 while every row tile of a task runs over them.
+    const TB: usize = 128;
+
+    #[derive(Clone, Copy)]
+    enum Start {
+        Zero,
+        Load,
+        Bias(*const f32),
+    }
+
+    /// One `MR × 16·NV` tile over the steps `q`.
+    ///
+    /// # Safety
+    /// AVX-512F must be available; `a + p[r] + q[t]` for all `r < MR`, `t` must be readable, `b`
+    /// rows `t` readable up to their masked width, `c` rows `r` (stride `ldc`) readable and
+    /// writable up to the masked width, and a `Bias` pointer readable likewise.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile<const MR: usize, const NV: usize>(
+        a: *const f32,
+        p: &[usize],
+        q: &[usize],
+        b: *const f32,
+        ldb: usize,
+        c: *mut f32,
+        crow: &[usize],
+        masks: [u16; NV],
+        start: Start,
+        add: bool,
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); NV]; MR];
+        for r in 0..MR {
+            for v in 0..NV {
+                acc[r][v] = match start {
+                    Start::Zero => _mm512_setzero_ps(),
+                    Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
+                    Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
+                };
+            }
+        }
+        let mut rows = [a; MR];
+        for r in 0..MR {
+            rows[r] = a.add(p[r]);
+        }
+        let mut brow = b;
+        for &qt in q {
+            let mut bv = [_mm512_setzero_ps(); NV];
+            for v in 0..NV {
+                bv[v] = _mm512_maskz_loadu_ps(masks[v], brow.add(16 * v));
+            }
+            for r in 0..MR {
+                let av = _mm512_set1_ps(*rows[r].add(qt));
+                for v in 0..NV {
+                    acc[r][v] = _mm512_fmadd_ps(av, bv[v], acc[r][v]);
+                }
+            }
+            brow = brow.add(ldb);
+        }
+        // With `add`, row by row (load, add, store), so rows whose destinations overlap (a
+        // scatter onto overlapping windows) each see the previous row's sum.
+        for r in 0..MR {
+            for v in 0..NV {
+                let dst = c.add(crow[r] + 16 * v);
+                let val = if add {
+                    _mm512_add_ps(_mm512_maskz_loadu_ps(masks[v], dst), acc[r][v])
+                } else {
+                    acc[r][v]
+                };
+                _mm512_mask_storeu_ps(dst, masks[v], val);
+            }
+        }
+    }
+
+    /// Dispatches one tile on the panel width (in vectors).
+    ///
+    /// # Safety
+    /// As [`tile`], with `nv` in `1..=4` and `masks[..nv]` the panel's lane masks.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile_nv<const MR: usize>(
+        nv: usize,
+        a: *const f32,
+        p: &[usize],
+        q: &[usize],
+        b: *const f32,
+        ldb: usize,
+        c: *mut f32,
+        crow: &[usize],
+        m: [u16; 4],
+        start: Start,
+        add: bool,
+    ) {
+        match nv {
+            1 => tile::<MR, 1>(a, p, q, b, ldb, c, crow, [m[0]], start, add),
+            2 => tile::<MR, 2>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, add),
+            3 => tile::<MR, 3>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, add),
+            _ => tile::<MR, 4>(a, p, q, b, ldb, c, crow, m, start, add),
+        }
+    }
+
+    /// A tile of any height `h < 10` (the rows left over after the full tiles).
+    ///
+    /// # Safety
+    /// As [`tile_nv`] for `h` rows.
+    #[target_feature(enable = "avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile_any(
+        h: usize,
+        nv: usize,
+        a: *const f32,
+        p: &[usize],
+        q: &[usize],
+        b: *const f32,
+        ldb: usize,
+        c: *mut f32,
+        crow: &[usize],
+        m: [u16; 4],
+        start: Start,
+        add: bool,
+    ) {
+        match h {
+            1 => tile_nv::<1>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            2 => tile_nv::<2>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            3 => tile_nv::<3>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            4 => tile_nv::<4>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            5 => tile_nv::<5>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            6 => tile_nv::<6>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            7 => tile_nv::<7>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            8 => tile_nv::<8>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            _ => tile_nv::<9>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+        }
+    }
+
+    /// Lane masks of the 64-column panel starting at `j0` of an `n`-column product, and its
+    /// width in vectors.
+    fn panel_masks(n: usize, j0: usize) -> ([u16; 4], usize) {
+        let w = (n - j0).min(64);
+        let nv = w.div_ceil(16);
+        let mut m = [0u16; 4];
+        for (v, mv) in m.iter_mut().enumerate().take(nv) {
+            let lanes = (w - 16 * v).min(16);
+            *mv = if lanes == 16 {
+                0xffff
+            } else {
+                (1u16 << lanes) - 1
+            };
+        }
+        (m, nv)
+    }
+
+    /// Rows `0..p.len()` of one task's block of `C` (`c` points at its first row).
+    ///
+    /// # Safety
+    /// AVX-512F available; the bounds of [`GatherGemm::check`] hold for these rows.
+    #[target_feature(enable = "avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn task(
+        mr: usize,
+        a: &[f32],
+        p: &[usize],
+        q: &[usize],
+        b: &[f32],
+        ldb: usize,
+        n: usize,
+        c: *mut f32,
+        ldc: usize,
+        init: Start,
+    ) {
+        let nr = p.len();
+        let steps = q.len();
+        let nblocks = steps.div_ceil(TB).max(1);
+        for blk in 0..nblocks {
+            let t0 = blk * TB;
+            let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
+            let bb = if qb.is_empty() {
+                b.as_ptr()
+            } else {
+                b.as_ptr().add(t0 * ldb)
+            };
+            let start = if blk == 0 { init } else { Start::Load };
+            let mut r = 0;
+            while r < nr {
+                let full = nr - r >= mr;
+                let mut wide = 0;
+                if nr - r == 1 {
+                    // A single row (dense1 at batch 1: a GEMV over 3.6 MB of weights, bound by
+                    // memory): 128-column panels, so each row of `b` is read in one sweep.
+                    while n - wide >= 128 {
+                        let st = match start {
+                            Start::Bias(bias) => Start::Bias(bias.add(wide)),
+                            s => s,
+                        };
+                        let (pr, cp) = (&p[r..r + 1], c.add(r * ldc + wide));
+                        tile::<1, 8>(
+                            a.as_ptr(),
+                            pr,
+                            qb,
+                            bb.add(wide),
+                            ldb,
+                            cp,
+                            &[0],
+                            [!0; 8],
+                            st,
+                            false,
+                        );
+                        wide += 128;
+                    }
+                }
+                for j0 in (wide..n).step_by(64) {
+                    let (m, nv) = panel_masks(n, j0);
+                    let st = match start {
+                        Start::Bias(bias) => Start::Bias(bias.add(j0)),
+                        s => s,
+                    };
+                    let cp = c.add(r * ldc + j0);
+                    let bp = bb.add(j0);
+                    let ap = a.as_ptr();
+                    let crow: [usize; 10] = std::array::from_fn(|i| i * ldc);
+                    if full {
+                        let pr = &p[r..r + mr];
+                        match mr {
+                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
+                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
+                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
+                        }
+                    } else {
+                        let pr = &p[r..nr];
+                        tile_any(pr.len(), nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false);
+                    }
+                }
+                r += mr;
+            }
+        }
+    }
+
+    /// Register-tile height for an `n`-column product: `MR·NV ≤ 24` accumulators. (12 × 2 for
+    /// conv1's 32 columns spilled: LLVM hoists all 12 broadcasts, 38 live zmm.)
+    fn tile_rows(n: usize) -> usize {
+        match n.min(64).div_ceil(16) {
+            1 | 2 => 10,
+            3 => 8,
+            _ => 6,
+        }
+    }
+
+    /// [`super::ScatterGemm`] on AVX-512, one rayon task per group. Call only if [`available`].
+    pub fn scatter_gemm(g: super::ScatterGemm<'_, f32>) {
+        assert!(available(), "scatter_gemm: AVX-512F and FMA needed");
+        g.check();
+        let super::ScatterGemm {
+            a,
+            p,
+            q,
+            b,
+            ldb,
+            n,
+            out,
+            out_rows,
+            out_cols,
+            groups,
+        } = g;
+        if p.is_empty() || n == 0 {
+            return;
+        }
+        let (grows, glen) = (p.len() / groups, out.len() / groups);
+        let mr = tile_rows(n);
+        // Whether each 64-column panel lands on consecutive outputs (then tiles add straight
+        // into `out`; otherwise through a buffer, element by element).
+        let contiguous_at = |j0: usize| {
+            let w = (n - j0).min(64);
+            (0..w).all(|j| out_cols[j0 + j] == out_cols[j0] + j)
+        };
+        // Worked out once per call for the first 128 panels (checking 64 offsets per tile cost
+        // about 5% of conv2's input gradient), on the fly beyond.
+        let mut known = 0u128;
+        for (i, j0) in (0..n).step_by(64).take(128).enumerate() {
+            known |= u128::from(contiguous_at(j0)) << i;
+        }
+        let contiguous = |j0: usize| match j0 / 64 {
+            i if i < 128 => known >> i & 1 == 1,
+            _ => contiguous_at(j0),
+        };
+        out.par_chunks_mut(glen).enumerate().for_each(|(gi, o)| {
+            let rows = &p[gi * grows..][..grows];
+            let orows = &out_rows[gi * grows..][..grows];
+            let base = gi * glen;
+            // SAFETY: AVX-512F checked; `check` proved every `a` and `b` index in bounds and
+            // every output index of this group's rows inside `o` (its `glen` values), which
+            // no other task touches.
+            unsafe {
+                scatter_task(
+                    mr,
+                    a,
+                    rows,
+                    q,
+                    b,
+                    ldb,
+                    n,
+                    o,
+                    orows,
+                    base,
+                    out_cols,
+                    &contiguous,
+                )
+            }
+        });
+    }
+
+    /// One group's rows of a scatter GEMM.
+    ///
+    /// # Safety
+    /// AVX-512F available; the bounds of [`super::ScatterGemm::check`] hold, with `o` the group's
+    /// output slice starting at index `base` of the whole output.
+    #[target_feature(enable = "avx512f")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn scatter_task(
+        mr: usize,
+        a: &[f32],
+        p: &[usize],
+        q: &[usize],
+        b: &[f32],
+        ldb: usize,
+        n: usize,
+        o: &mut [f32],
+        orows: &[usize],
+        base: usize,
+        ocols: &[usize],
+        contiguous: &dyn Fn(usize) -> bool,
+    ) {
+        let nr = p.len();
+        let steps = q.len();
+        let ap = a.as_ptr();
+        let op = o.as_mut_ptr();
+        let mut buf = [0f32; 10 * 64];
+        // Panels outer, row tiles inner: one panel of `b` (64 steps × 64 columns, 16 KiB for a
+        // convolution's `Wᵀ`) stays in L1 across all the group's row tiles.
+        for j0 in (0..n).step_by(64) {
+            let mut r = 0;
+            while r < nr {
+                let h = (nr - r).min(mr);
+                let (m, nv) = panel_masks(n, j0);
+                let w = (n - j0).min(64);
+                let direct = contiguous(j0);
+                for blk in 0..steps.div_ceil(TB).max(1) {
+                    let t0 = blk * TB;
+                    let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
+                    let bp = if qb.is_empty() {
+                        b.as_ptr()
+                    } else {
+                        b.as_ptr().add(t0 * ldb + j0)
+                    };
+                    let (cp, crow, add): (*mut f32, [usize; 10], bool) = if direct {
+                        let crow = std::array::from_fn(|i| {
+                            orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
+                        });
+                        (op, crow, true)
+                    } else {
+                        let crow = std::array::from_fn(|i| i * 64);
+                        (buf.as_mut_ptr(), crow, blk > 0)
+                    };
+                    let start = Start::Zero;
+                    if h == mr {
+                        let pr = &p[r..r + mr];
+                        match mr {
+                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                        }
+                    } else {
+                        let pr = &p[r..r + h];
+                        tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add);
+                    }
+                }
+                if !direct {
+                    for i in 0..h {
+                        for j in 0..w {
+                            *op.add(orows[r + i] + ocols[j0 + j] - base) += buf[i * 64 + j];
+                        }
+                    }
+                }
+                r += mr;
+            }
+        }
+    }
+
+    /// The product on AVX-512, split over rayon by blocks of rows of `C` whose size depends only
+    /// on the shape. Call only if [`available`].
+    pub fn gather_gemm(g: GatherGemm<'_, f32>) {
+        assert!(available(), "gather_gemm: AVX-512F and FMA needed");
+        g.check();
+        let GatherGemm {
+            a,
+            p,
+            q,
+            b,
+            ldb,
+            n,
+            c,
+            ldc,
+            init,
+        } = g;
+        let rows = p.len();
+        if rows == 0 || n == 0 {
+            return;
+        }
+        // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
+        let mr = tile_rows(n);
+        // A few tasks per thread: enough to balance two cores (one of which may be busy), few
+        // enough that each task's row tiles share every block of `b` rows (and, for a weight
+        // gradient, of gathered input) while it is in cache. Any split gives the same bits.
+        let flops = 2 * rows * q.len().max(1) * n;
+        let tasks = flops
+            .div_ceil(1 << 22)
+            .clamp(1, 4 * rayon::current_num_threads());
+        let rpt = rows.div_ceil(tasks).div_ceil(mr) * mr;
+        c[..(rows - 1) * ldc + n]
+            .par_chunks_mut(rpt * ldc)
+            .enumerate()
+            .for_each(|(i, cc)| {
+                let r0 = i * rpt;
+                let pr = &p[r0..(r0 + rpt).min(rows)];
+                let start = match init {
+                    Init::Zero => Start::Zero,
+                    Init::Accumulate => Start::Load,
+                    Init::Bias(bias) => Start::Bias(bias.as_ptr()),
+                };
+                // SAFETY: AVX-512F checked above; `check` proved every `a`, `b` and bias index
+                // in bounds, and this task's rows r0.. of C are exactly `cc` (row r's n columns
+                // end at (r−r0)·ldc + n ≤ cc.len()), which no other task touches.
+                unsafe { task(mr, a, pr, q, b, ldb, n, cc.as_mut_ptr(), ldc, start) }
+            });
+    }
+}
