@@ -7,7 +7,7 @@
 //! * [`layers`]: `Conv2d`, `Dense`, `ReLU`, `Flatten`, `Sequential`, initialisers and losses,
 //!   each with its forward and backward pass side by side.
 //! * [`optim`]: Adam and SGD.
-//! * [`env`]: Space Invaders through the ALE, the article's preprocessing and frame pipelines.
+//! * [`mod@env`]: Space Invaders through the ALE, the article's preprocessing and frame pipelines.
 //! * [`dqn`]: the agent, its replay memory and the training loop.
 //! * [`plot`]: reward curves.
 

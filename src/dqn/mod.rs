@@ -11,4 +11,4 @@ pub use agent::{greedy, play_evaluation_episode, Agent, EpisodeRow};
 pub use config::{Config, Preset};
 pub use learner::{argmax, Batch, Learner, StepStats};
 pub use qnet::article_qnet;
-pub use replay::Replay;
+pub use replay::{Replay, FLAG_ACTED, FLAG_DONE, FLAG_START};

@@ -215,7 +215,7 @@ pub fn write_stacked_input(frames: &[&[u8]], table: &[f32; 256], out: &mut [f32]
     }
 }
 
-/// Both stages together, fed from a [`SpaceInvaders`] environment.
+/// Both stages together, fed from a [`Game`] such as [`SpaceInvaders`](super::SpaceInvaders).
 #[derive(Clone, Debug)]
 pub struct Observer {
     composer: Composer,
