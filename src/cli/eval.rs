@@ -106,16 +106,12 @@ pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     }
     let s = Summary::of(&scores);
     println!(
-        "random agent, mode {}, {} episodes, seed {}: mean {:.1} std {:.1} min {} max {}",
+        "random agent, mode {}, {} episodes, seed {}: {s}",
         mode.to_possible_value()
             .expect("modes are named")
             .get_name(),
         s.n,
         args.seed,
-        s.mean,
-        s.std,
-        s.min,
-        s.max
     );
     Ok(())
 }
@@ -198,17 +194,13 @@ fn run_checkpoint(args: &EvalArgs, path: &Path) -> anyhow::Result<()> {
     }
     let s = Summary::of(&scores);
     println!(
-        "checkpoint {} (preset {}, {} episodes trained), epsilon {}, {} episodes, seed {}: mean {:.1} std {:.1} min {} max {}",
+        "checkpoint {} (preset {}, {} episodes trained), epsilon {}, {} episodes, seed {}: {s}",
         file.display(),
         config.preset.name(),
         ckpt.counters.episodes,
         args.epsilon,
         s.n,
         args.seed,
-        s.mean,
-        s.std,
-        s.min,
-        s.max
     );
     Ok(())
 }
@@ -264,6 +256,17 @@ struct Summary {
     std: f64,
     min: f64,
     max: f64,
+}
+
+/// `mean M std S min A max B`, the line's ending that `experiment` reads the score from.
+impl std::fmt::Display for Summary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "mean {:.1} std {:.1} min {} max {}",
+            self.mean, self.std, self.min, self.max
+        )
+    }
 }
 
 impl Summary {
