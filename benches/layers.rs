@@ -245,7 +245,9 @@ fn gather_kernels(c: &mut Criterion) {
                     n: cout,
                     c: &mut y,
                     ldc: cout,
+                    c_rows: None,
                     init: Init::Bias(&bias),
+                    relu: false,
                 })
             })
         });
@@ -260,7 +262,9 @@ fn gather_kernels(c: &mut Criterion) {
                     n: cout,
                     c: &mut dw,
                     ldc: cout,
+                    c_rows: None,
                     init: Init::Accumulate,
+                    relu: false,
                 })
             })
         });
@@ -300,7 +304,9 @@ fn gather_kernels(c: &mut Criterion) {
                 n: no,
                 c: &mut y,
                 ldc: no,
+                c_rows: None,
                 init: Init::Zero,
+                relu: false,
             })
         })
     });

@@ -11,7 +11,7 @@ use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::loss::{huber, mse};
 use invaders::layers::{Conv2d, Dense, Flatten, Layer, Relu};
-use invaders::tensor::{ConvGeom, Padding, Tensor};
+use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
 use proptest::prelude::*;
 
 fn padding() -> impl Strategy<Value = Padding> {
@@ -35,31 +35,44 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
 
     /// Conv2d: kernel 1..8 (height and width drawn separately), strides 1/2/4 (separately),
-    /// SAME and VALID, 1..3 channels in and out, batch 1..2.
+    /// SAME and VALID, 1..3 channels in and out, batch 1..2, with and without the fused ReLU
+    /// and an output border.
     #[test]
     fn conv2d_gradients(
         kh in 1usize..=8, kw in 1usize..=8, sh in stride(), sw in stride(),
         extra_h in 0usize..6, extra_w in 0usize..6,
         cin in 1usize..=3, cout in 1usize..=3, n in 1usize..=2,
-        pad in padding(), seed in any::<u64>(),
+        pad in padding(), relu in any::<bool>(), border in (0usize..3, 0usize..3, 0usize..3, 0usize..3),
+        seed in any::<u64>(),
     ) {
         // Inputs at least as large as the kernel, so VALID is possible; SAME often pads unevenly.
         let (h, w) = (kh + extra_h, kw + extra_w);
         let g = ConvGeom::new(h, w, cin, cout, kh, kw, (sh, sw), pad).unwrap();
-        let mut layer = Conv2d::<f64>::new("conv", g);
+        let (top, bottom, left, right) = border;
+        let border = Border { top, bottom, left, right };
+        let mut layer = Conv2d::<f64>::new("conv", g).with_border(border);
+        if relu {
+            layer = layer.with_relu();
+        }
         randomise(&mut layer, seed);
         let mut r = rng(seed ^ 1);
         let x = uniform(&[n, h, w, cin], &mut r);
-        let dy = uniform(&[n, g.oh, g.ow, cout], &mut r);
+        let (hb, wb) = border.around(g.oh, g.ow);
+        let dy = uniform(&[n, hb, wb, cout], &mut r);
         check_layer(&mut layer, &x, &dy, 400, seed).map_err(TestCaseError::fail)?;
     }
 
     #[test]
-    fn dense_gradients(n_in in 1usize..40, n_out in 1usize..12, n in 1usize..=4, seed in any::<u64>()) {
+    fn dense_gradients(
+        n_in in 1usize..40, n_out in 1usize..12, n in 1usize..=4, image in any::<bool>(),
+        seed in any::<u64>(),
+    ) {
         let mut layer = Dense::<f64>::new("dense", n_in, n_out);
         randomise(&mut layer, seed);
         let mut r = rng(seed ^ 1);
-        let x = uniform(&[n, n_in], &mut r);
+        // A flat input, or the same values as `[N, 1, In, 1]` (read in place, no flatten).
+        let shape = if image { vec![n, 1, n_in, 1] } else { vec![n, n_in] };
+        let x = uniform(&shape, &mut r);
         let dy = uniform(&[n, n_out], &mut r);
         check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
     }

@@ -6,7 +6,8 @@ use common::{rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
-    gemm_matrixmultiply, gemm_reference, ConvGeom, Float, GatherGemm, Init, Op, Padding, Tensor,
+    gemm_matrixmultiply, gemm_reference, Border, ConvGeom, Float, GatherGemm, Init, Op, Padding,
+    Tensor,
 };
 use proptest::prelude::*;
 
@@ -66,6 +67,8 @@ proptest! {
         n in prop_oneof![1usize..150, 120usize..300],
         k in 0usize..300, trans in any::<bool>(),
         init in 0u8..3, seed in any::<u64>(),
+        // Rows of C placed apart (`c_rows`, as for an output with a zero border), and a ReLU.
+        gap in prop_oneof![Just(0usize), 1usize..20], relu in any::<bool>(),
     ) {
         let mut r = rng(seed);
         let a = uniform::<f32>(&[(m * k).max(1)], &mut r);
@@ -88,13 +91,26 @@ proptest! {
         }
         let opa = if trans { Op::T } else { Op::N };
         gemm_reference(opa, Op::N, m, n, k, 1.0, a.data(), b.data(), 1.0, &mut slow);
+        if relu {
+            slow.iter_mut().for_each(|v| *v = v.max(0.0));
+        }
+        // With a gap, row r lives at 3 + r·(n + gap) of a buffer whose other places hold a
+        // sentinel the kernel must not touch.
+        let rows: Vec<usize> = (0..m).map(|r| 3 + r * (n + gap)).collect();
         let run = |portable: bool| {
-            let mut c = c0.data().to_vec();
-            if init == 0 { c.fill(f32::NAN); }
+            let mut cb = vec![7.5f32; 3 + m * (n + gap)];
+            for (row, &at) in c0.data().chunks_exact(n).zip(&rows) {
+                cb[at..at + n].copy_from_slice(if init == 0 { &[f32::NAN; 300][..n] } else { row });
+            }
             let init = match init { 0 => Init::Zero, 1 => Init::Accumulate, _ => Init::Bias(bias.data()) };
-            let g = GatherGemm { a: a.data(), p: &p, q: &q, b: b.data(), ldb: n, n, c: &mut c, ldc: n, init };
+            let (c_rows, c) = if gap == 0 { (None, &mut cb[3..]) } else { (Some(&rows[..]), &mut cb[..]) };
+            let g = GatherGemm { a: a.data(), p: &p, q: &q, b: b.data(), ldb: n, n, c, ldc: n, c_rows, init, relu };
             if portable { gather_gemm_portable(g) } else { f32::gather_gemm(g) }
-            c
+            let untouched = cb.iter().enumerate().all(|(i, &v)| {
+                rows.iter().any(|&at| (at..at + n).contains(&i)) || v == 7.5
+            });
+            assert!(untouched, "a place between rows was written");
+            rows.iter().flat_map(|&at| cb[at..at + n].to_vec()).collect::<Vec<f32>>()
         };
         let fast = run(false);
         assert_close("C", &fast, &slow, 1e-5)?;
@@ -128,6 +144,71 @@ proptest! {
         layer.backward(&x, &dy, true);
         let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
         conv2d_reference_backward(&g, n, x.data(), wt.data(), dy.data(), &mut dx, &mut dw, &mut db);
+        assert_close("dx", layer.input_grad().data(), &dx, 1e-5)?;
+        assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5)?;
+        assert_close("db", layer.params()[1].grad.data(), &db, 1e-5)?;
+    }
+
+    /// `Conv2d` with a fused ReLU and a zero border around its output (on the fast path where
+    /// the CPU has it, so the kernel's `c_rows` and ReLU store): the output is the reference
+    /// convolution's, clamped and placed inside zeros (stale values from a larger batch must not
+    /// survive in the border), and the gradients are the reference's for `dZ` = the interior of
+    /// `dY` where the output is positive, whatever `dY` holds on the border.
+    #[test]
+    fn conv2d_relu_and_border_match_reference(
+        k in 1usize..=4, s in 1usize..=3, h in 4usize..14, w in 4usize..14, cin in 1usize..6,
+        cout in 1usize..40, n in 1usize..3, same in any::<bool>(), relu in any::<bool>(),
+        top in 0usize..3, bottom in 0usize..3, left in 0usize..3, right in 0usize..3,
+        in_border in any::<bool>(), seed in any::<u64>(),
+    ) {
+        let pad = if same { Padding::Same } else { Padding::Valid };
+        let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
+        let border = Border { top, bottom, left, right };
+        let mut r = rng(seed);
+        let mut layer = Conv2d::<f32>::new("c", g).with_border(border);
+        // The input's outer ring declared a border: its gradient is left out (zeros).
+        let ib = Border { top: 1, bottom: 1, left: 1, right: 1 };
+        if in_border {
+            layer = layer.with_input_border(ib);
+        }
+        if relu {
+            layer = layer.with_relu();
+        }
+        let wt = uniform::<f32>(&[k, k, cin, cout], &mut r);
+        let bt = uniform::<f32>(&[cout], &mut r);
+        layer.params_mut()[0].value.data_mut().copy_from_slice(wt.data());
+        layer.params_mut()[1].value.data_mut().copy_from_slice(bt.data());
+        // A larger batch first leaves interior values where the smaller batch has border.
+        let big = uniform::<f32>(&[n + 1, h, w, cin], &mut r);
+        layer.forward(&big);
+        let x = uniform::<f32>(&[n, h, w, cin], &mut r);
+        layer.forward(&x);
+        let mut z = vec![0.0; n * g.oh * g.ow * cout];
+        conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut z);
+        let (hb, wb) = border.around(g.oh, g.ow);
+        prop_assert_eq!(layer.output().shape(), &[n, hb, wb, cout][..]);
+        let mut at = Vec::new();
+        border.interior_offsets(n, g.oh, g.ow, cout, &mut at);
+        let mut y = vec![0.0; n * hb * wb * cout];
+        for (zrow, &o) in z.chunks_exact(cout).zip(&at) {
+            for (yv, &zv) in y[o..o + cout].iter_mut().zip(zrow) {
+                *yv = if relu { zv.max(0.0) } else { zv };
+            }
+        }
+        assert_close("y", layer.output().data(), &y, 1e-5)?;
+        let dy = uniform::<f32>(&[n, hb, wb, cout], &mut r);
+        let mut dz = vec![0.0; z.len()];
+        for ((dzrow, &o), zrow) in dz.chunks_exact_mut(cout).zip(&at).zip(z.chunks_exact(cout)) {
+            for ((d, &g), &zv) in dzrow.iter_mut().zip(&dy.data()[o..o + cout]).zip(zrow) {
+                *d = if !relu || zv > 0.0 { g } else { 0.0 };
+            }
+        }
+        layer.backward(&x, &dy, true);
+        let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
+        conv2d_reference_backward(&g, n, x.data(), wt.data(), &dz, &mut dx, &mut dw, &mut db);
+        if in_border {
+            ib.zero(&mut dx, n, h - 2, w - 2, cin);
+        }
         assert_close("dx", layer.input_grad().data(), &dx, 1e-5)?;
         assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5)?;
         assert_close("db", layer.params()[1].grad.data(), &db, 1e-5)?;

@@ -1,7 +1,7 @@
 //! The article's Q-network.
 
 use crate::layers::init::VarianceScaling;
-use crate::layers::{Conv2d, Dense, Flatten, Relu, Sequential};
+use crate::layers::{Conv2d, Dense, Relu, Sequential};
 use crate::tensor::{ConvGeom, Float, Padding};
 use rand::Rng;
 
@@ -12,13 +12,20 @@ use rand::Rng;
 /// conv1  32 @ 8x8, stride 4, SAME, ReLU  -> [N, 22, 20, 32]
 /// conv2  64 @ 4x4, stride 2, SAME, ReLU  -> [N, 11, 10, 64]
 /// conv3  64 @ 3x3, stride 1, SAME, ReLU  -> [N, 11, 10, 64]
-/// flatten                                -> [N, 7040]
+/// flatten (dense1 reads it in place)     -> [N, 7040]
 /// dense1 128, ReLU                       -> [N, 128]
 /// dense2 n_actions, linear               -> [N, n_actions]   one Q-value per action
 /// ```
 ///
 /// Weights are drawn with `init` (the article: VarianceScaling(2.0), i.e. [`VarianceScaling::HE`]),
 /// biases start at zero. Any input size works (the gradient checks use small ones).
+///
+/// How it is laid out in memory: each convolution applies its ReLU as it stores its output
+/// ([`Conv2d::with_relu`]), and conv1 and conv2 write their outputs with the next layer's SAME
+/// padding already around them as a zero border ([`Conv2d::with_border`]), so conv2 and conv3 run
+/// as VALID convolutions over `[N, 24, 22, 32]` and `[N, 13, 12, 64]`
+/// ([`ConvGeom::as_valid`]). The arithmetic is the table's; what goes is a ReLU pass and a
+/// padding copy per layer (about 11 MB of memory traffic per batch-48 forward pass).
 pub fn article_qnet<T: Float>(
     input: [usize; 3],
     n_actions: usize,
@@ -27,8 +34,10 @@ pub fn article_qnet<T: Float>(
 ) -> Sequential<T> {
     let [h, w, c] = input;
     let mut net = Sequential::new();
+    // The three convolutions as the article defines them (SAME), on the unbordered shapes.
+    let mut same = Vec::new();
     let mut shape = [h, w, c];
-    for (i, (cout, k, s)) in [(32, 8, 4), (64, 4, 2), (64, 3, 1)].into_iter().enumerate() {
+    for (cout, k, s) in [(32, 8, 4), (64, 4, 2), (64, 3, 1)] {
         let g = ConvGeom::new(
             shape[0],
             shape[1],
@@ -40,11 +49,25 @@ pub fn article_qnet<T: Float>(
             Padding::Same,
         )
         .expect("SAME convolution of a non-empty input");
-        net.push(Conv2d::new(&format!("conv{}", i + 1), g));
+        same.push(g);
         shape = [g.oh, g.ow, cout];
-        net.push(Relu::new(&format!("relu{}", i + 1), &shape));
     }
-    net.push(Flatten::new("flatten", &shape));
+    for (i, g) in same.iter().enumerate() {
+        // conv1 pads its own input (the network's input); the others read their padding from
+        // the border the layer before wrote (and skip its gradient: it is a constant).
+        let name = format!("conv{}", i + 1);
+        let mut conv = if i == 0 {
+            Conv2d::new(&name, *g)
+        } else {
+            let (valid, padding) = g.as_valid();
+            Conv2d::new(&name, valid).with_input_border(padding)
+        };
+        if let Some(next) = same.get(i + 1) {
+            conv = conv.with_border(next.as_valid().1);
+        }
+        net.push(conv.with_relu());
+    }
+    // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
     let flat = shape.iter().product();
     net.push(Dense::new("dense1", flat, 128));
     net.push(Relu::new("relu4", &[128]));

@@ -1,33 +1,50 @@
-//! 2-D convolution (NHWC, HWIO filters, TensorFlow's SAME/VALID padding).
+//! 2-D convolution (NHWC, HWIO filters, TensorFlow's SAME/VALID padding), with an optional fused
+//! ReLU and an optional zero border written around the output.
 
 use super::{Layer, Param};
 use crate::tensor::{
-    col2im, fill_iota, gemm, im2col, pad_input, unpad_input, ConvGeom, Float, GatherGemm, Init, Op,
-    ScatterGemm, Tensor,
+    col2im, fill_iota, gemm, im2col, pad_input, unpad_input, Border, ConvGeom, Float, GatherGemm,
+    Init, Op, ScatterGemm, Tensor,
 };
 
-/// `y = conv(x, W) + b`: see [`crate::tensor::ConvGeom`] for the defining sum and the shapes.
+/// `y = border(act(conv(x, W) + b))`: see [`crate::tensor::ConvGeom`] for the defining sum and
+/// the shapes; `act` is the identity or, [`Conv2d::with_relu`], `max(·, 0)`; `border` writes zero
+/// rows and columns around each output image, [`Conv2d::with_border`].
 ///
 /// Formulation: im2col + GEMM. The input is unrolled into `cols[N·OH·OW, KH·KW·Cin]` (kept for the
-/// backward pass), and `Y[N·OH·OW, Cout] = cols · W[KH·KW·Cin, Cout] + b` is a single matrix
+/// backward pass), and `Z[N·OH·OW, Cout] = cols · W[KH·KW·Cin, Cout] + b` is a single matrix
 /// product whose result is already the NHWC output.
 ///
 /// Where [`Float::simd`] (f32 on AVX-512), the same products run as gather GEMMs
-/// ([`crate::tensor::GatherGemm`]) on a zero-padded copy of the input instead: no im2col matrix is
-/// written (16x the input for conv1, 21 MB at batch 48), the forward product starts from the
-/// bias, and the weight gradient reduces over all output pixels straight from the padded input.
-/// The input gradient `dY·Wᵀ` (with `Wᵀ` packed) is added tile by tile straight onto a padded
-/// input gradient ([`crate::tensor::ScatterGemm`], col2im fused), whose interior is then `dX`.
+/// ([`crate::tensor::GatherGemm`]) on a zero-padded copy of the input instead (or on the input
+/// itself when it needs no padding, e.g. when the layer before wrote the border): no im2col matrix
+/// is written (16x the input for conv1, 21 MB at batch 48), the forward product starts from the
+/// bias and stores `max(·, 0)` straight into the interior of the bordered output, and the weight
+/// gradient reduces over all output pixels straight from the padded input. The input gradient
+/// `dZ·Wᵀ` (with `Wᵀ` packed) is added tile by tile straight onto a padded input gradient
+/// ([`crate::tensor::ScatterGemm`], col2im fused), whose interior is then `dX`.
+///
+/// The fused ReLU and the border are what a separate [`super::Relu`] layer and the next layer's
+/// padding would otherwise do, each a pass over the whole activation: at batch 48 that is about
+/// 11 MB of memory traffic per forward pass of the article's network.
 pub struct Conv2d<T> {
     name: String,
     /// The geometry (input and output sizes, strides, padding).
     pub geom: ConvGeom,
     /// `[weight [KH, KW, Cin, Cout], bias [Cout]]` with their gradients.
     pub params: [Param<T>; 2],
+    relu: bool,
+    border: Border,
+    /// Border places of the input (written by the layer before): constants, so their gradient
+    /// is not computed and `dX` holds zeros there.
+    in_border: Border,
     /// `[N·OH·OW, KH·KW·Cin]`, from the last forward pass.
     cols: Vec<T>,
     /// `[N·OH·OW, KH·KW·Cin]`, scratch for the input gradient.
     dcols: Vec<T>,
+    /// `[N, OH, OW, Cout]`: the product before the ReLU and the border (portable path), then
+    /// the gradient with respect to it, `dZ` (both paths, when there is a ReLU or a border).
+    z: Vec<T>,
     y: Tensor<T>,
     dx: Tensor<T>,
     /// Fast path: the zero-padded input of the last forward pass, `[N, HP, WP, Cin]`.
@@ -36,12 +53,21 @@ pub struct Conv2d<T> {
     /// offset from there.
     pixels: Vec<usize>,
     patch: Vec<usize>,
+    /// Where each output pixel starts in the bordered output `y`.
+    out_rows: Vec<usize>,
     /// Fast path, input gradient: `m·Cout` per output pixel, `0..Cout`, and `Wᵀ` `[Cout, K]`.
     dy_rows: Vec<usize>,
     iota: Vec<usize>,
     wt: Vec<T>,
     /// Fast path: the input gradient with respect to `xpad`.
     dxpad: Vec<T>,
+    /// Fast path, input gradient by phases: `dZ` inside a zero border, and one phase's row
+    /// starts in it, destinations in `dX`, tap offsets and packed taps `[taps·Cout, Cin]`.
+    dzpad: Vec<T>,
+    ph_p: Vec<usize>,
+    ph_rows: Vec<usize>,
+    ph_q: Vec<usize>,
+    ph_w: Vec<T>,
 }
 
 impl<T: Float> Conv2d<T> {
@@ -55,29 +81,220 @@ impl<T: Float> Conv2d<T> {
                 Param::zeros(format!("{name}.weight"), &wshape),
                 Param::zeros(format!("{name}.bias"), &[geom.cout]),
             ],
+            relu: false,
+            border: Border::default(),
+            in_border: Border::default(),
             cols: Vec::new(),
             dcols: Vec::new(),
+            z: Vec::new(),
             y: Tensor::empty(),
             dx: Tensor::empty(),
             xpad: Vec::new(),
             pixels: Vec::new(),
             patch: Vec::new(),
+            out_rows: Vec::new(),
             dy_rows: Vec::new(),
             iota: Vec::new(),
             wt: Vec::new(),
             dxpad: Vec::new(),
+            dzpad: Vec::new(),
+            ph_p: Vec::new(),
+            ph_rows: Vec::new(),
+            ph_q: Vec::new(),
+            ph_w: Vec::new(),
         }
+    }
+
+    /// Applies `max(·, 0)` to the output (a fused ReLU: `∂y/∂z = [y > 0]`).
+    pub fn with_relu(mut self) -> Self {
+        self.relu = true;
+        self
+    }
+
+    /// Writes the output with a zero border around each image, typically the next layer's
+    /// SAME padding, so that layer runs as VALID over it ([`ConvGeom::as_valid`]). The gradient
+    /// that arrives for border places is ignored: they are constants.
+    pub fn with_border(mut self, border: Border) -> Self {
+        self.border = border;
+        self
+    }
+
+    /// Declares which places of the input are the previous layer's zero border (interior
+    /// `(H − top − bottom) × (W − left − right)`): their gradient is left out (zeros in `dX`).
+    pub fn with_input_border(mut self, border: Border) -> Self {
+        assert!(
+            border.top + border.bottom < self.geom.h && border.left + border.right < self.geom.w,
+            "{}: input border larger than the input",
+            self.name
+        );
+        self.in_border = border;
+        self
     }
 
     fn rows(&self, n: usize) -> usize {
         n * self.geom.out_pixels()
     }
 
-    /// The backward pass by gather GEMMs (see the type's documentation); same products as
-    /// [`Layer::backward`]'s im2col path.
-    fn backward_gather(&mut self, dy: &Tensor<T>, need_dx: bool) {
+    /// The output shape for a batch of `n`.
+    fn out_shape(&self, n: usize) -> [usize; 4] {
+        let (hb, wb) = self.border.around(self.geom.oh, self.geom.ow);
+        [n, hb, wb, self.geom.cout]
+    }
+
+    /// `dZ = dY ⊙ [y > 0]` over the interior of `dY` (or just the interior, without a ReLU),
+    /// into `self.z` as `[N·OH·OW, Cout]`; `false` (and nothing done) when `dZ` is `dY` itself.
+    fn pre_activation_grad(&mut self, dy: &Tensor<T>) -> bool {
+        if !self.relu && self.border.is_none() {
+            return false;
+        }
+        let (g, n) = (self.geom, dy.batch());
+        self.border
+            .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
+        self.z.resize(self.rows(n) * g.cout, T::zero());
+        let (dyd, y, c) = (dy.data(), self.y.data(), g.cout);
+        for (dz, &at) in self.z.chunks_exact_mut(c).zip(&self.out_rows) {
+            let (d, yv) = (&dyd[at..at + c], &y[at..at + c]);
+            if self.relu {
+                // A select, not a branch: the sign of `y` is a coin flip.
+                for ((dz, &d), &yv) in dz.iter_mut().zip(d).zip(yv) {
+                    *dz = if yv > T::zero() { d } else { T::zero() };
+                }
+            } else {
+                dz.copy_from_slice(d);
+            }
+        }
+        true
+    }
+
+    /// Zeroes the border places of `y` (the kernels write only the interior).
+    fn zero_border(&mut self, n: usize) {
         let g = self.geom;
-        let n = dy.batch();
+        self.border.zero(self.y.data_mut(), n, g.oh, g.ow, g.cout);
+    }
+
+    /// Zeroes the input border's places of `dX`.
+    fn zero_input_border(&mut self, n: usize) {
+        let (g, b) = (self.geom, self.in_border);
+        let (h, w) = (g.h - b.top - b.bottom, g.w - b.left - b.right);
+        b.zero(self.dx.data_mut(), n, h, w, g.cin);
+    }
+
+    /// `dX` for an input read directly, by phases: a gather GEMM per `(iy mod SH, ix mod SW)`.
+    ///
+    /// Input row `iy = a·SH + py` meets the filter rows `ky = py + SH·j` (`j < J`, the phase's
+    /// taps), through output rows `oy = a − j`; columns likewise. So
+    /// `dX[a·SH+py, b·SW+px, ci] = Σ_{j,l,co} dZ[a−j, b−l, co] · W[py+SH·j, px+SW·l, ci, co]`,
+    /// with `dZ` read as zero outside the image: every input pixel of a phase is one row of a
+    /// GEMM that reduces over the phase's `J·L·Cout` taps, gathered from `dZ` inside a zero
+    /// border (taps in reverse order, so the offsets are non-negative). Each `dX` value is
+    /// written once (no scatter, no overlapping adds), `Cin` columns wide.
+    fn dx_by_phases(&mut self, dz: &[T], n: usize) {
+        let g = self.geom;
+        let (sh, sw, co, ci) = (g.sh, g.sw, g.cout, g.cin);
+        // dZ inside a border of (max taps − 1) above/left and enough below/right.
+        let (tj, tl) = (g.kh.div_ceil(sh) - 1, g.kw.div_ceil(sw) - 1);
+        let hz = tj + g.oh.max((g.h - 1) / sh + 1);
+        let wz = tl + g.ow.max((g.w - 1) / sw + 1);
+        self.dzpad.clear();
+        self.dzpad.resize(n * hz * wz * co, T::zero());
+        for (m, row) in dz.chunks_exact(co).enumerate() {
+            let (i, oy, ox) = (m / g.out_pixels(), m / g.ow % g.oh, m % g.ow);
+            let at = ((i * hz + tj + oy) * wz + tl + ox) * co;
+            self.dzpad[at..at + co].copy_from_slice(row);
+        }
+        let w = self.params[0].value.data();
+        let b = self.in_border;
+        for py in 0..sh.min(g.h) {
+            for px in 0..sw.min(g.w) {
+                // Taps of this phase (none if the filter is smaller than the stride).
+                let (nj, nl) = (
+                    g.kh.saturating_sub(py).div_ceil(sh),
+                    g.kw.saturating_sub(px).div_ceil(sw),
+                );
+                self.ph_p.clear();
+                self.ph_rows.clear();
+                for i in 0..n {
+                    for (a, iy) in (py..g.h).step_by(sh).enumerate() {
+                        for (bb, ix) in (px..g.w).step_by(sw).enumerate() {
+                            if b.contains(g.h, g.w, iy, ix) {
+                                continue;
+                            }
+                            let (zy, zx) = (a + tj + 1 - nj.max(1), bb + tl + 1 - nl.max(1));
+                            self.ph_p.push(((i * hz + zy) * wz + zx) * co);
+                            self.ph_rows.push(((i * g.h + iy) * g.w + ix) * ci);
+                        }
+                    }
+                }
+                // Tap (j', l', c) is dZ row j' and column l' of the window, filter row
+                // py + SH·(J − 1 − j') and column px + SW·(L − 1 − l').
+                self.ph_q.clear();
+                self.ph_w.clear();
+                for jr in 0..nj {
+                    for lr in 0..nl {
+                        let (ky, kx) = (py + sh * (nj - 1 - jr), px + sw * (nl - 1 - lr));
+                        for c in 0..co {
+                            self.ph_q.push((jr * wz + lr) * co + c);
+                            let wrow = ((ky * g.kw + kx) * ci) * co + c;
+                            self.ph_w.extend((0..ci).map(|k| w[wrow + k * co]));
+                        }
+                    }
+                }
+                T::gather_gemm(GatherGemm {
+                    a: &self.dzpad,
+                    p: &self.ph_p,
+                    q: &self.ph_q,
+                    b: &self.ph_w,
+                    ldb: ci,
+                    n: ci,
+                    c: self.dx.data_mut(),
+                    ldc: ci,
+                    c_rows: Some(&self.ph_rows),
+                    init: Init::Zero,
+                    relu: false,
+                });
+            }
+        }
+        self.zero_input_border(n);
+    }
+
+    /// The forward pass by a gather GEMM (see the type's documentation).
+    fn forward_gather(&mut self, x: &Tensor<T>) {
+        let g = self.geom;
+        let n = x.batch();
+        let a: &[T] = if g.reads_input_directly() {
+            x.data()
+        } else {
+            pad_input(&g, n, x.data(), &mut self.xpad);
+            &self.xpad
+        };
+        g.gather_offsets(n, &mut self.pixels, &mut self.patch);
+        let c_rows = if self.border.is_none() {
+            None
+        } else {
+            self.border
+                .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
+            Some(&self.out_rows[..])
+        };
+        T::gather_gemm(GatherGemm {
+            a,
+            p: &self.pixels,
+            q: &self.patch,
+            b: self.params[0].value.data(),
+            ldb: g.cout,
+            n: g.cout,
+            c: self.y.data_mut(),
+            ldc: g.cout,
+            c_rows,
+            init: Init::Bias(self.params[1].value.data()),
+            relu: self.relu,
+        });
+    }
+
+    /// The backward pass by gather GEMMs (see the type's documentation); same products as
+    /// [`Layer::backward`]'s im2col path. `dz` is `[N·OH·OW, Cout]`.
+    fn backward_gather(&mut self, x: &Tensor<T>, dz: &[T], need_dx: bool) {
+        let g = self.geom;
+        let n = x.batch();
         let (m, k) = (self.rows(n), g.patch_len());
         assert_eq!(
             self.pixels.len(),
@@ -85,26 +302,32 @@ impl<T: Float> Conv2d<T> {
             "{}: backward without forward",
             self.name
         );
-        // dW[k, co] += Σ_m xpad[pixels[m] + patch[k]] · dY[m, co]
+        let direct = g.reads_input_directly();
+        // dW[k, co] += Σ_m xpad[pixels[m] + patch[k]] · dZ[m, co]
         T::gather_gemm(GatherGemm {
-            a: &self.xpad,
+            a: if direct { x.data() } else { &self.xpad },
             p: &self.patch,
             q: &self.pixels,
-            b: dy.data(),
+            b: dz,
             ldb: g.cout,
             n: g.cout,
             c: self.params[0].grad.data_mut(),
             ldc: g.cout,
+            c_rows: None,
             init: Init::Accumulate,
+            relu: false,
         });
         let gb = self.params[1].grad.data_mut();
-        for row in dy.data().chunks_exact(g.cout) {
+        for row in dz.chunks_exact(g.cout) {
             for (g, &d) in gb.iter_mut().zip(row) {
                 *g += d;
             }
         }
-        if need_dx {
-            // dcols[m, k] = Σ_co dY[m, co] · Wᵀ[co, k]
+        if need_dx && direct {
+            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
+            self.dx_by_phases(dz, n);
+        } else if need_dx {
+            // dcols[m, k] = Σ_co dZ[m, co] · Wᵀ[co, k]
             let w = self.params[0].value.data();
             self.wt.resize(k * g.cout, T::zero());
             for (kk, wrow) in w.chunks_exact(g.cout).enumerate() {
@@ -115,10 +338,11 @@ impl<T: Float> Conv2d<T> {
             fill_iota(&mut self.dy_rows, m, g.cout);
             fill_iota(&mut self.iota, g.cout, 1);
             // dxpad[pixels[m] + patch[k]] += dcols[m, k], image by image (col2im fused).
+            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
             self.dxpad.clear();
             self.dxpad.resize(self.xpad.len(), T::zero());
             T::scatter_gemm(ScatterGemm {
-                a: dy.data(),
+                a: dz,
                 p: &self.dy_rows,
                 q: &self.iota,
                 b: &self.wt,
@@ -129,93 +353,15 @@ impl<T: Float> Conv2d<T> {
                 out_cols: &self.patch,
                 groups: n,
             });
-            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
             unpad_input(&g, n, &self.dxpad, self.dx.data_mut());
+            self.zero_input_border(n);
         }
     }
-}
 
-impl<T: Float> Layer<T> for Conv2d<T> {
-    fn name(&self) -> &str {
-        &self.name
-    }
-
-    fn output_shape(&self) -> Vec<usize> {
-        vec![self.geom.oh, self.geom.ow, self.geom.cout]
-    }
-
-    /// `cols = im2col(x)`, then `Y = b + cols·W` (bias broadcast first, GEMM accumulates).
-    fn forward(&mut self, x: &Tensor<T>) {
+    /// The backward pass by im2col + GEMM (the portable path). `dz` is `[N·OH·OW, Cout]`.
+    fn backward_im2col(&mut self, dz: &[T], n: usize, need_dx: bool) {
         let g = self.geom;
-        assert_eq!(
-            x.shape()[1..],
-            [g.h, g.w, g.cin],
-            "{}: input shape",
-            self.name
-        );
-        let n = x.batch();
         let (m, k) = (self.rows(n), g.patch_len());
-        if T::simd() {
-            pad_input(&g, n, x.data(), &mut self.xpad);
-            g.gather_offsets(n, &mut self.pixels, &mut self.patch);
-            self.y.set_shape(&[n, g.oh, g.ow, g.cout]);
-            T::gather_gemm(GatherGemm {
-                a: &self.xpad,
-                p: &self.pixels,
-                q: &self.patch,
-                b: self.params[0].value.data(),
-                ldb: g.cout,
-                n: g.cout,
-                c: self.y.data_mut(),
-                ldc: g.cout,
-                init: Init::Bias(self.params[1].value.data()),
-            });
-            return;
-        }
-        self.cols.resize(m * k, T::zero());
-        im2col(&g, n, x.data(), &mut self.cols);
-        self.y.set_shape(&[n, g.oh, g.ow, g.cout]);
-        let y = self.y.data_mut();
-        for row in y.chunks_exact_mut(g.cout) {
-            row.copy_from_slice(self.params[1].value.data());
-        }
-        gemm(
-            Op::N,
-            Op::N,
-            m,
-            g.cout,
-            k,
-            T::one(),
-            &self.cols,
-            self.params[0].value.data(),
-            T::one(),
-            y,
-        );
-    }
-
-    fn output(&self) -> &Tensor<T> {
-        &self.y
-    }
-
-    /// With `Y = cols·W + b` (`M = N·OH·OW` rows, `K = KH·KW·Cin`):
-    /// - `dW += colsᵀ·dY` (`[K, M]·[M, Cout]`): each weight meets every input value it multiplied;
-    /// - `db += Σ_rows dY`;
-    /// - `dcols = dY·Wᵀ` (`[M, Cout]·[Cout, K]`), then `dX = col2im(dcols)`: an input pixel that
-    ///   appears in several patches (overlapping windows) collects the gradient of each.
-    fn backward(&mut self, _x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
-        let g = self.geom;
-        let n = dy.batch();
-        assert_eq!(
-            dy.shape(),
-            [n, g.oh, g.ow, g.cout],
-            "{}: upstream gradient shape",
-            self.name
-        );
-        let (m, k) = (self.rows(n), g.patch_len());
-        if T::simd() {
-            self.backward_gather(dy, need_dx);
-            return;
-        }
         assert_eq!(
             self.cols.len(),
             m * k,
@@ -231,12 +377,12 @@ impl<T: Float> Layer<T> for Conv2d<T> {
             m,
             T::one(),
             &self.cols,
-            dy.data(),
+            dz,
             T::one(),
             gw,
         );
         let gb = self.params[1].grad.data_mut();
-        for row in dy.data().chunks_exact(g.cout) {
+        for row in dz.chunks_exact(g.cout) {
             for (g, &d) in gb.iter_mut().zip(row) {
                 *g += d;
             }
@@ -250,14 +396,104 @@ impl<T: Float> Layer<T> for Conv2d<T> {
                 k,
                 g.cout,
                 T::one(),
-                dy.data(),
+                dz,
                 self.params[0].value.data(),
                 T::zero(),
                 &mut self.dcols,
             );
             self.dx.set_shape(&[n, g.h, g.w, g.cin]);
             col2im(&g, n, &self.dcols, self.dx.data_mut());
+            self.zero_input_border(n);
         }
+    }
+}
+
+impl<T: Float> Layer<T> for Conv2d<T> {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn output_shape(&self) -> Vec<usize> {
+        self.out_shape(1)[1..].to_vec()
+    }
+
+    /// `cols = im2col(x)`, then `Z = b + cols·W` (bias broadcast first, GEMM accumulates), then
+    /// `y = border(act(Z))`.
+    fn forward(&mut self, x: &Tensor<T>) {
+        let g = self.geom;
+        assert_eq!(
+            x.shape()[1..],
+            [g.h, g.w, g.cin],
+            "{}: input shape",
+            self.name
+        );
+        let n = x.batch();
+        let (m, k) = (self.rows(n), g.patch_len());
+        self.y.set_shape(&self.out_shape(n));
+        if T::simd() {
+            self.forward_gather(x);
+            self.zero_border(n);
+            return;
+        }
+        self.cols.resize(m * k, T::zero());
+        im2col(&g, n, x.data(), &mut self.cols);
+        self.z.resize(m * g.cout, T::zero());
+        for row in self.z.chunks_exact_mut(g.cout) {
+            row.copy_from_slice(self.params[1].value.data());
+        }
+        gemm(
+            Op::N,
+            Op::N,
+            m,
+            g.cout,
+            k,
+            T::one(),
+            &self.cols,
+            self.params[0].value.data(),
+            T::one(),
+            &mut self.z,
+        );
+        self.border
+            .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
+        let y = self.y.data_mut();
+        for (zrow, &at) in self.z.chunks_exact(g.cout).zip(&self.out_rows) {
+            for (yv, &zv) in y[at..at + g.cout].iter_mut().zip(zrow) {
+                *yv = if self.relu { zv.max(T::zero()) } else { zv };
+            }
+        }
+        self.zero_border(n);
+    }
+
+    fn output(&self) -> &Tensor<T> {
+        &self.y
+    }
+
+    /// With `Z = cols·W + b` (`M = N·OH·OW` rows, `K = KH·KW·Cin`) and `dZ` the interior of `dY`
+    /// times `[y > 0]` when there is a ReLU (border places are constants: no gradient):
+    /// - `dW += colsᵀ·dZ` (`[K, M]·[M, Cout]`): each weight meets every input value it multiplied;
+    /// - `db += Σ_rows dZ`;
+    /// - `dcols = dZ·Wᵀ` (`[M, Cout]·[Cout, K]`), then `dX = col2im(dcols)`: an input pixel that
+    ///   appears in several patches (overlapping windows) collects the gradient of each.
+    fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
+        let g = self.geom;
+        let n = dy.batch();
+        assert_eq!(
+            dy.shape(),
+            self.out_shape(n),
+            "{}: upstream gradient shape",
+            self.name
+        );
+        assert_eq!(x.shape()[1..], [g.h, g.w, g.cin], "{}: input", self.name);
+        // dZ lives in `self.z` (taken out for the products, put back: no allocation) or is dY.
+        let own = self.pre_activation_grad(dy);
+        let z = std::mem::take(&mut self.z);
+        let dz = if own { &z[..] } else { dy.data() };
+        if T::simd() {
+            self.backward_gather(x, dz, need_dx);
+        } else {
+            self.backward_im2col(dz, n, need_dx);
+        }
+        self.z = z;
     }
 
     fn input_grad(&self) -> &Tensor<T> {

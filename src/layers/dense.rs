@@ -2,9 +2,12 @@
 
 use super::{Layer, Param};
 use crate::tensor::{fill_iota, gemm, Float, GatherGemm, Init, Op, Tensor};
-use rayon::prelude::*;
 
 /// `y = x·W + b` with `x: [N, In]`, `W: [In, Out]` (TensorFlow's layout), `b: [Out]`, `y: [N, Out]`.
+///
+/// An input of any shape `[N, …]` is read as `[N, In]` (each sample's values in memory order,
+/// which for NHWC is Keras' `Flatten`), and its gradient comes back in the input's shape: the
+/// flatten costs no copy.
 pub struct Dense<T> {
     name: String,
     n_in: usize,
@@ -60,7 +63,9 @@ impl<T: Float> Dense<T> {
             n: no,
             c: self.params[0].grad.data_mut(),
             ldc: no,
+            c_rows: None,
             init: Init::Accumulate,
+            relu: false,
         });
         let gb = self.params[1].grad.data_mut();
         for row in dy.data().chunks_exact(no) {
@@ -89,19 +94,24 @@ impl<T: Float> Dense<T> {
                 n,
                 c: &mut self.dxt,
                 ldc: n,
+                c_rows: None,
                 init: Init::Zero,
+                relu: false,
             });
-            self.dx.set_shape(&[n, ni]);
-            let dxt = &self.dxt;
-            self.dx
-                .data_mut()
-                .par_chunks_mut(ni)
-                .enumerate()
-                .for_each(|(s, row)| {
-                    for (i, v) in row.iter_mut().enumerate() {
-                        *v = dxt[i * n + s];
+            // dX = (dXᵀ)ᵀ in blocks of 64 inputs: a block of dXᵀ (64 × N values) stays in L1
+            // while every sample's row takes its 64 values (a row-by-row transpose would read
+            // one value per cache line, N times over).
+            self.dx.set_shape(x.shape());
+            let dx = self.dx.data_mut();
+            for (b, block) in self.dxt.chunks(64 * n).enumerate() {
+                let i0 = 64 * b;
+                for (s, row) in dx.chunks_exact_mut(ni).enumerate() {
+                    let column = block.iter().skip(s).step_by(n);
+                    for (v, &t) in row[i0..].iter_mut().zip(column) {
+                        *v = t;
                     }
-                });
+                }
+            }
         }
     }
 }
@@ -117,7 +127,12 @@ impl<T: Float> Layer<T> for Dense<T> {
 
     /// `y[n, j] = b[j] + Σ_i x[n, i]·W[i, j]`: one GEMM, then the bias on each row.
     fn forward(&mut self, x: &Tensor<T>) {
-        assert_eq!(x.shape()[1..], [self.n_in], "{}: input shape", self.name);
+        assert_eq!(
+            x.shape()[1..].iter().product::<usize>(),
+            self.n_in,
+            "{}: input shape",
+            self.name
+        );
         let n = x.batch();
         self.y.set_shape(&[n, self.n_out]);
         if T::simd() {
@@ -133,7 +148,9 @@ impl<T: Float> Layer<T> for Dense<T> {
                 n: self.n_out,
                 c: self.y.data_mut(),
                 ldc: self.n_out,
+                c_rows: None,
                 init: Init::Bias(self.params[1].value.data()),
+                relu: false,
             });
             return;
         }
@@ -195,7 +212,7 @@ impl<T: Float> Layer<T> for Dense<T> {
             }
         }
         if need_dx {
-            self.dx.set_shape(&[n, self.n_in]);
+            self.dx.set_shape(x.shape());
             let dx = self.dx.data_mut();
             gemm(
                 Op::N,

@@ -37,6 +37,11 @@ impl<T: Float> Sequential<T> {
         &self.layers
     }
 
+    /// The layers, mutably (to time or drive them one at a time).
+    pub fn layers_mut(&mut self) -> &mut [Box<dyn Layer<T>>] {
+        &mut self.layers
+    }
+
     /// Runs every layer on `x` and returns the last output.
     pub fn forward(&mut self, x: &Tensor<T>) -> &Tensor<T> {
         for i in 0..self.layers.len() {

@@ -28,6 +28,63 @@ pub enum Padding {
     Valid,
 }
 
+/// Zero rows and columns written around a layer's output `[N, OH, OW, C]`, making it
+/// `[N, top + OH + bottom, left + OW + right, C]`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Border {
+    pub top: usize,
+    pub bottom: usize,
+    pub left: usize,
+    pub right: usize,
+}
+
+impl Border {
+    pub fn is_none(&self) -> bool {
+        *self == Border::default()
+    }
+
+    /// Height and width of an `h × w` image with this border.
+    pub fn around(&self, h: usize, w: usize) -> (usize, usize) {
+        (self.top + h + self.bottom, self.left + w + self.right)
+    }
+
+    /// Whether row `y` and column `x` of a bordered `hb × wb` image are border places.
+    pub fn contains(&self, hb: usize, wb: usize, y: usize, x: usize) -> bool {
+        y < self.top || y >= hb - self.bottom || x < self.left || x >= wb - self.right
+    }
+
+    /// Sets the border places of `n` bordered images (`h × w × c` inside the border) to zero.
+    pub fn zero<T: Float>(&self, data: &mut [T], n: usize, h: usize, w: usize, c: usize) {
+        if self.is_none() {
+            return;
+        }
+        let (hb, wb) = self.around(h, w);
+        for img in data.chunks_exact_mut(hb * wb * c).take(n) {
+            for (y, row) in img.chunks_exact_mut(wb * c).enumerate() {
+                if y < self.top || y >= self.top + h {
+                    row.fill(T::zero());
+                } else {
+                    row[..self.left * c].fill(T::zero());
+                    row[(self.left + w) * c..].fill(T::zero());
+                }
+            }
+        }
+    }
+
+    /// Where each pixel of `n` images of `h × w × c` starts inside the bordered images, in
+    /// pixel order (reuses `v`'s buffer).
+    pub fn interior_offsets(&self, n: usize, h: usize, w: usize, c: usize, v: &mut Vec<usize>) {
+        let (hb, wb) = self.around(h, w);
+        v.clear();
+        for i in 0..n {
+            for y in 0..h {
+                let row = (i * hb + self.top + y) * wb + self.left;
+                v.extend((0..w).map(|x| (row + x) * c));
+            }
+        }
+    }
+}
+
 /// The geometry of one 2-D convolution (everything but the batch size).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ConvGeom {
@@ -117,6 +174,41 @@ impl ConvGeom {
     /// Multiply-adds of one image's forward pass.
     pub fn macs(&self) -> usize {
         self.out_pixels() * self.patch_len() * self.cout
+    }
+
+    /// Whether the kernels can read the input as it is: no padding, and every input row and
+    /// column is read (so [`ConvGeom::padded`] is the input's own size).
+    pub fn reads_input_directly(&self) -> bool {
+        self.pad_top == 0 && self.pad_left == 0 && self.padded() == (self.h, self.w)
+    }
+
+    /// The same convolution written as a VALID one over an input that already carries its
+    /// padding as a zero border: `(geometry over the bordered input, the border)`.
+    ///
+    /// `SAME(x) = VALID(border(x))`, so a layer that writes its output with this border (see
+    /// [`crate::layers::Conv2d::with_border`]) saves the next layer its copy into a padded buffer,
+    /// and that layer's input gradient needs no copy back out of one.
+    pub fn as_valid(&self) -> (ConvGeom, Border) {
+        let (hp, wp) = self.padded();
+        let border = Border {
+            top: self.pad_top,
+            bottom: hp - self.pad_top - self.h,
+            left: self.pad_left,
+            right: wp - self.pad_left - self.w,
+        };
+        let valid = ConvGeom::new(
+            hp,
+            wp,
+            self.cin,
+            self.cout,
+            self.kh,
+            self.kw,
+            (self.sh, self.sw),
+            Padding::Valid,
+        )
+        .expect("a padded input holds every window");
+        debug_assert_eq!((valid.oh, valid.ow), (self.oh, self.ow));
+        (valid, border)
     }
 
     /// Height and width of the zero-padded input the gather kernels read: the padding above and

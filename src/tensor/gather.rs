@@ -43,22 +43,43 @@ pub struct GatherGemm<'a, T> {
     pub ldb: usize,
     /// Columns of `C`.
     pub n: usize,
-    /// The result: row `r` is `c[r·ldc .. r·ldc + n]`.
+    /// The result: row `r` is `c[r·ldc .. r·ldc + n]`, or `c[c_rows[r] ..][..n]` if given.
     pub c: &'a mut [T],
     pub ldc: usize,
+    /// Where each row of `C` starts in `c`, strictly increasing by at least `n` (e.g. the
+    /// interior pixels of an output with a zero border): `None` means `r·ldc`. Places of `c`
+    /// between rows are not touched.
+    pub c_rows: Option<&'a [usize]>,
     pub init: Init<'a, T>,
+    /// Store `max(C, 0)` instead of `C` (a fused ReLU).
+    pub relu: bool,
 }
 
 impl<T: Float> GatherGemm<'_, T> {
+    /// Where row `r` of `C` starts in `c`.
+    #[inline]
+    pub fn row_start(&self, r: usize) -> usize {
+        self.c_rows.map_or(r * self.ldc, |cr| cr[r])
+    }
+
     /// Panics unless every index the product reaches is inside its slice.
     pub fn check(&self) {
         let (rows, steps) = (self.p.len(), self.q.len());
         if rows == 0 || self.n == 0 {
             return;
         }
-        assert!(self.n <= self.ldc, "gather_gemm: n > ldc");
+        match self.c_rows {
+            None => assert!(self.n <= self.ldc, "gather_gemm: n > ldc"),
+            Some(cr) => {
+                assert_eq!(cr.len(), rows, "gather_gemm: c_rows length");
+                assert!(
+                    cr.windows(2).all(|w| w[1] >= w[0] + self.n),
+                    "gather_gemm: c_rows overlap or decrease"
+                );
+            }
+        }
         assert!(
-            self.c.len() >= (rows - 1) * self.ldc + self.n,
+            self.c.len() >= self.row_start(rows - 1) + self.n,
             "gather_gemm: C too short"
         );
         if let Init::Bias(bias) = self.init {
@@ -174,10 +195,12 @@ pub fn gather_gemm_portable<T: Float>(g: GatherGemm<'_, T>) {
         n,
         c,
         ldc,
+        c_rows,
         init,
+        relu,
     } = g;
     for (r, &pr) in p.iter().enumerate() {
-        let row = &mut c[r * ldc..][..n];
+        let row = &mut c[c_rows.map_or(r * ldc, |cr| cr[r])..][..n];
         match init {
             Init::Zero => row.fill(T::zero()),
             Init::Accumulate => {}
@@ -187,6 +210,11 @@ pub fn gather_gemm_portable<T: Float>(g: GatherGemm<'_, T>) {
             let av = a[pr + qt];
             for (cv, &bv) in row.iter_mut().zip(&b[t * ldb..][..n]) {
                 *cv = av.mul_add(bv, *cv);
+            }
+        }
+        if relu {
+            for v in row.iter_mut() {
+                *v = v.max(T::zero());
             }
         }
     }
@@ -221,9 +249,51 @@ pub(crate) mod avx512 {
         })
     }
 
-    /// Reduction steps per block: the block's `b` rows (at most 256 × 64 floats, 64 KiB) stay in
-    /// L1/L2 while every row tile of a task runs over them.
+    /// Reduction steps per block: the block's `b` rows (128 × 64 floats, 32 KiB) stay in L1
+    /// while every row tile of a task runs over them. (256 steps for conv1's 32 columns, which
+    /// would read its input once instead of twice, measured no faster.)
     const TB: usize = 128;
+
+    /// Splits a block of reduction offsets into runs of consecutive values, `(first, length)`,
+    /// so the tile walks each run with pointer increments instead of reading `q` per step.
+    fn runs(q: &[usize], out: &mut [(usize, usize); TB]) -> usize {
+        let mut k = 0;
+        for &v in q {
+            if k > 0 && out[k - 1].0 + out[k - 1].1 == v {
+                out[k - 1].1 += 1;
+            } else {
+                out[k] = (v, 1);
+                k += 1;
+            }
+        }
+        k
+    }
+
+    /// One block of reduction steps: the offset table, and the same offsets as runs of
+    /// consecutive values when the runs are long enough to pay (at least 4 steps on average).
+    #[derive(Clone, Copy)]
+    struct Steps<'a> {
+        table: &'a [usize],
+        runs: Option<&'a [(usize, usize)]>,
+    }
+
+    impl<'a> Steps<'a> {
+        fn new(table: &'a [usize], buf: &'a mut [(usize, usize); TB]) -> Self {
+            let n = runs(table, buf);
+            let runs = (4 * n <= table.len()).then_some(&buf[..n]);
+            Steps { table, runs }
+        }
+    }
+
+    /// How a tile leaves its sums in `C`.
+    #[derive(Clone, Copy, PartialEq)]
+    enum End {
+        Store,
+        /// `max(sum, 0)`: the last block of a GEMM with a fused ReLU.
+        Relu,
+        /// Added to what is there (a scatter).
+        Add,
+    }
 
     #[derive(Clone, Copy)]
     enum Start {
@@ -244,14 +314,14 @@ pub(crate) mod avx512 {
     unsafe fn tile<const MR: usize, const NV: usize>(
         a: *const f32,
         p: &[usize],
-        q: &[usize],
+        q: Steps<'_>,
         b: *const f32,
         ldb: usize,
         c: *mut f32,
         crow: &[usize],
         masks: [u16; NV],
         start: Start,
-        add: bool,
+        end: End,
     ) {
         let mut acc = [[_mm512_setzero_ps(); NV]; MR];
         for r in 0..MR {
@@ -268,28 +338,53 @@ pub(crate) mod avx512 {
             rows[r] = a.add(p[r]);
         }
         let mut brow = b;
-        for &qt in q {
-            let mut bv = [_mm512_setzero_ps(); NV];
-            for v in 0..NV {
-                bv[v] = _mm512_maskz_loadu_ps(masks[v], brow.add(16 * v));
-            }
-            for r in 0..MR {
-                let av = _mm512_set1_ps(*rows[r].add(qt));
-                for v in 0..NV {
-                    acc[r][v] = _mm512_fmadd_ps(av, bv[v], acc[r][v]);
+        if let Some(runs) = q.runs {
+            // Steps in runs of consecutive offsets (a convolution's patch rows, a plain `A·B`):
+            // every row pointer advances by one, no table reads.
+            for &(first, len) in runs {
+                let mut ar = [a; MR];
+                for r in 0..MR {
+                    ar[r] = rows[r].add(first);
+                }
+                for _ in 0..len {
+                    let mut bv = [_mm512_setzero_ps(); NV];
+                    for v in 0..NV {
+                        bv[v] = _mm512_maskz_loadu_ps(masks[v], brow.add(16 * v));
+                    }
+                    for r in 0..MR {
+                        let av = _mm512_set1_ps(*ar[r]);
+                        ar[r] = ar[r].add(1);
+                        for v in 0..NV {
+                            acc[r][v] = _mm512_fmadd_ps(av, bv[v], acc[r][v]);
+                        }
+                    }
+                    brow = brow.add(ldb);
                 }
             }
-            brow = brow.add(ldb);
+        } else {
+            for &qt in q.table {
+                let mut bv = [_mm512_setzero_ps(); NV];
+                for v in 0..NV {
+                    bv[v] = _mm512_maskz_loadu_ps(masks[v], brow.add(16 * v));
+                }
+                for r in 0..MR {
+                    let av = _mm512_set1_ps(*rows[r].add(qt));
+                    for v in 0..NV {
+                        acc[r][v] = _mm512_fmadd_ps(av, bv[v], acc[r][v]);
+                    }
+                }
+                brow = brow.add(ldb);
+            }
         }
-        // With `add`, row by row (load, add, store), so rows whose destinations overlap (a
+        // With `Add`, row by row (load, add, store), so rows whose destinations overlap (a
         // scatter onto overlapping windows) each see the previous row's sum.
         for r in 0..MR {
             for v in 0..NV {
                 let dst = c.add(crow[r] + 16 * v);
-                let val = if add {
-                    _mm512_add_ps(_mm512_maskz_loadu_ps(masks[v], dst), acc[r][v])
-                } else {
-                    acc[r][v]
+                let val = match end {
+                    End::Store => acc[r][v],
+                    End::Relu => _mm512_max_ps(acc[r][v], _mm512_setzero_ps()),
+                    End::Add => _mm512_add_ps(_mm512_maskz_loadu_ps(masks[v], dst), acc[r][v]),
                 };
                 _mm512_mask_storeu_ps(dst, masks[v], val);
             }
@@ -307,20 +402,20 @@ pub(crate) mod avx512 {
         nv: usize,
         a: *const f32,
         p: &[usize],
-        q: &[usize],
+        q: Steps<'_>,
         b: *const f32,
         ldb: usize,
         c: *mut f32,
         crow: &[usize],
         m: [u16; 4],
         start: Start,
-        add: bool,
+        end: End,
     ) {
         match nv {
-            1 => tile::<MR, 1>(a, p, q, b, ldb, c, crow, [m[0]], start, add),
-            2 => tile::<MR, 2>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, add),
-            3 => tile::<MR, 3>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, add),
-            _ => tile::<MR, 4>(a, p, q, b, ldb, c, crow, m, start, add),
+            1 => tile::<MR, 1>(a, p, q, b, ldb, c, crow, [m[0]], start, end),
+            2 => tile::<MR, 2>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, end),
+            3 => tile::<MR, 3>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, end),
+            _ => tile::<MR, 4>(a, p, q, b, ldb, c, crow, m, start, end),
         }
     }
 
@@ -335,25 +430,25 @@ pub(crate) mod avx512 {
         nv: usize,
         a: *const f32,
         p: &[usize],
-        q: &[usize],
+        q: Steps<'_>,
         b: *const f32,
         ldb: usize,
         c: *mut f32,
         crow: &[usize],
         m: [u16; 4],
         start: Start,
-        add: bool,
+        end: End,
     ) {
         match h {
-            1 => tile_nv::<1>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            2 => tile_nv::<2>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            3 => tile_nv::<3>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            4 => tile_nv::<4>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            5 => tile_nv::<5>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            6 => tile_nv::<6>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            7 => tile_nv::<7>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            8 => tile_nv::<8>(nv, a, p, q, b, ldb, c, crow, m, start, add),
-            _ => tile_nv::<9>(nv, a, p, q, b, ldb, c, crow, m, start, add),
+            1 => tile_nv::<1>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            2 => tile_nv::<2>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            3 => tile_nv::<3>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            4 => tile_nv::<4>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            5 => tile_nv::<5>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            6 => tile_nv::<6>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            7 => tile_nv::<7>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            8 => tile_nv::<8>(nv, a, p, q, b, ldb, c, crow, m, start, end),
+            _ => tile_nv::<9>(nv, a, p, q, b, ldb, c, crow, m, start, end),
         }
     }
 
@@ -374,7 +469,25 @@ pub(crate) mod avx512 {
         (m, nv)
     }
 
-    /// Rows `0..p.len()` of one task's block of `C` (`c` points at its first row).
+    /// Where a task's rows go: row `r0 + i` of `C` starts at `dest(i)` of the task's part of `c`
+    /// (which begins at index `base` of the whole `c`).
+    #[derive(Clone, Copy)]
+    struct Dest<'a> {
+        c_rows: Option<&'a [usize]>,
+        ldc: usize,
+        r0: usize,
+        base: usize,
+    }
+
+    impl Dest<'_> {
+        #[inline]
+        fn at(&self, i: usize) -> usize {
+            let r = self.r0 + i;
+            self.c_rows.map_or(r * self.ldc, |cr| cr[r]) - self.base
+        }
+    }
+
+    /// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part).
     ///
     /// # Safety
     /// AVX-512F available; the bounds of [`GatherGemm::check`] hold for these rows.
@@ -389,8 +502,9 @@ pub(crate) mod avx512 {
         ldb: usize,
         n: usize,
         c: *mut f32,
-        ldc: usize,
+        dest: Dest<'_>,
         init: Start,
+        relu: bool,
     ) {
         let nr = p.len();
         let steps = q.len();
@@ -398,17 +512,28 @@ pub(crate) mod avx512 {
         for blk in 0..nblocks {
             let t0 = blk * TB;
             let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
+            let mut rbuf = [(0, 0); TB];
+            let qr = Steps::new(qb, &mut rbuf);
             let bb = if qb.is_empty() {
                 b.as_ptr()
             } else {
                 b.as_ptr().add(t0 * ldb)
             };
             let start = if blk == 0 { init } else { Start::Load };
+            let end = if relu && blk + 1 == nblocks {
+                End::Relu
+            } else {
+                End::Store
+            };
             let mut r = 0;
             while r < nr {
-                let full = nr - r >= mr;
+                let h = (nr - r).min(mr);
+                let d0 = dest.at(r);
+                // Row offsets from the tile's first row (rows past `h` are never used).
+                let crow: [usize; 10] =
+                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
                 let mut wide = 0;
-                if nr - r == 1 {
+                if h == 1 {
                     // A single row (dense1 at batch 1: a GEMV over 3.6 MB of weights, bound by
                     // memory): 128-column panels, so each row of `b` is read in one sweep.
                     while n - wide >= 128 {
@@ -416,18 +541,18 @@ pub(crate) mod avx512 {
                             Start::Bias(bias) => Start::Bias(bias.add(wide)),
                             s => s,
                         };
-                        let (pr, cp) = (&p[r..r + 1], c.add(r * ldc + wide));
+                        let (pr, cp) = (&p[r..r + 1], c.add(d0 + wide));
                         tile::<1, 8>(
                             a.as_ptr(),
                             pr,
-                            qb,
+                            qr,
                             bb.add(wide),
                             ldb,
                             cp,
                             &[0],
                             [!0; 8],
                             st,
-                            false,
+                            end,
                         );
                         wide += 128;
                     }
@@ -438,20 +563,18 @@ pub(crate) mod avx512 {
                         Start::Bias(bias) => Start::Bias(bias.add(j0)),
                         s => s,
                     };
-                    let cp = c.add(r * ldc + j0);
+                    let cp = c.add(d0 + j0);
                     let bp = bb.add(j0);
                     let ap = a.as_ptr();
-                    let crow: [usize; 10] = std::array::from_fn(|i| i * ldc);
-                    if full {
-                        let pr = &p[r..r + mr];
+                    let pr = &p[r..r + h];
+                    if h == mr {
                         match mr {
-                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
-                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
-                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false),
+                            10 => tile_nv::<10>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
+                            8 => tile_nv::<8>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
+                            _ => tile_nv::<6>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
                         }
                     } else {
-                        let pr = &p[r..nr];
-                        tile_any(pr.len(), nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, false);
+                        tile_any(h, nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end);
                     }
                 }
                 r += mr;
@@ -570,31 +693,37 @@ pub(crate) mod avx512 {
                 for blk in 0..steps.div_ceil(TB).max(1) {
                     let t0 = blk * TB;
                     let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
+                    // The steps are `0..Cout` here; the table walk measured faster than runs.
+                    let qr = Steps {
+                        table: qb,
+                        runs: None,
+                    };
                     let bp = if qb.is_empty() {
                         b.as_ptr()
                     } else {
                         b.as_ptr().add(t0 * ldb + j0)
                     };
-                    let (cp, crow, add): (*mut f32, [usize; 10], bool) = if direct {
+                    let (cp, crow, end): (*mut f32, [usize; 10], End) = if direct {
                         let crow = std::array::from_fn(|i| {
                             orows.get(r + i).map_or(0, |&o| o + ocols[j0] - base)
                         });
-                        (op, crow, true)
+                        (op, crow, End::Add)
                     } else {
                         let crow = std::array::from_fn(|i| i * 64);
-                        (buf.as_mut_ptr(), crow, blk > 0)
+                        let end = if blk > 0 { End::Add } else { End::Store };
+                        (buf.as_mut_ptr(), crow, end)
                     };
                     let start = Start::Zero;
                     if h == mr {
                         let pr = &p[r..r + mr];
                         match mr {
-                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
-                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
-                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add),
+                            10 => tile_nv::<10>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, start, end),
+                            8 => tile_nv::<8>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, start, end),
+                            _ => tile_nv::<6>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, start, end),
                         }
                     } else {
                         let pr = &p[r..r + h];
-                        tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, start, add);
+                        tile_any(h, nv, ap, pr, qr, bp, ldb, cp, &crow, m, start, end);
                     }
                 }
                 if !direct {
@@ -614,46 +743,79 @@ pub(crate) mod avx512 {
     pub fn gather_gemm(g: GatherGemm<'_, f32>) {
         assert!(available(), "gather_gemm: AVX-512F and FMA needed");
         g.check();
-        let GatherGemm {
-            a,
-            p,
-            q,
-            b,
-            ldb,
-            n,
-            c,
-            ldc,
-            init,
-        } = g;
-        let rows = p.len();
-        if rows == 0 || n == 0 {
+        let rows = g.p.len();
+        if rows == 0 || g.n == 0 {
             return;
         }
         // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
-        let mr = tile_rows(n);
+        let mr = tile_rows(g.n);
         // A few tasks per thread: enough to balance two cores (one of which may be busy), few
         // enough that each task's row tiles share every block of `b` rows (and, for a weight
         // gradient, of gathered input) while it is in cache. Any split gives the same bits.
-        let flops = 2 * rows * q.len().max(1) * n;
+        let flops = 2 * rows * g.q.len().max(1) * g.n;
         let tasks = flops
             .div_ceil(1 << 22)
             .clamp(1, 4 * rayon::current_num_threads());
         let rpt = rows.div_ceil(tasks).div_ceil(mr) * mr;
-        c[..(rows - 1) * ldc + n]
-            .par_chunks_mut(rpt * ldc)
-            .enumerate()
-            .for_each(|(i, cc)| {
-                let r0 = i * rpt;
-                let pr = &p[r0..(r0 + rpt).min(rows)];
-                let start = match init {
-                    Init::Zero => Start::Zero,
-                    Init::Accumulate => Start::Load,
-                    Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-                };
-                // SAFETY: AVX-512F checked above; `check` proved every `a`, `b` and bias index
-                // in bounds, and this task's rows r0.. of C are exactly `cc` (row r's n columns
-                // end at (r−r0)·ldc + n ≤ cc.len()), which no other task touches.
-                unsafe { task(mr, a, pr, q, b, ldb, n, cc.as_mut_ptr(), ldc, start) }
-            });
+        let tasks = rows.div_ceil(rpt);
+        let end = g.row_start(rows - 1) + g.n;
+        let (c_rows, ldc) = (g.c_rows, g.ldc);
+        let start = move |t: usize| c_rows.map_or(t * rpt * ldc, |cr| cr[t * rpt]);
+        let run = |t: usize, cc: &mut [f32], base: usize| {
+            let r0 = t * rpt;
+            let pr = &g.p[r0..(r0 + rpt).min(rows)];
+            let init = match g.init {
+                Init::Zero => Start::Zero,
+                Init::Accumulate => Start::Load,
+                Init::Bias(bias) => Start::Bias(bias.as_ptr()),
+            };
+            let dest = Dest {
+                c_rows,
+                ldc,
+                r0,
+                base,
+            };
+            // SAFETY: AVX-512F checked above; `check` proved every `a`, `b` and bias index in
+            // bounds, and this task's rows of C lie inside `cc` (rows increase and the next
+            // task's part starts where its first row does), which no other task touches.
+            unsafe {
+                task(
+                    mr,
+                    g.a,
+                    pr,
+                    g.q,
+                    g.b,
+                    g.ldb,
+                    g.n,
+                    cc.as_mut_ptr(),
+                    dest,
+                    init,
+                    g.relu,
+                )
+            }
+        };
+        split_tasks(&mut g.c[..end], 0, 0, tasks, &start, &run);
+    }
+
+    /// Runs tasks `t0..t1` on their disjoint parts of `c` (which starts at index `base` of the
+    /// whole `C`; task `t`'s part starts at `start(t)`), halving the range with `rayon::join`.
+    fn split_tasks(
+        c: &mut [f32],
+        base: usize,
+        t0: usize,
+        t1: usize,
+        start: &(dyn Fn(usize) -> usize + Sync),
+        run: &(dyn Fn(usize, &mut [f32], usize) + Sync),
+    ) {
+        if t1 - t0 == 1 {
+            return run(t0, c, base);
+        }
+        let mid = (t0 + t1) / 2;
+        let at = start(mid);
+        let (lo, hi) = c.split_at_mut(at - base);
+        rayon::join(
+            || split_tasks(lo, base, t0, mid, start, run),
+            || split_tasks(hi, at, mid, t1, start, run),
+        );
     }
 }

@@ -14,8 +14,8 @@ mod gather;
 mod gemm;
 
 pub use conv::{
-    col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, ConvGeom,
-    Padding,
+    col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, Border,
+    ConvGeom, Padding,
 };
 pub use float::Float;
 pub use gather::{
@@ -26,18 +26,31 @@ pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};
 
 /// A dense row-major tensor of `T` with a reusable buffer.
-#[derive(Clone, Debug, PartialEq)]
+///
+/// The buffer never shrinks: its first `len` values are the tensor, and a tensor that goes from
+/// batch 48 to batch 1 and back (acting, then training, with the same network) neither
+/// reallocates nor refills.
+#[derive(Clone, Debug)]
 pub struct Tensor<T> {
     shape: Vec<usize>,
     data: Vec<T>,
+    len: usize,
+}
+
+impl<T: PartialEq> PartialEq for Tensor<T> {
+    fn eq(&self, other: &Self) -> bool {
+        self.shape == other.shape && self.data[..self.len] == other.data[..other.len]
+    }
 }
 
 impl<T: Float> Tensor<T> {
     /// A tensor of zeros.
     pub fn zeros(shape: &[usize]) -> Self {
+        let len = shape.iter().product();
         Tensor {
             shape: shape.to_vec(),
-            data: vec![T::zero(); shape.iter().product()],
+            data: vec![T::zero(); len],
+            len,
         }
     }
 
@@ -46,6 +59,7 @@ impl<T: Float> Tensor<T> {
         Tensor {
             shape: vec![0],
             data: Vec::new(),
+            len: 0,
         }
     }
 
@@ -60,6 +74,7 @@ impl<T: Float> Tensor<T> {
         );
         Tensor {
             shape: shape.to_vec(),
+            len: data.len(),
             data,
         }
     }
@@ -71,15 +86,15 @@ impl<T: Float> Tensor<T> {
             self.shape.clear();
             self.shape.extend_from_slice(shape);
         }
-        let len = shape.iter().product();
-        if self.data.len() != len {
-            self.data.resize(len, T::zero());
+        self.len = shape.iter().product();
+        if self.data.len() < self.len {
+            self.data.resize(self.len, T::zero());
         }
     }
 
     /// Sets every element to zero.
     pub fn fill_zero(&mut self) {
-        self.data.fill(T::zero());
+        self.data_mut().fill(T::zero());
     }
 
     /// The shape, outermost dimension first.
@@ -89,32 +104,34 @@ impl<T: Float> Tensor<T> {
 
     /// The number of elements.
     pub fn len(&self) -> usize {
-        self.data.len()
+        self.len
     }
 
     /// Whether the tensor has no elements.
     pub fn is_empty(&self) -> bool {
-        self.data.is_empty()
+        self.len == 0
     }
 
     /// The elements in row-major order.
     pub fn data(&self) -> &[T] {
-        &self.data
+        &self.data[..self.len]
     }
 
     /// The elements in row-major order, mutably.
     pub fn data_mut(&mut self) -> &mut [T] {
-        &mut self.data
+        &mut self.data[..self.len]
     }
 
     /// An ndarray view.
     pub fn view(&self) -> ArrayViewD<'_, T> {
-        ArrayViewD::from_shape(IxDyn(&self.shape), &self.data).expect("shape matches data")
+        ArrayViewD::from_shape(IxDyn(&self.shape), self.data()).expect("shape matches data")
     }
 
     /// A mutable ndarray view.
     pub fn view_mut(&mut self) -> ArrayViewMutD<'_, T> {
-        ArrayViewMutD::from_shape(IxDyn(&self.shape), &mut self.data).expect("shape matches data")
+        let len = self.len;
+        ArrayViewMutD::from_shape(IxDyn(&self.shape), &mut self.data[..len])
+            .expect("shape matches data")
     }
 
     /// The size of the leading (batch) dimension.
@@ -125,6 +142,6 @@ impl<T: Float> Tensor<T> {
     /// Copies `other`'s shape and values into `self`, reusing `self`'s buffer.
     pub fn copy_from(&mut self, other: &Tensor<T>) {
         self.set_shape(&other.shape);
-        self.data.copy_from_slice(&other.data);
+        self.data_mut().copy_from_slice(other.data());
     }
 }
