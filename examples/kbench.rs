@@ -1,6 +1,8 @@
 //! Times one layer operation or the train step for a fixed number of iterations, for use under
 //! `perf stat` when the machine is shared (CPU time and cycles are robust to preemption where
-//! criterion's wall time is not): `cargo run --release --example kbench -- conv1 fwd 50`.
+//! criterion's wall time is not): `cargo run --release --example kbench -- conv1 fwd 50`;
+//! `-- step train 30` (and `step act 300`) for the whole train step with its minimum and median;
+//! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders).
 
 use invaders::dqn::{Batch, Learner};
 use invaders::layers::{Conv2d, Dense, Layer};
@@ -40,17 +42,61 @@ fn main() {
         batch.next_states = random(&[48, 88, 80, 4], &mut rng);
         let x1 = random(&[1, 88, 80, 4], &mut rng);
         learner.train_step(&batch);
-        let (t, c0) = (Instant::now(), cpu_seconds());
+        let (mut times, c0) = (Vec::with_capacity(iters), cpu_seconds());
         for _ in 0..iters {
+            let t = Instant::now();
             if op == "act" {
                 learner.online.forward(&x1);
             } else {
                 learner.train_step(&batch);
             }
+            times.push(t.elapsed().as_secs_f64() * 1e3);
         }
-        let ms = t.elapsed().as_secs_f64() * 1e3 / iters as f64;
         let cpu = (cpu_seconds() - c0) * 1e3 / iters as f64;
-        println!("{what} {op}: {ms:.3} ms wall, {cpu:.3} ms CPU per iteration");
+        let mean = times.iter().sum::<f64>() / iters as f64;
+        times.sort_by(f64::total_cmp);
+        // The minimum is the machine's quiet moments: on a shared host it is the steadiest
+        // figure for comparing two builds.
+        println!(
+            "{what} {op}: {mean:.3} ms wall, {cpu:.3} ms CPU, min {:.3} median {:.3} per iteration",
+            times[0],
+            times[iters / 2]
+        );
+        return;
+    }
+    if what == "net" {
+        // Each layer of the article's network as built (fused ReLUs, borders), batch 48.
+        let init = invaders::layers::init::VarianceScaling::HE;
+        let mut net = invaders::dqn::article_qnet::<f32>([88, 80, 4], 6, &init, &mut rng);
+        let x = random(&[48, 88, 80, 4], &mut rng);
+        net.forward(&x);
+        let mut inputs = vec![x];
+        for l in net.layers().iter() {
+            inputs.push(l.output().clone());
+        }
+        let layers = net.layers_mut();
+        for (i, l) in layers.iter_mut().enumerate() {
+            let dy = random(inputs[i + 1].shape(), &mut rng);
+            let flops = 2.0 * l.macs() as f64 * 48.0;
+            let time = |f: &mut dyn FnMut()| {
+                let t = Instant::now();
+                for _ in 0..iters {
+                    f();
+                }
+                t.elapsed().as_secs_f64() * 1e3 / iters as f64
+            };
+            let fwd = time(&mut || l.forward(&inputs[i]));
+            let wg = time(&mut || l.backward(&inputs[i], &dy, false));
+            let both = time(&mut || l.backward(&inputs[i], &dy, true));
+            println!(
+                "{:8} fwd {fwd:.3} ms ({:.0} GFLOP/s)  wgrad {wg:.3} ms ({:.0})  dx {:.3} ms ({:.0})",
+                l.name(),
+                flops / fwd / 1e6,
+                flops / wg / 1e6,
+                both - wg,
+                flops / (both - wg) / 1e6
+            );
+        }
         return;
     }
     let batch: usize = args.get(4).map_or(48, |b| b.parse().unwrap());

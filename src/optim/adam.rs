@@ -2,6 +2,7 @@
 
 use crate::layers::Param;
 use crate::tensor::{Float, Tensor};
+use rayon::prelude::*;
 
 /// Adam: per-parameter step sizes from running moments of the gradient.
 ///
@@ -68,19 +69,22 @@ impl<T: Float> Adam<T> {
                 "Adam: parameter {} changed shape",
                 p.name
             );
-            let m = self.m[i].data_mut().iter_mut();
-            let v = self.v[i].data_mut().iter_mut();
-            let it = p
-                .value
-                .data_mut()
-                .iter_mut()
-                .zip(p.grad.data())
-                .zip(m.zip(v));
-            for ((w, &g), (m, v)) in it {
-                *m = b1 * *m + (one - b1) * g;
-                *v = b2 * *v + (one - b2) * g * g;
-                *w -= alpha * *m / (v.sqrt() + eps);
-            }
+            // Element by element, so any split over threads gives the same bits.
+            const CHUNK: usize = 1 << 14;
+            let m = self.m[i].data_mut().par_chunks_mut(CHUNK);
+            let v = self.v[i].data_mut().par_chunks_mut(CHUNK);
+            let (w, g) = (p.value.data_mut(), p.grad.data());
+            w.par_chunks_mut(CHUNK)
+                .zip(g.par_chunks(CHUNK))
+                .zip(m.zip(v))
+                .for_each(|((w, g), (m, v))| {
+                    let it = w.iter_mut().zip(g).zip(m.iter_mut().zip(v.iter_mut()));
+                    for ((w, &g), (m, v)) in it {
+                        *m = b1 * *m + (one - b1) * g;
+                        *v = b2 * *v + (one - b2) * g * g;
+                        *w -= alpha * *m / (v.sqrt() + eps);
+                    }
+                });
         }
     }
 }
