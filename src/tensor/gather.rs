@@ -753,9 +753,15 @@ pub(crate) mod avx512 {
         // enough that each task's row tiles share every block of `b` rows (and, for a weight
         // gradient, of gathered input) while it is in cache. Any split gives the same bits.
         let flops = 2 * rows * g.q.len().max(1) * g.n;
-        let tasks = flops
-            .div_ceil(1 << 22)
-            .clamp(1, 4 * rayon::current_num_threads());
+        let threads = rayon::current_num_threads();
+        // A weight gradient (few rows, a long reduction) streams all of `a` and `b` once per
+        // task: one task per thread, not four.
+        let most = if 8 * rows < g.q.len() {
+            threads
+        } else {
+            4 * threads
+        };
+        let tasks = flops.div_ceil(1 << 22).clamp(1, most);
         let rpt = rows.div_ceil(tasks).div_ceil(mr) * mr;
         let tasks = rows.div_ceil(rpt);
         let end = g.row_start(rows - 1) + g.n;
