@@ -28,6 +28,13 @@ fn cpu_seconds() -> f64 {
 }
 
 fn main() {
+    // On a pool worker, as the `invaders` commands run (see `cli::train::in_pool`);
+    // RAYON_NUM_THREADS sets the size.
+    let pool = rayon::ThreadPoolBuilder::new().build().unwrap();
+    pool.install(run);
+}
+
+fn run() {
     let args: Vec<String> = std::env::args().collect();
     let (what, op, iters) = (
         args[1].as_str(),

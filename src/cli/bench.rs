@@ -34,7 +34,10 @@ fn median(mut xs: Vec<f64>) -> f64 {
 }
 
 pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
-    super::train::set_threads(args.threads)?;
+    super::train::in_pool(args.threads, || bench(args))
+}
+
+fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let threads = rayon::current_num_threads();
     let config = Config::preset(Preset::Article);
     let mut rng = ChaCha8Rng::seed_from_u64(0);

@@ -53,7 +53,10 @@ pub struct EvalArgs {
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
-    super::train::set_threads(args.threads)?;
+    super::train::in_pool(args.threads, || eval(args))
+}
+
+fn eval(args: &EvalArgs) -> anyhow::Result<()> {
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
