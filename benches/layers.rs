@@ -9,8 +9,9 @@
 //! Threads: rayon's default (all cores) unless `RAYON_NUM_THREADS` is set.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use invaders::dqn::{Batch, Learner};
-use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::dqn::{article_qnet, Batch, Learner};
+use invaders::layers::init::VarianceScaling;
+use invaders::layers::{Dense, Layer};
 use invaders::tensor::{ConvGeom, Padding, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -67,27 +68,24 @@ fn bench_layer(
     group.finish();
 }
 
+/// Each layer of the article's Q-network as `article_qnet` builds it: conv1 SAME with its ReLU
+/// and conv2's padding written around its output; conv2 and conv3 VALID over those bordered
+/// inputs (input gradient by phases); dense1 reading conv3's output in place.
 fn layers(c: &mut Criterion) {
-    let convs = [
-        ("conv1", [88, 80, 4], 32, 8, 4),
-        ("conv2", [22, 20, 32], 64, 4, 2),
-        ("conv3", [11, 10, 64], 64, 3, 1),
-    ];
-    for (name, [h, w, cin], cout, k, s) in convs {
-        let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
-        bench_layer(
-            c,
-            name,
-            &|| Box::new(Conv2d::<f32>::new(name, g)),
-            &[h, w, cin],
-        );
+    let built = |i: usize| -> Box<dyn Layer<f32>> {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let net = article_qnet::<f32>([88, 80, 4], 6, &VarianceScaling::HE, &mut rng);
+        net.into_layers().swap_remove(i)
+    };
+    for (i, name) in ["conv1", "conv2", "conv3"].into_iter().enumerate() {
+        let shape = match i {
+            0 => vec![88, 80, 4],
+            1 => vec![24, 22, 32],
+            _ => vec![13, 12, 64],
+        };
+        bench_layer(c, name, &|| built(i), &shape);
     }
-    bench_layer(
-        c,
-        "dense1",
-        &|| Box::new(Dense::<f32>::new("dense1", 7040, 128)),
-        &[7040],
-    );
+    bench_layer(c, "dense1", &|| built(3), &[11, 10, 64]);
     bench_layer(
         c,
         "dense2",

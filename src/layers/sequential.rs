@@ -42,6 +42,11 @@ impl<T: Float> Sequential<T> {
         &mut self.layers
     }
 
+    /// The layers, taken out of the network.
+    pub fn into_layers(self) -> Vec<Box<dyn Layer<T>>> {
+        self.layers
+    }
+
     /// Runs every layer on `x` and returns the last output.
     pub fn forward(&mut self, x: &Tensor<T>) -> &Tensor<T> {
         for i in 0..self.layers.len() {
