@@ -6,6 +6,7 @@ use crate::tensor::{
     col2im, fill_iota, gemm, im2col, pad_input, unpad_input, Border, ConvGeom, Float, GatherGemm,
     Init, Op, ScatterGemm, Tensor,
 };
+use rayon::prelude::*;
 
 /// `y = border(act(conv(x, W) + b))`: see [`crate::tensor::ConvGeom`] for the defining sum and
 /// the shapes; `act` is the identity or, [`Conv2d::with_relu`], `max(·, 0)`; `border` writes zero
@@ -148,21 +149,29 @@ impl<T: Float> Conv2d<T> {
             return false;
         }
         let (g, n) = (self.geom, dy.batch());
+        // Offsets of one image's pixels inside its bordered output; images in parallel.
         self.border
-            .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
+            .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.out_rows);
         self.z.resize(self.rows(n) * g.cout, T::zero());
-        let (dyd, y, c) = (dy.data(), self.y.data(), g.cout);
-        for (dz, &at) in self.z.chunks_exact_mut(c).zip(&self.out_rows) {
-            let (d, yv) = (&dyd[at..at + c], &y[at..at + c]);
-            if self.relu {
-                // A select, not a branch: the sign of `y` is a coin flip.
-                for ((dz, &d), &yv) in dz.iter_mut().zip(d).zip(yv) {
-                    *dz = if yv > T::zero() { d } else { T::zero() };
+        let (c, relu, at) = (g.cout, self.relu, &self.out_rows);
+        let (hb, wb) = self.border.around(g.oh, g.ow);
+        self.z
+            .par_chunks_mut(g.out_pixels() * c)
+            .zip(dy.data().par_chunks(hb * wb * c))
+            .zip(self.y.data().par_chunks(hb * wb * c))
+            .for_each(|((z, dy), y)| {
+                for (dz, &o) in z.chunks_exact_mut(c).zip(at) {
+                    let (d, yv) = (&dy[o..o + c], &y[o..o + c]);
+                    if relu {
+                        // A select, not a branch: the sign of `y` is a coin flip.
+                        for ((dz, &d), &yv) in dz.iter_mut().zip(d).zip(yv) {
+                            *dz = if yv > T::zero() { d } else { T::zero() };
+                        }
+                    } else {
+                        dz.copy_from_slice(d);
+                    }
                 }
-            } else {
-                dz.copy_from_slice(d);
-            }
-        }
+            });
         true
     }
 
@@ -197,11 +206,15 @@ impl<T: Float> Conv2d<T> {
         let wz = tl + g.ow.max((g.w - 1) / sw + 1);
         self.dzpad.clear();
         self.dzpad.resize(n * hz * wz * co, T::zero());
-        for (m, row) in dz.chunks_exact(co).enumerate() {
-            let (i, oy, ox) = (m / g.out_pixels(), m / g.ow % g.oh, m % g.ow);
-            let at = ((i * hz + tj + oy) * wz + tl + ox) * co;
-            self.dzpad[at..at + co].copy_from_slice(row);
-        }
+        self.dzpad
+            .par_chunks_mut(hz * wz * co)
+            .zip(dz.par_chunks(g.out_pixels() * co))
+            .for_each(|(pad, img)| {
+                for (oy, rows) in img.chunks_exact(g.ow * co).enumerate() {
+                    let at = ((tj + oy) * wz + tl) * co;
+                    pad[at..at + g.ow * co].copy_from_slice(rows);
+                }
+            });
         let w = self.params[0].value.data();
         let b = self.in_border;
         for py in 0..sh.min(g.h) {
