@@ -6,9 +6,10 @@
 //! `peak.c` (the machine's FMA peak).
 //!
 //! `cargo bench --bench layers` runs everything; `cargo bench --bench layers -- conv1` one layer.
-//! Threads: rayon's default (all cores) unless `RAYON_NUM_THREADS` is set.
+//! Threads: rayon's default (all cores) unless `RAYON_NUM_THREADS` is set; everything runs on a
+//! worker of that pool.
 
-use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use criterion::{criterion_group, BenchmarkId, Criterion, Throughput};
 use invaders::dqn::{article_qnet, Batch, Learner};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Dense, Layer};
@@ -128,7 +129,19 @@ fn train_step(c: &mut Criterion) {
 }
 
 criterion_group!(benches, layers, train_step, gemm_kernels, gather_kernels);
-criterion_main!(benches);
+
+/// criterion's `main`, run on a rayon pool worker as the `invaders` commands are
+/// (`cli::train::in_pool`): kernels called from outside the pool would each pay a hand-over to
+/// it and back. `RAYON_NUM_THREADS` sets the pool's size.
+fn main() {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .build()
+        .expect("a thread pool");
+    pool.install(|| {
+        benches();
+        Criterion::default().configure_from_args().final_summary();
+    });
+}
 
 /// matrixmultiply against faer on the GEMMs of the article's layers at batch 48 (forward
 /// `cols·W`, weight gradient `colsᵀ·dY`, input gradient `dY·Wᵀ`), to choose a kernel per shape.
