@@ -21,9 +21,11 @@ use rayon::prelude::*;
 /// itself when it needs no padding, e.g. when the layer before wrote the border): no im2col matrix
 /// is written (16x the input for conv1, 21 MB at batch 48), the forward product starts from the
 /// bias and stores `max(·, 0)` straight into the interior of the bordered output, and the weight
-/// gradient reduces over all output pixels straight from the padded input. The input gradient
-/// `dZ·Wᵀ` (with `Wᵀ` packed) is added tile by tile straight onto a padded input gradient
-/// ([`crate::tensor::ScatterGemm`], col2im fused), whose interior is then `dX`.
+/// gradient reduces over all output pixels straight from the padded input. The input gradient:
+/// for an input read in place, one gather GEMM per stride phase writes each `dX` value once
+/// (`Conv2d::dx_by_phases`); otherwise `dZ·Wᵀ` (with `Wᵀ` packed) is added tile by tile straight
+/// onto a padded input gradient ([`crate::tensor::ScatterGemm`], col2im fused), whose interior
+/// is then `dX`.
 ///
 /// The fused ReLU and the border are what a separate [`super::Relu`] layer and the next layer's
 /// padding would otherwise do, each a pass over the whole activation: at batch 48 that is about
