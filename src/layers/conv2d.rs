@@ -332,12 +332,6 @@ impl<T: Float> Conv2d<T> {
             init: Init::Accumulate,
             relu: false,
         });
-        let gb = self.params[1].grad.data_mut();
-        for row in dz.chunks_exact(g.cout) {
-            for (g, &d) in gb.iter_mut().zip(row) {
-                *g += d;
-            }
-        }
         if need_dx && direct {
             self.dx.set_shape(&[n, g.h, g.w, g.cin]);
             self.dx_by_phases(dz, n);
@@ -396,12 +390,6 @@ impl<T: Float> Conv2d<T> {
             T::one(),
             gw,
         );
-        let gb = self.params[1].grad.data_mut();
-        for row in dz.chunks_exact(g.cout) {
-            for (g, &d) in gb.iter_mut().zip(row) {
-                *g += d;
-            }
-        }
         if need_dx {
             self.dcols.resize(m * k, T::zero());
             gemm(
@@ -503,6 +491,13 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         let own = self.pre_activation_grad(dy);
         let z = std::mem::take(&mut self.z);
         let dz = if own { &z[..] } else { dy.data() };
+        // db += Σ_rows dZ (the same on both paths).
+        let gb = self.params[1].grad.data_mut();
+        for row in dz.chunks_exact(g.cout) {
+            for (g, &d) in gb.iter_mut().zip(row) {
+                *g += d;
+            }
+        }
         if T::simd() {
             self.backward_gather(x, dz, need_dx);
         } else {

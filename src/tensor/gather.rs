@@ -55,11 +55,17 @@ pub struct GatherGemm<'a, T> {
     pub relu: bool,
 }
 
+/// Where row `r` of `C` starts in `c`: `c_rows[r]`, or `r·ldc` without a table.
+#[inline]
+fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize {
+    c_rows.map_or(r * ldc, |cr| cr[r])
+}
+
 impl<T: Float> GatherGemm<'_, T> {
     /// Where row `r` of `C` starts in `c`.
     #[inline]
     pub fn row_start(&self, r: usize) -> usize {
-        self.c_rows.map_or(r * self.ldc, |cr| cr[r])
+        row_start(self.c_rows, self.ldc, r)
     }
 
     /// Panics unless every index the product reaches is inside its slice.
@@ -200,7 +206,7 @@ pub fn gather_gemm_portable<T: Float>(g: GatherGemm<'_, T>) {
         relu,
     } = g;
     for (r, &pr) in p.iter().enumerate() {
-        let row = &mut c[c_rows.map_or(r * ldc, |cr| cr[r])..][..n];
+        let row = &mut c[row_start(c_rows, ldc, r)..][..n];
         match init {
             Init::Zero => row.fill(T::zero()),
             Init::Accumulate => {}
@@ -234,7 +240,7 @@ pub(crate) mod avx512 {
     //! (conv1's 32 channels) run 10 × 2 (12 × 2 spilled), 48 run 8 × 3, 64 (conv2, conv3) 6 × 4;
     //! wider `C` goes in panels of 64 columns with the column tail under a mask, except a lone
     //! row (a GEMV) which takes 128-column panels. Leftover rows get one tile of their height.
-    use super::{GatherGemm, Init};
+    use super::{row_start, GatherGemm, Init};
     use rayon::prelude::*;
     use std::arch::x86_64::*;
 
@@ -286,7 +292,7 @@ pub(crate) mod avx512 {
     }
 
     /// How a tile leaves its sums in `C`.
-    #[derive(Clone, Copy, PartialEq)]
+    #[derive(Clone, Copy)]
     enum End {
         Store,
         /// `max(sum, 0)`: the last block of a GEMM with a fused ReLU.
@@ -482,8 +488,7 @@ pub(crate) mod avx512 {
     impl Dest<'_> {
         #[inline]
         fn at(&self, i: usize) -> usize {
-            let r = self.r0 + i;
-            self.c_rows.map_or(r * self.ldc, |cr| cr[r]) - self.base
+            row_start(self.c_rows, self.ldc, self.r0 + i) - self.base
         }
     }
 
@@ -766,7 +771,7 @@ pub(crate) mod avx512 {
         let tasks = rows.div_ceil(rpt);
         let end = g.row_start(rows - 1) + g.n;
         let (c_rows, ldc) = (g.c_rows, g.ldc);
-        let start = move |t: usize| c_rows.map_or(t * rpt * ldc, |cr| cr[t * rpt]);
+        let start = move |t: usize| row_start(c_rows, ldc, t * rpt);
         let run = |t: usize, cc: &mut [f32], base: usize| {
             let r0 = t * rpt;
             let pr = &g.p[r0..(r0 + rpt).min(rows)];
