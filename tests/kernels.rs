@@ -6,8 +6,8 @@ use common::{rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
-    gemm_matrixmultiply, gemm_reference, Border, ConvGeom, Float, GatherGemm, Init, Op, Padding,
-    Tensor,
+    gemm_matrixmultiply, gemm_reference, winograd3x3, winograd_filters, Border, ConvGeom, Float,
+    GatherGemm, Init, Op, Padding, Tensor, WinogradScratch, WinogradShape,
 };
 use proptest::prelude::*;
 
@@ -159,13 +159,16 @@ proptest! {
         k in 1usize..=4, s in 1usize..=3, h in 4usize..14, w in 4usize..14, cin in 1usize..6,
         cout in 1usize..40, n in 1usize..3, same in any::<bool>(), relu in any::<bool>(),
         top in 0usize..3, bottom in 0usize..3, left in 0usize..3, right in 0usize..3,
-        in_border in any::<bool>(), seed in any::<u64>(),
+        in_border in any::<bool>(), winograd in any::<bool>(), seed in any::<u64>(),
     ) {
+        // Winograd's F(2×2, 3×3) (forward, and the input gradient when the input is read in
+        // place) for a 3×3 stride-1 filter.
+        let (k, s) = if winograd { (3, 1) } else { (k, s) };
         let pad = if same { Padding::Same } else { Padding::Valid };
         let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
         let border = Border { top, bottom, left, right };
         let mut r = rng(seed);
-        let mut layer = Conv2d::<f32>::new("c", g).with_border(border);
+        let mut layer = Conv2d::<f32>::new("c", g).with_border(border).with_winograd(winograd);
         // The input's outer ring declared a border: its gradient is left out (zeros).
         let ib = Border { top: 1, bottom: 1, left: 1, right: 1 };
         if in_border {
@@ -212,6 +215,137 @@ proptest! {
         assert_close("dx", layer.input_grad().data(), &dx, 1e-5)?;
         assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5)?;
         assert_close("db", layer.params()[1].grad.data(), &db, 1e-5)?;
+    }
+}
+
+/// [`winograd3x3`] against the direct reference convolution, forward (bias, ReLU, SAME or VALID)
+/// and as the adjoint (the input gradient: the rotated, transposed filter over `dY`), in `T`.
+/// With f32 and channel counts that are multiples of 16 this runs the AVX-512 transforms, and
+/// otherwise the portable ones.
+#[allow(clippy::too_many_arguments)]
+fn winograd_case<T: Float>(
+    h: usize,
+    w: usize,
+    ci: usize,
+    co: usize,
+    n: usize,
+    same: bool,
+    relu: bool,
+    seed: u64,
+    tol: f64,
+) -> Result<(), TestCaseError> {
+    let pad = if same { Padding::Same } else { Padding::Valid };
+    let g = ConvGeom::new(h, w, ci, co, 3, 3, (1, 1), pad).unwrap();
+    let mut r = rng(seed);
+    let wt = uniform::<T>(&[3, 3, ci, co], &mut r);
+    let bt = uniform::<T>(&[co], &mut r);
+    let x = uniform::<T>(&[n, h, w, ci], &mut r);
+    let dy = uniform::<T>(&[n, g.oh, g.ow, co], &mut r);
+    let close = |what: &str, a: &[T], b: &[T]| -> Result<(), TestCaseError> {
+        prop_assert_eq!(a.len(), b.len());
+        let scale = 1.0
+            + b.iter()
+                .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            let d = (x.to_f64().unwrap() - y.to_f64().unwrap()).abs();
+            prop_assert!(d <= tol * scale, "{}[{}]: {} vs {}", what, i, x, y);
+        }
+        Ok(())
+    };
+    let mut scratch = WinogradScratch::default();
+    let mut u = Vec::new();
+    let mut pixels = Vec::new();
+    // Forward: y = relu(b + conv(x, w)), over x read as zero outside the image.
+    winograd_filters(wt.data(), ci, co, false, &mut u);
+    fill_iota(&mut pixels, g.oh * g.ow, co);
+    let shape = WinogradShape {
+        n,
+        h,
+        w,
+        ci,
+        oh: g.oh,
+        ow: g.ow,
+        pad_top: g.pad_top,
+        pad_left: g.pad_left,
+        co,
+        out_image: g.oh * g.ow * co,
+    };
+    let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * co];
+    let bias = Some(bt.data());
+    winograd3x3(
+        shape,
+        x.data(),
+        &u,
+        bias,
+        relu,
+        &mut y,
+        &pixels,
+        &mut scratch,
+    );
+    let mut want = vec![T::zero(); y.len()];
+    conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut want);
+    if relu {
+        want.iter_mut().for_each(|v| *v = v.max(T::zero()));
+    }
+    close("y", &y, &want)?;
+    // Adjoint: dX[iy, ix] = Σ dY[iy − ky + pad, ix − kx + pad]·wᵀ, dY read at padding 2 − pad.
+    winograd_filters(wt.data(), ci, co, true, &mut u);
+    fill_iota(&mut pixels, h * w, ci);
+    let shape = WinogradShape {
+        n,
+        h: g.oh,
+        w: g.ow,
+        ci: co,
+        oh: h,
+        ow: w,
+        pad_top: 2 - g.pad_top,
+        pad_left: 2 - g.pad_left,
+        co: ci,
+        out_image: h * w * ci,
+    };
+    let mut dx = vec![T::of(f64::NAN); n * h * w * ci];
+    winograd3x3(
+        shape,
+        dy.data(),
+        &u,
+        None,
+        false,
+        &mut dx,
+        &pixels,
+        &mut scratch,
+    );
+    let (mut want, mut dw, mut db) = (
+        vec![T::zero(); dx.len()],
+        vec![T::zero(); wt.len()],
+        vec![T::zero(); co],
+    );
+    conv2d_reference_backward(
+        &g,
+        n,
+        x.data(),
+        wt.data(),
+        dy.data(),
+        &mut want,
+        &mut dw,
+        &mut db,
+    );
+    close("dx", &dx, &want)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    /// Winograd F(2×2, 3×3) in f32 (AVX-512 transforms for 16, 32, 64 channels) and in f64
+    /// (portable transforms, where only rounding can differ: 1e-12).
+    #[test]
+    fn winograd_matches_reference(
+        h in 3usize..14, w in 3usize..14,
+        ci in prop_oneof![1usize..20, Just(16), Just(32), Just(64)],
+        co in prop_oneof![1usize..20, Just(16), Just(32), Just(64)],
+        n in 1usize..4, same in any::<bool>(), relu in any::<bool>(), seed in any::<u64>(),
+    ) {
+        winograd_case::<f32>(h, w, ci, co, n, same, relu, seed, 2e-5)?;
+        winograd_case::<f64>(h, w, ci, co, n, same, relu, seed, 1e-12)?;
     }
 }
 
@@ -343,6 +477,19 @@ fn results_do_not_depend_on_thread_count() {
             out.extend_from_slice(dense.output().data());
             out.extend_from_slice(dense.input_grad().data());
             out.extend_from_slice(dense.params()[0].grad.data());
+            // Winograd (forward and input gradient), over a batch that splits unevenly.
+            let g = ConvGeom::new(13, 12, 32, 48, 3, 3, (1, 1), Padding::Valid).unwrap();
+            let mut conv = Conv2d::<f32>::new("w", g).with_winograd(true).with_relu();
+            for p in conv.params_mut() {
+                let t = uniform::<f32>(p.value.shape(), &mut r);
+                p.value.data_mut().copy_from_slice(t.data());
+            }
+            let x = uniform::<f32>(&[7, 13, 12, 32], &mut r);
+            let dy = uniform::<f32>(&[7, g.oh, g.ow, 48], &mut r);
+            conv.forward(&x);
+            conv.backward(&x, &dy, true);
+            out.extend_from_slice(conv.output().data());
+            out.extend_from_slice(conv.input_grad().data());
             out
         })
     };

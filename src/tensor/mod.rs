@@ -12,6 +12,7 @@ mod conv;
 mod float;
 mod gather;
 mod gemm;
+mod winograd;
 
 pub use conv::{
     col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, Border,
@@ -22,6 +23,7 @@ pub use gather::{
     fill_iota, gather_gemm_portable, scatter_gemm_portable, GatherGemm, Init, ScatterGemm,
 };
 pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
+pub use winograd::{winograd3x3, winograd_filters, WinogradScratch, WinogradShape};
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};
 

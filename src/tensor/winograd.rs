@@ -1,0 +1,566 @@
+//! Winograd's minimal filtering F(2×2, 3×3): a stride-1 3×3 convolution in 16 multiplications
+//! per 2×2 output tile and channel pair instead of 36.
+//!
+//! In one dimension, F(2, 3) gives two outputs of a 3-tap filter `g` over four inputs `d`,
+//! `y₀ = d₀g₀ + d₁g₁ + d₂g₂`, `y₁ = d₁g₀ + d₂g₁ + d₃g₂`, as `y = Aᵀ[(G·g) ⊙ (Bᵀ·d)]` with
+//!
+//! ```text
+//!      ⎡1  0 −1  0⎤        ⎡1   0   0⎤
+//! Bᵀ = ⎢0  1  1  0⎥    G = ⎢½   ½   ½⎥    Aᵀ = ⎡1  1  1  0⎤
+//!      ⎢0 −1  1  0⎥        ⎢½  −½   ½⎥         ⎣0  1 −1 −1⎦
+//!      ⎣0  1  0 −1⎦        ⎣0   0   1⎦
+//! ```
+//!
+//! (four multiplications for six). Nested, a 4×4 input tile `d` gives the 2×2 outputs
+//! `Y = Aᵀ[U ⊙ V]A` with `U = G·g·Gᵀ` and `V = Bᵀ·d·B`. The sum over input channels commutes
+//! with `Aᵀ[·]A`, so for each of the 16 transformed places `ξ` the convolution is a matrix product
+//!
+//! ```text
+//! M_ξ[tile, o] = Σ_i V_ξ[tile, i] · U_ξ[i, o]          Y[tile] = Aᵀ · M[tile] · A (+ bias)
+//! ```
+//!
+//! 16 GEMMs of `tiles × I × O` (4 multiply-adds per output where the direct convolution needs 9),
+//! between an input transform and an output transform that only add. `Bᵀ` and `Aᵀ` hold ±1 and 0,
+//! so the transforms round little; `G`'s halves are exact in binary.
+//!
+//! The same routine serves a convolution's forward pass and its input gradient (the adjoint
+//! convolution: the filter rotated by 180° with its channel axes swapped, [`winograd_filters`]).
+//! Work goes in chunks of whole images, enough tiles for one GEMM to fill its register tiles,
+//! whose transformed inputs and products (1.2 MB for conv3's 64 channels) stay in L2; each rayon
+//! task takes a contiguous run of images with its own scratch. Every output is computed from
+//! its own tile in a fixed order, so the results do not depend on the thread count.
+
+use super::{fill_iota, Float, GatherGemm, Init};
+use rayon::prelude::*;
+
+/// Channels handled together by the transforms (one AVX-512 vector of f32).
+const L: usize = 16;
+
+/// `L` channels of one value.
+type Lanes<T> = [T; L];
+
+#[inline(always)]
+fn add<T: Float>(a: &Lanes<T>, b: &Lanes<T>) -> Lanes<T> {
+    let mut c = *a;
+    for (c, &b) in c.iter_mut().zip(b) {
+        *c += b;
+    }
+    c
+}
+
+#[inline(always)]
+fn sub<T: Float>(a: &Lanes<T>, b: &Lanes<T>) -> Lanes<T> {
+    let mut c = *a;
+    for (c, &b) in c.iter_mut().zip(b) {
+        *c -= b;
+    }
+    c
+}
+
+/// `l ≤ L` values of `src` into lanes (the rest zero).
+#[inline(always)]
+fn load<T: Float>(src: &[T], l: usize) -> Lanes<T> {
+    if l == L {
+        // A fixed-size copy: a vector load, not a call to memcpy.
+        let full: &Lanes<T> = src[..L].try_into().expect("L values");
+        *full
+    } else {
+        let mut lanes = [T::zero(); L];
+        lanes[..l].copy_from_slice(&src[..l]);
+        lanes
+    }
+}
+
+/// The first `l ≤ L` lanes into `dst`.
+#[inline(always)]
+fn store<T: Float>(dst: &mut [T], lanes: &Lanes<T>, l: usize) {
+    if l == L {
+        let full: &mut Lanes<T> = (&mut dst[..L]).try_into().expect("L values");
+        *full = *lanes;
+    } else {
+        dst[..l].copy_from_slice(&lanes[..l]);
+    }
+}
+
+/// `V = Bᵀ·d·B` for a 4×4 tile `d` (row-major), lane by lane.
+#[inline(always)]
+fn input_transform<T: Float>(d: &[Lanes<T>; 16]) -> [Lanes<T>; 16] {
+    // Bᵀ·d, column by column: rows d₀ − d₂, d₁ + d₂, d₂ − d₁, d₁ − d₃.
+    let mut t = [[T::zero(); L]; 16];
+    for c in 0..4 {
+        t[c] = sub(&d[c], &d[8 + c]);
+        t[4 + c] = add(&d[4 + c], &d[8 + c]);
+        t[8 + c] = sub(&d[8 + c], &d[4 + c]);
+        t[12 + c] = sub(&d[4 + c], &d[12 + c]);
+    }
+    // (Bᵀ·d)·B, row by row: the same combinations of the columns.
+    let mut v = [[T::zero(); L]; 16];
+    for r in 0..4 {
+        let row = &t[4 * r..4 * r + 4];
+        v[4 * r] = sub(&row[0], &row[2]);
+        v[4 * r + 1] = add(&row[1], &row[2]);
+        v[4 * r + 2] = sub(&row[2], &row[1]);
+        v[4 * r + 3] = sub(&row[1], &row[3]);
+    }
+    v
+}
+
+/// `Y = Aᵀ·m·A` for a 4×4 tile of products `m`: the 2×2 outputs, row-major.
+#[inline(always)]
+fn output_transform<T: Float>(m: &[Lanes<T>; 16]) -> [Lanes<T>; 4] {
+    // Aᵀ·m: rows m₀ + m₁ + m₂ and m₁ − m₂ − m₃.
+    let mut s = [[T::zero(); L]; 8];
+    for c in 0..4 {
+        s[c] = add(&add(&m[c], &m[4 + c]), &m[8 + c]);
+        s[4 + c] = sub(&sub(&m[4 + c], &m[8 + c]), &m[12 + c]);
+    }
+    let mut y = [[T::zero(); L]; 4];
+    for r in 0..2 {
+        let row = &s[4 * r..4 * r + 4];
+        y[2 * r] = add(&add(&row[0], &row[1]), &row[2]);
+        y[2 * r + 1] = sub(&sub(&row[1], &row[2]), &row[3]);
+    }
+    y
+}
+
+/// The transformed filters `U_ξ = G·g·Gᵀ`, `[16, I, O]` (each `U_ξ` a row-major `I × O` matrix,
+/// the right operand of the ξ-th GEMM), from HWIO weights `w: [3, 3, Cin, Cout]`.
+///
+/// Without `adjoint`, the filter of the convolution itself: `I = Cin`, `O = Cout`. With it, the
+/// filter of its input gradient: `g'[ky, kx, co, ci] = w[2 − ky, 2 − kx, ci, co]` (`I = Cout`,
+/// `O = Cin`), since `dX[iy, ix] = Σ dZ[iy − ky, ix − kx] · w[ky, kx]ᵀ` is a correlation of `dZ`
+/// with the rotated filter.
+pub fn winograd_filters<T: Float>(w: &[T], cin: usize, cout: usize, adjoint: bool, u: &mut Vec<T>) {
+    assert_eq!(w.len(), 9 * cin * cout, "winograd_filters: weights");
+    let (ni, no) = if adjoint { (cout, cin) } else { (cin, cout) };
+    u.clear();
+    u.resize(16 * ni * no, T::zero());
+    let half = T::of(0.5);
+    // One input channel `i` at a time, all `O` outputs together (contiguous rows, so the loops
+    // vectorise): the 9 taps `g[k][o]`, then U's 16 rows for this `i`.
+    let mut g = vec![T::zero(); 9 * no];
+    let mut gg = vec![T::zero(); 12 * no];
+    for i in 0..ni {
+        for k in 0..9 {
+            let row = &mut g[k * no..][..no];
+            if adjoint {
+                let (ky, kx) = (2 - k / 3, 2 - k % 3);
+                for (o, v) in row.iter_mut().enumerate() {
+                    *v = w[((ky * 3 + kx) * cin + o) * cout + i];
+                }
+            } else {
+                row.copy_from_slice(&w[(k * cin + i) * cout..][..no]);
+            }
+        }
+        // G·g (4×3): rows g₀, ½(g₀+g₁+g₂), ½(g₀−g₁+g₂), g₂ of each column.
+        for c in 0..3 {
+            for o in 0..no {
+                let (a, b, e) = (g[c * no + o], g[(3 + c) * no + o], g[(6 + c) * no + o]);
+                gg[c * no + o] = a;
+                gg[(3 + c) * no + o] = half * (a + b + e);
+                gg[(6 + c) * no + o] = half * (a - b + e);
+                gg[(9 + c) * no + o] = e;
+            }
+        }
+        // (G·g)·Gᵀ (4×4): the same combinations of each row.
+        for r in 0..4 {
+            for o in 0..no {
+                let (a, b, e) = (
+                    gg[3 * r * no + o],
+                    gg[(3 * r + 1) * no + o],
+                    gg[(3 * r + 2) * no + o],
+                );
+                let row = [a, half * (a + b + e), half * (a - b + e), e];
+                for (c, &val) in row.iter().enumerate() {
+                    u[((4 * r + c) * ni + i) * no + o] = val;
+                }
+            }
+        }
+    }
+}
+
+/// The sizes of one Winograd convolution (everything but the data):
+///
+/// ```text
+/// out[n, oy, ox, o] = bias[o] + Σ_{ky,kx<3, i} x[n, oy + ky − pad_top, ox + kx − pad_left, i] · g[ky, kx, i, o]
+/// ```
+///
+/// with `x: [N, H, W, I]` read as zero outside the image, and output pixel `(oy, ox)` of image
+/// `n` written at `out[n·out_image + out_pixels[oy·OW + ox] ..][..O]`.
+#[derive(Clone, Copy, Debug)]
+pub struct WinogradShape {
+    pub n: usize,
+    pub h: usize,
+    pub w: usize,
+    /// Input channels `I`.
+    pub ci: usize,
+    pub oh: usize,
+    pub ow: usize,
+    pub pad_top: usize,
+    pub pad_left: usize,
+    /// Output channels `O`.
+    pub co: usize,
+    /// Values per output image.
+    pub out_image: usize,
+}
+
+impl WinogradShape {
+    fn tiles(&self) -> (usize, usize) {
+        (self.oh.div_ceil(2), self.ow.div_ceil(2))
+    }
+}
+
+/// The scratch of [`winograd3x3`]: per task, the transformed inputs `V [tiles, 16, I]`, the
+/// products `M [tiles, 16, O]` (each tile's 16 transformed places together, so the transforms
+/// read and write one contiguous block per tile) and the GEMM's offset tables. Kept between calls, so a train step
+/// allocates nothing.
+#[derive(Debug, Default)]
+pub struct WinogradScratch<T> {
+    parts: Vec<Part<T>>,
+}
+
+#[derive(Debug, Default)]
+struct Part<T> {
+    v: Vec<T>,
+    m: Vec<T>,
+    p: Vec<usize>,
+    q: Vec<usize>,
+}
+
+/// The convolution of [`WinogradShape`] by F(2×2, 3×3): `u` from [`winograd_filters`], `bias`
+/// (`O` values) added if given, `max(·, 0)` stored if `relu`. Writes only the output pixels.
+#[allow(clippy::too_many_arguments)]
+pub fn winograd3x3<T: Float>(
+    s: WinogradShape,
+    x: &[T],
+    u: &[T],
+    bias: Option<&[T]>,
+    relu: bool,
+    out: &mut [T],
+    out_pixels: &[usize],
+    scratch: &mut WinogradScratch<T>,
+) {
+    assert_eq!(x.len(), s.n * s.h * s.w * s.ci, "winograd3x3: input");
+    assert_eq!(u.len(), 16 * s.ci * s.co, "winograd3x3: filters");
+    assert_eq!(out_pixels.len(), s.oh * s.ow, "winograd3x3: output pixels");
+    assert!(
+        out_pixels.iter().all(|&o| o + s.co <= s.out_image),
+        "winograd3x3: output pixel outside its image"
+    );
+    assert!(out.len() >= s.n * s.out_image, "winograd3x3: output");
+    if let Some(b) = bias {
+        assert_eq!(b.len(), s.co, "winograd3x3: bias");
+    }
+    if s.n == 0 || s.oh == 0 || s.ow == 0 {
+        return;
+    }
+    let (ty, tx) = s.tiles();
+    // Images per chunk: at least 128 GEMM rows (tiles) where the batch allows.
+    let per_chunk = 128usize.div_ceil(ty * tx).min(s.n);
+    // A contiguous run of images per thread, each with its own scratch.
+    let per_part = s.n.div_ceil(rayon::current_num_threads().max(1));
+    let parts = s.n.div_ceil(per_part);
+    if scratch.parts.len() < parts {
+        scratch.parts.resize_with(parts, Part::default);
+    }
+    out[..s.n * s.out_image]
+        .par_chunks_mut(per_part * s.out_image)
+        .zip(scratch.parts.par_iter_mut())
+        .enumerate()
+        .for_each(|(pi, (out, part))| {
+            for (ci, chunk) in out.chunks_mut(per_chunk * s.out_image).enumerate() {
+                let first = pi * per_part + ci * per_chunk;
+                let images = chunk.len() / s.out_image;
+                let xs = &x[first * s.h * s.w * s.ci..][..images * s.h * s.w * s.ci];
+                let job = Chunk {
+                    s,
+                    images,
+                    x: xs,
+                    u,
+                    bias,
+                    relu,
+                    out_pixels,
+                };
+                job.run(chunk, part);
+            }
+        });
+}
+
+/// A run of whole images through the three stages.
+struct Chunk<'a, T> {
+    s: WinogradShape,
+    images: usize,
+    x: &'a [T],
+    u: &'a [T],
+    bias: Option<&'a [T]>,
+    relu: bool,
+    out_pixels: &'a [usize],
+}
+
+impl<T: Float> Chunk<'_, T> {
+    fn run(&self, out: &mut [T], part: &mut Part<T>) {
+        let s = self.s;
+        let (ty, tx) = s.tiles();
+        let rows = self.images * ty * tx;
+        // Grown, never shrunk: a short last chunk leaves the buffers' tails alone.
+        let (nv, nm) = (16 * rows * s.ci, 16 * rows * s.co);
+        if part.v.len() < nv {
+            part.v.resize(nv, T::zero());
+        }
+        if part.m.len() < nm {
+            part.m.resize(nm, T::zero());
+        }
+        let (v, m) = (&mut part.v[..nv], &mut part.m[..nm]);
+        self.input(v);
+        // M_ξ = V_ξ · U_ξ: rows are tiles (16·I apart in V, 16·O in M), the reduction runs
+        // over input channels.
+        fill_iota(&mut part.p, rows, 16 * s.ci);
+        fill_iota(&mut part.q, s.ci, 1);
+        for xi in 0..16 {
+            T::gather_gemm(GatherGemm {
+                a: &v[xi * s.ci..],
+                p: &part.p,
+                q: &part.q,
+                b: &self.u[xi * s.ci * s.co..][..s.ci * s.co],
+                ldb: s.co,
+                n: s.co,
+                c: &mut m[xi * s.co..],
+                ldc: 16 * s.co,
+                c_rows: None,
+                init: Init::Zero,
+                relu: false,
+            });
+        }
+        self.output(m, out);
+    }
+
+    /// `V[tile, ξ, i]` for every tile of the chunk: tile `(ty, tx)` covers input rows
+    /// `2·ty − pad_top ..+ 4` and columns `2·tx − pad_left ..+ 4` (zeros outside the image).
+    fn input(&self, v: &mut [T]) {
+        let s = self.s;
+        let (ty, tx) = s.tiles();
+        let fast = fast_f32::<T>() && s.ci.is_multiple_of(L);
+        let zeros = vec![T::zero(); s.ci];
+        let mut tiles = v.chunks_exact_mut(16 * s.ci);
+        for img in self.x.chunks_exact(s.h * s.w * s.ci) {
+            for a in 0..ty {
+                for b in 0..tx {
+                    // The tile's 16 input pixels (`ci` values each; zeros outside the image).
+                    let mut px: [&[T]; 16] = [&zeros[..]; 16];
+                    for (k, px) in px.iter_mut().enumerate() {
+                        let iy = (2 * a + k / 4).checked_sub(s.pad_top);
+                        let ix = (2 * b + k % 4).checked_sub(s.pad_left);
+                        if let (Some(iy), Some(ix)) = (iy, ix) {
+                            if iy < s.h && ix < s.w {
+                                *px = &img[(iy * s.w + ix) * s.ci..][..s.ci];
+                            }
+                        }
+                    }
+                    let vt = tiles.next().expect("one V block per tile");
+                    #[cfg(target_arch = "x86_64")]
+                    if fast {
+                        let px32 = px.map(bytemuck::cast_slice::<T, f32>);
+                        let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
+                        // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every pixel
+                        // slice holds `ci` values, `vt` 16·ci, and `ci` is a multiple of 16.
+                        unsafe { avx512::input_tile(&px32, vt32, s.ci) };
+                        continue;
+                    }
+                    input_tile(&px, vt, s.ci);
+                }
+            }
+        }
+    }
+
+    /// `Y = Aᵀ·M·A` (+ bias, ReLU) for every tile, stored where the output pixels go (the
+    /// second row or column of a tile past an odd output edge is dropped).
+    fn output(&self, m: &[T], out: &mut [T]) {
+        let s = self.s;
+        let (ty, tx) = s.tiles();
+        let fast = fast_f32::<T>() && s.co.is_multiple_of(L);
+        let mut tiles = m.chunks_exact(16 * s.co);
+        for img in out.chunks_exact_mut(s.out_image) {
+            for a in 0..ty {
+                for b in 0..tx {
+                    let mut at = [None; 4];
+                    for (k, at) in at.iter_mut().enumerate() {
+                        let (oy, ox) = (2 * a + k / 2, 2 * b + k % 2);
+                        if oy < s.oh && ox < s.ow {
+                            *at = Some(self.out_pixels[oy * s.ow + ox]);
+                        }
+                    }
+                    let mt = tiles.next().expect("one M block per tile");
+                    #[cfg(target_arch = "x86_64")]
+                    if fast {
+                        let bias = self.bias.map(bytemuck::cast_slice::<T, f32>);
+                        let (mt32, img32) = (
+                            bytemuck::cast_slice::<T, f32>(mt),
+                            bytemuck::cast_slice_mut::<T, f32>(img),
+                        );
+                        // SAFETY: AVX-512F and T = f32 checked; `mt` holds 16·co values, the
+                        // bias `co`, each destination `co` inside the image (checked on entry),
+                        // and `co` is a multiple of 16.
+                        unsafe { avx512::output_tile(mt32, s.co, bias, self.relu, img32, at) };
+                        continue;
+                    }
+                    output_tile(mt, s.co, self.bias, self.relu, img, at);
+                }
+            }
+        }
+    }
+}
+
+/// One tile's input transform, `V[ξ, i]` (`16 × ci`) from its 16 pixels, `L` channels at a time.
+fn input_tile<T: Float>(px: &[&[T]; 16], v: &mut [T], ci: usize) {
+    for c0 in (0..ci).step_by(L) {
+        let l = (ci - c0).min(L);
+        let mut d = [[T::zero(); L]; 16];
+        for (d, px) in d.iter_mut().zip(px) {
+            *d = load(&px[c0..], l);
+        }
+        for (xi, val) in input_transform(&d).iter().enumerate() {
+            store(&mut v[xi * ci + c0..], val, l);
+        }
+    }
+}
+
+/// One tile's output transform from `M[ξ, o]` (`16 × co`): the 2×2 outputs (+ bias, ReLU),
+/// each stored at its offset in `img` if it is inside the output.
+fn output_tile<T: Float>(
+    m: &[T],
+    co: usize,
+    bias: Option<&[T]>,
+    relu: bool,
+    img: &mut [T],
+    at: [Option<usize>; 4],
+) {
+    for c0 in (0..co).step_by(L) {
+        let l = (co - c0).min(L);
+        let mut mt = [[T::zero(); L]; 16];
+        for (xi, mt) in mt.iter_mut().enumerate() {
+            *mt = load(&m[xi * co + c0..], l);
+        }
+        let mut y = output_transform(&mt);
+        if let Some(bias) = bias {
+            let bl = load(&bias[c0..], l);
+            for yv in y.iter_mut() {
+                *yv = add(yv, &bl);
+            }
+        }
+        if relu {
+            for yv in y.iter_mut().flatten() {
+                *yv = yv.max(T::zero());
+            }
+        }
+        for (yv, at) in y.iter().zip(at) {
+            if let Some(at) = at {
+                store(&mut img[at + c0..], yv, l);
+            }
+        }
+    }
+}
+
+/// Whether `T` is f32 on a CPU with AVX-512F: then the transforms run as intrinsics
+/// ([`avx512`]), the same operations in the same order as [`input_tile`] and [`output_tile`].
+fn fast_f32<T: Float>() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        static AVX512: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()
+            && *AVX512.get_or_init(|| is_x86_feature_detected!("avx512f"))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    //! The transforms on 16 channels per zmm register (the tile's 16 values stay in registers).
+    use std::arch::x86_64::*;
+
+    /// [`super::input_tile`] for f32.
+    ///
+    /// # Safety
+    /// AVX-512F must be available; every `px[k]` and `v[16·ci..]`'s rows must hold `ci` values,
+    /// `ci` a multiple of 16.
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn input_tile(px: &[&[f32]; 16], v: &mut [f32], ci: usize) {
+        debug_assert!(
+            ci.is_multiple_of(16) && v.len() >= 16 * ci && px.iter().all(|p| p.len() >= ci)
+        );
+        let vp = v.as_mut_ptr();
+        for c0 in (0..ci).step_by(16) {
+            let mut d = [_mm512_setzero_ps(); 16];
+            for k in 0..16 {
+                d[k] = _mm512_loadu_ps(px[k].as_ptr().add(c0));
+            }
+            let mut t = [_mm512_setzero_ps(); 16];
+            for c in 0..4 {
+                t[c] = _mm512_sub_ps(d[c], d[8 + c]);
+                t[4 + c] = _mm512_add_ps(d[4 + c], d[8 + c]);
+                t[8 + c] = _mm512_sub_ps(d[8 + c], d[4 + c]);
+                t[12 + c] = _mm512_sub_ps(d[4 + c], d[12 + c]);
+            }
+            for r in 0..4 {
+                let q = [t[4 * r], t[4 * r + 1], t[4 * r + 2], t[4 * r + 3]];
+                let at = |xi: usize| vp.add(xi * ci + c0);
+                _mm512_storeu_ps(at(4 * r), _mm512_sub_ps(q[0], q[2]));
+                _mm512_storeu_ps(at(4 * r + 1), _mm512_add_ps(q[1], q[2]));
+                _mm512_storeu_ps(at(4 * r + 2), _mm512_sub_ps(q[2], q[1]));
+                _mm512_storeu_ps(at(4 * r + 3), _mm512_sub_ps(q[1], q[3]));
+            }
+        }
+    }
+
+    /// [`super::output_tile`] for f32.
+    ///
+    /// # Safety
+    /// AVX-512F must be available; `m` must hold `16·co` values, `bias` (if any) `co`, and
+    /// `img[at..at + co]` be in bounds for each destination; `co` a multiple of 16.
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn output_tile(
+        m: &[f32],
+        co: usize,
+        bias: Option<&[f32]>,
+        relu: bool,
+        img: &mut [f32],
+        at: [Option<usize>; 4],
+    ) {
+        debug_assert!(co.is_multiple_of(16) && m.len() >= 16 * co);
+        debug_assert!(at.iter().flatten().all(|&a| a + co <= img.len()));
+        let (mp, ip) = (m.as_ptr(), img.as_mut_ptr());
+        for c0 in (0..co).step_by(16) {
+            let mut mt = [_mm512_setzero_ps(); 16];
+            for (xi, mt) in mt.iter_mut().enumerate() {
+                *mt = _mm512_loadu_ps(mp.add(xi * co + c0));
+            }
+            let mut s = [_mm512_setzero_ps(); 8];
+            for c in 0..4 {
+                s[c] = _mm512_add_ps(_mm512_add_ps(mt[c], mt[4 + c]), mt[8 + c]);
+                s[4 + c] = _mm512_sub_ps(_mm512_sub_ps(mt[4 + c], mt[8 + c]), mt[12 + c]);
+            }
+            let mut y = [_mm512_setzero_ps(); 4];
+            for r in 0..2 {
+                let q = [s[4 * r], s[4 * r + 1], s[4 * r + 2], s[4 * r + 3]];
+                y[2 * r] = _mm512_add_ps(_mm512_add_ps(q[0], q[1]), q[2]);
+                y[2 * r + 1] = _mm512_sub_ps(_mm512_sub_ps(q[1], q[2]), q[3]);
+            }
+            if let Some(b) = bias {
+                let bv = _mm512_loadu_ps(b.as_ptr().add(c0));
+                for yv in y.iter_mut() {
+                    *yv = _mm512_add_ps(*yv, bv);
+                }
+            }
+            if relu {
+                for yv in y.iter_mut() {
+                    *yv = _mm512_max_ps(*yv, _mm512_setzero_ps());
+                }
+            }
+            for k in 0..4 {
+                if let Some(a) = at[k] {
+                    _mm512_storeu_ps(ip.add(a + c0), y[k]);
+                }
+            }
+        }
+    }
+}
