@@ -136,43 +136,42 @@ pub fn winograd_filters<T: Float>(w: &[T], cin: usize, cout: usize, adjoint: boo
     u.clear();
     u.resize(16 * ni * no, T::zero());
     let half = T::of(0.5);
-    // One input channel `i` at a time, all `O` outputs together (contiguous rows, so the loops
-    // vectorise): the 9 taps `g[k][o]`, then U's 16 rows for this `i`.
-    let mut g = vec![T::zero(); 9 * no];
-    let mut gg = vec![T::zero(); 12 * no];
+    // One input channel `i` and `L` output channels at a time, in lanes on the stack (so the
+    // loops vectorise and nothing is allocated): the 9 taps, G·g, then (G·g)·Gᵀ into U's rows.
     for i in 0..ni {
-        for k in 0..9 {
-            let row = &mut g[k * no..][..no];
-            if adjoint {
-                let (ky, kx) = (2 - k / 3, 2 - k % 3);
-                for (o, v) in row.iter_mut().enumerate() {
-                    *v = w[((ky * 3 + kx) * cin + o) * cout + i];
+        for o0 in (0..no).step_by(L) {
+            let l = (no - o0).min(L);
+            let mut g = [[T::zero(); L]; 9];
+            for (k, g) in g.iter_mut().enumerate() {
+                if adjoint {
+                    let (ky, kx) = (2 - k / 3, 2 - k % 3);
+                    for (j, v) in g[..l].iter_mut().enumerate() {
+                        *v = w[((ky * 3 + kx) * cin + o0 + j) * cout + i];
+                    }
+                } else {
+                    *g = load(&w[(k * cin + i) * cout + o0..], l);
                 }
-            } else {
-                row.copy_from_slice(&w[(k * cin + i) * cout..][..no]);
             }
-        }
-        // G·g (4×3): rows g₀, ½(g₀+g₁+g₂), ½(g₀−g₁+g₂), g₂ of each column.
-        for c in 0..3 {
-            for o in 0..no {
-                let (a, b, e) = (g[c * no + o], g[(3 + c) * no + o], g[(6 + c) * no + o]);
-                gg[c * no + o] = a;
-                gg[(3 + c) * no + o] = half * (a + b + e);
-                gg[(6 + c) * no + o] = half * (a - b + e);
-                gg[(9 + c) * no + o] = e;
+            // G·g (4×3): rows g₀, ½(g₀+g₁+g₂), ½(g₀−g₁+g₂), g₂ of each column.
+            let mut gg = [[T::zero(); L]; 12];
+            for c in 0..3 {
+                let (g0, g1, g2) = (&g[c], &g[3 + c], &g[6 + c]);
+                gg[c] = *g0;
+                gg[3 + c] = std::array::from_fn(|j| half * (g0[j] + g1[j] + g2[j]));
+                gg[6 + c] = std::array::from_fn(|j| half * (g0[j] - g1[j] + g2[j]));
+                gg[9 + c] = *g2;
             }
-        }
-        // (G·g)·Gᵀ (4×4): the same combinations of each row.
-        for r in 0..4 {
-            for o in 0..no {
-                let (a, b, e) = (
-                    gg[3 * r * no + o],
-                    gg[(3 * r + 1) * no + o],
-                    gg[(3 * r + 2) * no + o],
-                );
-                let row = [a, half * (a + b + e), half * (a - b + e), e];
-                for (c, &val) in row.iter().enumerate() {
-                    u[((4 * r + c) * ni + i) * no + o] = val;
+            // (G·g)·Gᵀ (4×4): the same combinations of each row.
+            for r in 0..4 {
+                let (a, b, e) = (&gg[3 * r], &gg[3 * r + 1], &gg[3 * r + 2]);
+                let row: [Lanes<T>; 4] = [
+                    *a,
+                    std::array::from_fn(|j| half * (a[j] + b[j] + e[j])),
+                    std::array::from_fn(|j| half * (a[j] - b[j] + e[j])),
+                    *e,
+                ];
+                for (c, val) in row.iter().enumerate() {
+                    store(&mut u[((4 * r + c) * ni + i) * no + o0..], val, l);
                 }
             }
         }
@@ -221,6 +220,8 @@ pub struct WinogradScratch<T> {
 
 #[derive(Debug, Default)]
 struct Part<T> {
+    /// `I` zeros: the input pixels of a tile that lie outside the image.
+    zeros: Vec<T>,
     v: Vec<T>,
     m: Vec<T>,
     p: Vec<usize>,
@@ -310,8 +311,11 @@ impl<T: Float> Chunk<'_, T> {
         if part.m.len() < nm {
             part.m.resize(nm, T::zero());
         }
+        if part.zeros.len() < s.ci {
+            part.zeros.resize(s.ci, T::zero());
+        }
         let (v, m) = (&mut part.v[..nv], &mut part.m[..nm]);
-        self.input(v);
+        self.input(v, &part.zeros[..s.ci]);
         // M_ξ = V_ξ · U_ξ: rows are tiles (16·I apart in V, 16·O in M), the reduction runs
         // over input channels.
         fill_iota(&mut part.p, rows, 16 * s.ci);
@@ -336,17 +340,16 @@ impl<T: Float> Chunk<'_, T> {
 
     /// `V[tile, ξ, i]` for every tile of the chunk: tile `(ty, tx)` covers input rows
     /// `2·ty − pad_top ..+ 4` and columns `2·tx − pad_left ..+ 4` (zeros outside the image).
-    fn input(&self, v: &mut [T]) {
+    fn input(&self, v: &mut [T], zeros: &[T]) {
         let s = self.s;
         let (ty, tx) = s.tiles();
         let fast = fast_f32::<T>() && s.ci.is_multiple_of(L);
-        let zeros = vec![T::zero(); s.ci];
         let mut tiles = v.chunks_exact_mut(16 * s.ci);
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
             for a in 0..ty {
                 for b in 0..tx {
                     // The tile's 16 input pixels (`ci` values each; zeros outside the image).
-                    let mut px: [&[T]; 16] = [&zeros[..]; 16];
+                    let mut px: [&[T]; 16] = [zeros; 16];
                     for (k, px) in px.iter_mut().enumerate() {
                         let iy = (2 * a + k / 4).checked_sub(s.pad_top);
                         let ix = (2 * b + k % 4).checked_sub(s.pad_left);
