@@ -3,8 +3,9 @@
 
 use super::{Layer, Param};
 use crate::tensor::{
-    col2im, fill_iota, gemm, im2col, pad_input, unpad_input, winograd3x3, winograd_filters, Border,
-    ConvGeom, Float, GatherGemm, Init, Op, ScatterGemm, Tensor, WinogradScratch, WinogradShape,
+    col2im, fill_iota, gemm, im2col, pad_input, unpad_input, vectorized, winograd3x3,
+    winograd_filters, Border, ConvGeom, Float, GatherGemm, Init, Op, ScatterGemm, Tensor,
+    WinogradScratch, WinogradShape,
 };
 use rayon::prelude::*;
 
@@ -189,17 +190,19 @@ impl<T: Float> Conv2d<T> {
             .zip(dy.data().par_chunks(hb * wb * c))
             .zip(self.y.data().par_chunks(hb * wb * c))
             .for_each(|((z, dy), y)| {
-                for (dz, &o) in z.chunks_exact_mut(c).zip(at) {
-                    let (d, yv) = (&dy[o..o + c], &y[o..o + c]);
-                    if relu {
-                        // A select, not a branch: the sign of `y` is a coin flip.
-                        for ((dz, &d), &yv) in dz.iter_mut().zip(d).zip(yv) {
-                            *dz = if yv > T::zero() { d } else { T::zero() };
+                vectorized(|| {
+                    for (dz, &o) in z.chunks_exact_mut(c).zip(at) {
+                        let (d, yv) = (&dy[o..o + c], &y[o..o + c]);
+                        if relu {
+                            // A select, not a branch: the sign of `y` is a coin flip.
+                            for ((dz, &d), &yv) in dz.iter_mut().zip(d).zip(yv) {
+                                *dz = if yv > T::zero() { d } else { T::zero() };
+                            }
+                        } else {
+                            dz.copy_from_slice(d);
                         }
-                    } else {
-                        dz.copy_from_slice(d);
                     }
-                }
+                })
             });
         true
     }

@@ -1,7 +1,7 @@
 //! Rectified linear unit.
 
 use super::Layer;
-use crate::tensor::{Float, Tensor};
+use crate::tensor::{vectorized, Float, Tensor};
 use rayon::prelude::*;
 
 /// Elements per rayon task: element-wise work, so any split gives the same result.
@@ -44,9 +44,11 @@ impl<T: Float> Layer<T> for Relu<T> {
             .par_chunks_mut(CHUNK)
             .zip(x.data().par_chunks(CHUNK))
             .for_each(|(y, x)| {
-                for (y, &x) in y.iter_mut().zip(x) {
-                    *y = if x > T::zero() { x } else { T::zero() };
-                }
+                vectorized(|| {
+                    for (y, &x) in y.iter_mut().zip(x) {
+                        *y = if x > T::zero() { x } else { T::zero() };
+                    }
+                })
             });
     }
 
@@ -67,9 +69,11 @@ impl<T: Float> Layer<T> for Relu<T> {
             .zip(dy.data().par_chunks(CHUNK))
             .zip(self.y.data().par_chunks(CHUNK))
             .for_each(|((dx, dy), y)| {
-                for ((dx, &dy), &y) in dx.iter_mut().zip(dy).zip(y) {
-                    *dx = if y > T::zero() { dy } else { T::zero() };
-                }
+                vectorized(|| {
+                    for ((dx, &dy), &y) in dx.iter_mut().zip(dy).zip(y) {
+                        *dx = if y > T::zero() { dy } else { T::zero() };
+                    }
+                })
             });
     }
 

@@ -1,7 +1,7 @@
 //! Adam (Kingma & Ba, 2015) in TensorFlow's formulation.
 
 use crate::layers::Param;
-use crate::tensor::{Float, Tensor};
+use crate::tensor::{vectorized, Float, Tensor};
 use rayon::prelude::*;
 
 /// Adam: per-parameter step sizes from running moments of the gradient.
@@ -78,12 +78,14 @@ impl<T: Float> Adam<T> {
                 .zip(g.par_chunks(CHUNK))
                 .zip(m.zip(v))
                 .for_each(|((w, g), (m, v))| {
-                    let it = w.iter_mut().zip(g).zip(m.iter_mut().zip(v.iter_mut()));
-                    for ((w, &g), (m, v)) in it {
-                        *m = b1 * *m + (one - b1) * g;
-                        *v = b2 * *v + (one - b2) * g * g;
-                        *w -= alpha * *m / (v.sqrt() + eps);
-                    }
+                    vectorized(|| {
+                        let it = w.iter_mut().zip(g).zip(m.iter_mut().zip(v.iter_mut()));
+                        for ((w, &g), (m, v)) in it {
+                            *m = b1 * *m + (one - b1) * g;
+                            *v = b2 * *v + (one - b2) * g * g;
+                            *w -= alpha * *m / (v.sqrt() + eps);
+                        }
+                    })
                 });
         }
     }

@@ -10,17 +10,38 @@ pub use adam::Adam;
 pub use sgd::Sgd;
 
 use crate::layers::{Param, Sequential};
-use crate::tensor::Float;
+use crate::tensor::{vectorized, Float};
 
 /// The global L2 norm of all gradients: `sqrt(Σ_p Σ_i g_p[i]²)`.
+///
+/// Summed in 16 lanes (lane `l` takes each gradient's elements `l, l + 16, …`), which are then
+/// added pairwise: one fixed order on every machine, and vectorisable, where one running sum
+/// would be a chain of a million dependent additions (about 2 ms per train step).
 pub fn global_grad_norm<'a, T: Float>(params: impl Iterator<Item = &'a Param<T>>) -> T {
-    let mut sum = T::zero();
+    const L: usize = 16;
+    let mut lanes = [T::zero(); L];
     for p in params {
-        for &g in p.grad.data() {
-            sum += g * g;
+        vectorized(|| {
+            let mut rows = p.grad.data().chunks_exact(L);
+            for row in &mut rows {
+                for (s, &g) in lanes.iter_mut().zip(row) {
+                    *s += g * g;
+                }
+            }
+            for (s, &g) in lanes.iter_mut().zip(rows.remainder()) {
+                *s += g * g;
+            }
+        });
+    }
+    let mut width = L;
+    while width > 1 {
+        width /= 2;
+        for i in 0..width {
+            let upper = lanes[i + width];
+            lanes[i] += upper;
         }
     }
-    sum.sqrt()
+    lanes[0].sqrt()
 }
 
 /// Clipping by global norm (`tf.clip_by_global_norm`): if the global norm `‖g‖` of the network's
