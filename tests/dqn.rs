@@ -4,7 +4,7 @@
 mod common;
 
 use invaders::dqn::checkpoint::{self, Counters};
-use invaders::dqn::{argmax, greedy, Agent, Batch, Config, Preset, Replay};
+use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
 use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
 use invaders::tensor::Tensor;
 
@@ -197,6 +197,57 @@ fn replay_rebuilds_stacks_within_episodes() {
                 }
             }
         }
+    }
+}
+
+/// The agent's batches are written inside conv1's padding (a zero border), which conv1 reads in
+/// place: the states are the plain batch's inside zeros, and a train step on them is
+/// bit-identical to one on the plain batch.
+#[test]
+fn padded_batches_train_exactly_like_plain_ones() {
+    let mut replay = Replay::new(64, 4);
+    replay.push_start(&frame(0));
+    for i in 1..40u8 {
+        let f: Vec<u8> = (0..FRAME_LEN).map(|p| (p as u8).wrapping_mul(i)).collect();
+        replay.push_step(i as usize % 6, i as f32, i % 13 == 0, &f);
+    }
+    let table: [f32; 256] = std::array::from_fn(|i| i as f32 / 255.0 - 0.5);
+    let border = input_border([88, 80, 4]);
+    assert_eq!(
+        (border.top, border.bottom, border.left, border.right),
+        (2, 2, 2, 2)
+    );
+    let (mut plain, mut padded) = (Batch::new(8, [88, 80, 4]), Batch::padded(8, [88, 80, 4]));
+    replay.sample(&mut common::rng(3), &table, &mut plain);
+    replay.sample(&mut common::rng(3), &table, &mut padded);
+    assert_eq!(padded.states.shape(), &[8, 92, 84, 4]);
+    for (p, q) in [
+        (&plain.states, &padded.states),
+        (&plain.next_states, &padded.next_states),
+    ] {
+        for b in 0..8 {
+            for y in 0..92 {
+                for x in 0..84 {
+                    let got = &q.data()[((b * 92 + y) * 84 + x) * 4..][..4];
+                    if border.contains(92, 84, y, x) {
+                        assert_eq!(got, [0.0; 4], "border place ({y}, {x})");
+                    } else {
+                        let want = &p.data()[((b * 88 + y - 2) * 80 + x - 2) * 4..][..4];
+                        assert_eq!(got, want, "pixel ({y}, {x}) of state {b}");
+                    }
+                }
+            }
+        }
+    }
+    let (mut a, mut b) = (
+        Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut common::rng(4)),
+        Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut common::rng(4)),
+    );
+    for _ in 0..2 {
+        assert_eq!(a.train_step(&plain), b.train_step(&padded));
+    }
+    for (p, q) in a.online.params().zip(b.online.params()) {
+        assert!(p.value == q.value, "{} differs", p.name);
     }
 }
 

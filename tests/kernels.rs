@@ -6,8 +6,8 @@ use common::{rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
-    gemm_matrixmultiply, gemm_reference, winograd3x3, winograd_filters, Border, ConvGeom, Float,
-    GatherGemm, Init, Op, Padding, Tensor, WinogradScratch, WinogradShape,
+    gemm_matrixmultiply, gemm_reference, pad_input, winograd3x3, winograd_filters, Border,
+    ConvGeom, Float, GatherGemm, Init, Op, Padding, Tensor, WinogradScratch, WinogradShape,
 };
 use proptest::prelude::*;
 
@@ -346,6 +346,124 @@ proptest! {
     ) {
         winograd_case::<f32>(h, w, ci, co, n, same, relu, seed, 2e-5)?;
         winograd_case::<f64>(h, w, ci, co, n, same, relu, seed, 1e-12)?;
+    }
+}
+
+/// A SAME convolution fed its input already padded (`[N, HP, WP, Cin]` inside a zero border, as
+/// the agent's replay batches are for conv1) against the same layer fed the plain input: the
+/// output and the weight and bias gradients are bit-identical (same products over the same
+/// padded layout), and the input gradient is the VALID convolution's over the padded input
+/// (its interior the plain input's gradient, its border the padding places' own gradient).
+#[allow(clippy::too_many_arguments)]
+fn prepadded_case<T: Float>(
+    k: usize,
+    s: usize,
+    h: usize,
+    w: usize,
+    cin: usize,
+    cout: usize,
+    n: usize,
+    relu: bool,
+    seed: u64,
+    tol: f64,
+) -> Result<(), TestCaseError> {
+    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+    let mut r = rng(seed);
+    let make = || {
+        let l = Conv2d::<T>::new("c", g);
+        if relu {
+            l.with_relu()
+        } else {
+            l
+        }
+    };
+    let (mut plain, mut padded) = (make(), make());
+    let wt = uniform::<T>(&[k, k, cin, cout], &mut r);
+    let bt = uniform::<T>(&[cout], &mut r);
+    for l in [&mut plain, &mut padded] {
+        l.params_mut()[0]
+            .value
+            .data_mut()
+            .copy_from_slice(wt.data());
+        l.params_mut()[1]
+            .value
+            .data_mut()
+            .copy_from_slice(bt.data());
+    }
+    let x = uniform::<T>(&[n, h, w, cin], &mut r);
+    let (hp, wp) = g.padded();
+    let mut xp = Vec::new();
+    pad_input(&g, n, x.data(), &mut xp);
+    let xp = Tensor::from_vec(&[n, hp, wp, cin], xp);
+    let valid = g.as_valid().0;
+    prop_assert_eq!(padded.input_geometry(&xp), valid);
+    prop_assert_eq!(padded.input_geometry(&x), g);
+    plain.forward(&x);
+    padded.forward(&xp);
+    prop_assert!(plain.output() == padded.output(), "y differs");
+    let dy = uniform::<T>(plain.output().shape(), &mut r);
+    plain.backward(&x, &dy, true);
+    padded.backward(&xp, &dy, true);
+    for i in 0..2 {
+        prop_assert!(
+            plain.params()[i].grad == padded.params()[i].grad,
+            "gradient of parameter {} differs",
+            i
+        );
+    }
+    // dX of the padded input: the reference VALID convolution's over it.
+    let mut z = vec![T::zero(); n * g.oh * g.ow * cout];
+    conv2d_reference(&valid, n, xp.data(), wt.data(), bt.data(), &mut z);
+    let dz: Vec<T> = z
+        .iter()
+        .zip(dy.data())
+        .map(|(&zv, &d)| {
+            if !relu || zv > T::zero() {
+                d
+            } else {
+                T::zero()
+            }
+        })
+        .collect();
+    let mut dx = vec![T::zero(); xp.len()];
+    let (mut dw, mut db) = (vec![T::zero(); wt.len()], vec![T::zero(); cout]);
+    conv2d_reference_backward(
+        &valid,
+        n,
+        xp.data(),
+        wt.data(),
+        &dz,
+        &mut dx,
+        &mut dw,
+        &mut db,
+    );
+    prop_assert_eq!(padded.input_grad().shape(), xp.shape());
+    let scale = dx
+        .iter()
+        .fold(1.0, |m: f64, v| m.max(v.to_f64().unwrap().abs()));
+    for (i, (a, b)) in padded.input_grad().data().iter().zip(&dx).enumerate() {
+        prop_assert!(
+            (a.to_f64().unwrap() - b.to_f64().unwrap()).abs() <= tol * scale,
+            "dx[{}]: {:?} vs {:?}",
+            i,
+            a,
+            b
+        );
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+
+    /// A pre-padded input, on the fast path (f32) and the portable one (f64).
+    #[test]
+    fn conv2d_reads_a_prepadded_input(
+        k in 1usize..=8, s in 1usize..=4, h in 3usize..14, w in 3usize..14, cin in 1usize..6,
+        cout in 1usize..40, n in 1usize..3, relu in any::<bool>(), seed in any::<u64>(),
+    ) {
+        prepadded_case::<f32>(k, s, h, w, cin, cout, n, relu, seed, 1e-5)?;
+        prepadded_case::<f64>(k, s, h, w, cin, cout, n, relu, seed, 1e-12)?;
     }
 }
 

@@ -45,14 +45,16 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
 
     // The train step on a random batch.
     let mut learner = Learner::from_config(&config, 6, &mut rng);
-    let mut batch = Batch::new(config.batch_size, input);
-    for v in batch
-        .states
-        .data_mut()
-        .iter_mut()
-        .chain(batch.next_states.data_mut())
-    {
-        *v = rng.random_range(-1.0..1.0);
+    // Laid out as the agent's batches are: inside conv1's padding, a zero border.
+    let mut batch = Batch::padded(config.batch_size, input);
+    for states in [&mut batch.states, &mut batch.next_states] {
+        for v in states.data_mut() {
+            *v = rng.random_range(-1.0..1.0);
+        }
+        let [h, w, c] = input;
+        batch
+            .border
+            .zero(states.data_mut(), config.batch_size, h, w, c);
     }
     for i in 0..batch.len() {
         batch.actions[i] = rng.random_range(0..6);
@@ -79,7 +81,9 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     // Acting: a batch-1 forward pass.
     let x1 = Tensor::from_vec(
         &[1, input[0], input[1], input[2]],
-        batch.states.data()[..input.iter().product()].to_vec(),
+        (0..input.iter().product())
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect(),
     );
     for _ in 0..20 {
         learner.online.forward(&x1);

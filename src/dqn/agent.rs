@@ -164,7 +164,7 @@ impl<G: Game> Agent<G> {
             replay: Replay::new(config.replay_capacity, config.pipeline.channels()),
             table: config.normalization.table(),
             input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
-            batch: Batch::new(config.batch_size, input),
+            batch: Batch::padded(config.batch_size, input),
             explore_rng: stream(config.seed, 2 + 2 * counters.episodes),
             sample_rng: stream(config.seed, 3 + 2 * counters.episodes),
             learner,

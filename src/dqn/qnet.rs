@@ -2,8 +2,11 @@
 
 use crate::layers::init::VarianceScaling;
 use crate::layers::{Conv2d, Dense, Relu, Sequential};
-use crate::tensor::{ConvGeom, Float, Padding};
+use crate::tensor::{Border, ConvGeom, Float, Padding};
 use rand::Rng;
+
+/// The convolutions as the article defines them: `(filters, kernel size, stride)`, SAME.
+const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 
 /// Builds the article's Q-network for `[H, W, C]` inputs and `n_actions` outputs:
 ///
@@ -37,7 +40,7 @@ pub fn article_qnet<T: Float>(
     // The three convolutions as the article defines them (SAME), on the unbordered shapes.
     let mut same = Vec::new();
     let mut shape = [h, w, c];
-    for (cout, k, s) in [(32, 8, 4), (64, 4, 2), (64, 3, 1)] {
+    for (cout, k, s) in CONVS {
         let g = ConvGeom::new(
             shape[0],
             shape[1],
@@ -78,4 +81,17 @@ pub fn article_qnet<T: Float>(
         }
     }
     net
+}
+
+/// conv1's SAME padding of `[H, W, C]` inputs as a zero border: states written inside it
+/// ([`crate::dqn::Batch::with_border`]) are read by conv1 in place, as the equivalent VALID
+/// convolution ([`crate::layers::Conv2d::input_geometry`]); the results are bit-identical.
+/// For the article's 88 x 80 input: 2 rows above and below, 2 columns left and right.
+pub fn input_border(input: [usize; 3]) -> Border {
+    let [h, w, c] = input;
+    let (cout, k, s) = CONVS[0];
+    ConvGeom::new(h, w, c, cout, k, k, (s, s), Padding::Same)
+        .expect("SAME convolution of a non-empty input")
+        .as_valid()
+        .1
 }

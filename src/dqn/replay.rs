@@ -15,7 +15,7 @@
 //! grows with the entries actually written.
 
 use super::Batch;
-use crate::env::{write_stacked_input, FRAME_LEN};
+use crate::env::{write_stacked_input_bordered, FRAME_LEN};
 use rand::Rng;
 
 /// Replay flag bit: the step from this entry ended the episode.
@@ -242,24 +242,27 @@ impl Replay {
                 picks.push(g);
             }
         }
-        let per = FRAME_LEN * self.k;
+        let per = batch.states.len() / batch.len();
+        let border = batch.border;
         for (i, &g) in picks.iter().enumerate() {
             let s = self.slot(g);
             batch.actions[i] = self.actions[s] as usize;
             batch.rewards[i] = self.rewards[s];
             batch.dones[i] = self.dones[s];
             let state = self.state_frames(g).expect("checked");
-            write_stacked_input(
+            write_stacked_input_bordered(
                 &state[..self.k],
                 table,
+                border,
                 &mut batch.states.data_mut()[i * per..][..per],
             );
             let next = self
                 .state_frames(g + 1)
                 .expect("successor of a valid entry");
-            write_stacked_input(
+            write_stacked_input_bordered(
                 &next[..self.k],
                 table,
+                border,
                 &mut batch.next_states.data_mut()[i * per..][..per],
             );
         }

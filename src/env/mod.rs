@@ -40,7 +40,9 @@ pub mod space_invaders;
 pub use config::{EnvConfig, EnvMode};
 pub use error::EnvError;
 pub use game::Game;
-pub use pipeline::{write_stacked_input, Composer, FrameStack, Observer, Pipeline};
+pub use pipeline::{
+    write_stacked_input, write_stacked_input_bordered, Composer, FrameStack, Observer, Pipeline,
+};
 pub use preprocess::{
     max_into, normalize_into, preprocess_rgb, Normalization, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH,
     MSPACMAN_RGB_SUM,

@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use super::preprocess::{max_into, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH};
 use super::Game;
+use crate::tensor::Border;
 
 /// How frames become the network's input.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -180,35 +181,58 @@ impl FrameStack {
 /// # Panics
 /// If a frame is not 88 x 80 or `out.len() != 88 * 80 * k`.
 pub fn write_stacked_input(frames: &[&[u8]], table: &[f32; 256], out: &mut [f32]) {
+    write_stacked_input_bordered(frames, table, Border::default(), out);
+}
+
+/// [`write_stacked_input`] into an image with a zero border around it: `out` is
+/// `[top + 88 + bottom, left + 80 + right, k]`, and only the interior is written (the border
+/// places keep what they hold, zeros for a fresh buffer). With the network's first padding as
+/// the border ([`crate::dqn::input_border`]) the first convolution reads the input in place.
+///
+/// # Panics
+/// If a frame is not 88 x 80 or `out` has the wrong length.
+pub fn write_stacked_input_bordered(
+    frames: &[&[u8]],
+    table: &[f32; 256],
+    border: Border,
+    out: &mut [f32],
+) {
     let k = frames.len();
     assert!(
         frames.iter().all(|f| f.len() == FRAME_LEN),
         "frame has the wrong length"
     );
-    assert_eq!(
-        out.len(),
-        FRAME_HEIGHT * FRAME_WIDTH * k,
-        "input buffer has the wrong length"
-    );
-    match k {
-        1 => {
-            for (o, &p) in out.iter_mut().zip(frames[0]) {
-                *o = table[p as usize];
+    let (hb, wb) = border.around(FRAME_HEIGHT, FRAME_WIDTH);
+    assert_eq!(out.len(), hb * wb * k, "input buffer has the wrong length");
+    for y in 0..FRAME_HEIGHT {
+        let at = ((border.top + y) * wb + border.left) * k;
+        let row = &mut out[at..at + FRAME_WIDTH * k];
+        let px = y * FRAME_WIDTH..(y + 1) * FRAME_WIDTH;
+        match k {
+            1 => {
+                for (o, &p) in row.iter_mut().zip(&frames[0][px]) {
+                    *o = table[p as usize];
+                }
             }
-        }
-        4 => {
-            let (a, b, c, d) = (frames[0], frames[1], frames[2], frames[3]);
-            for (i, o) in out.chunks_exact_mut(4).enumerate() {
-                o[0] = table[a[i] as usize];
-                o[1] = table[b[i] as usize];
-                o[2] = table[c[i] as usize];
-                o[3] = table[d[i] as usize];
+            4 => {
+                let (a, b, c, d) = (
+                    &frames[0][px.clone()],
+                    &frames[1][px.clone()],
+                    &frames[2][px.clone()],
+                    &frames[3][px],
+                );
+                for (i, o) in row.chunks_exact_mut(4).enumerate() {
+                    o[0] = table[a[i] as usize];
+                    o[1] = table[b[i] as usize];
+                    o[2] = table[c[i] as usize];
+                    o[3] = table[d[i] as usize];
+                }
             }
-        }
-        _ => {
-            for (i, o) in out.chunks_exact_mut(k).enumerate() {
-                for (v, f) in o.iter_mut().zip(frames) {
-                    *v = table[f[i] as usize];
+            _ => {
+                for (i, o) in row.chunks_exact_mut(k).enumerate() {
+                    for (v, f) in o.iter_mut().zip(frames) {
+                        *v = table[f[px.start + i] as usize];
+                    }
                 }
             }
         }

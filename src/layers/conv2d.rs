@@ -507,20 +507,24 @@ impl<T: Float> Conv2d<T> {
             self.zero_input_border(n);
         }
     }
-}
 
-impl<T: Float> Layer<T> for Conv2d<T> {
-    fn name(&self) -> &str {
-        &self.name
+    /// The geometry for input `x`: the layer's own, or, when `x` arrives already padded
+    /// (`[N, HP, WP, Cin]`, [`ConvGeom::padded`], with a zero border: e.g. a replay batch
+    /// written that way), the same convolution as a VALID one over it ([`ConvGeom::as_valid`]),
+    /// which reads it in place instead of copying it into a padded buffer. `SAME(x) =
+    /// VALID(pad(x))` and both read the same padded layout, so the results are bit-identical.
+    pub fn input_geometry(&self, x: &Tensor<T>) -> ConvGeom {
+        let g = self.geom;
+        let (hp, wp) = g.padded();
+        if !g.reads_input_directly() && x.shape().len() == 4 && x.shape()[1..] == [hp, wp, g.cin] {
+            g.as_valid().0
+        } else {
+            g
+        }
     }
 
-    fn output_shape(&self) -> Vec<usize> {
-        self.out_shape(1)[1..].to_vec()
-    }
-
-    /// `cols = im2col(x)`, then `Z = b + cols·W` (bias broadcast first, GEMM accumulates), then
-    /// `y = border(act(Z))`.
-    fn forward(&mut self, x: &Tensor<T>) {
+    /// [`Layer::forward`] with `self.geom` the input's geometry.
+    fn forward_as(&mut self, x: &Tensor<T>) {
         let g = self.geom;
         assert_eq!(
             x.shape()[1..],
@@ -565,17 +569,8 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         self.zero_border(n);
     }
 
-    fn output(&self) -> &Tensor<T> {
-        &self.y
-    }
-
-    /// With `Z = cols·W + b` (`M = N·OH·OW` rows, `K = KH·KW·Cin`) and `dZ` the interior of `dY`
-    /// times `[y > 0]` when there is a ReLU (border places are constants: no gradient):
-    /// - `dW += colsᵀ·dZ` (`[K, M]·[M, Cout]`): each weight meets every input value it multiplied;
-    /// - `db += Σ_rows dZ`;
-    /// - `dcols = dZ·Wᵀ` (`[M, Cout]·[Cout, K]`), then `dX = col2im(dcols)`: an input pixel that
-    ///   appears in several patches (overlapping windows) collects the gradient of each.
-    fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
+    /// [`Layer::backward`] with `self.geom` the input's geometry.
+    fn backward_as(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         let g = self.geom;
         let n = dy.batch();
         assert_eq!(
@@ -602,6 +597,47 @@ impl<T: Float> Layer<T> for Conv2d<T> {
             self.backward_im2col(dz, n, need_dx);
         }
         self.z = z;
+    }
+}
+
+impl<T: Float> Layer<T> for Conv2d<T> {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn output_shape(&self) -> Vec<usize> {
+        self.out_shape(1)[1..].to_vec()
+    }
+
+    /// `cols = im2col(x)`, then `Z = b + cols·W` (bias broadcast first, GEMM accumulates), then
+    /// `y = border(act(Z))`.
+    ///
+    /// The input may also arrive already padded (see [`Conv2d::input_geometry`]).
+    fn forward(&mut self, x: &Tensor<T>) {
+        let own = self.geom;
+        self.geom = self.input_geometry(x);
+        self.forward_as(x);
+        self.geom = own;
+    }
+
+    fn output(&self) -> &Tensor<T> {
+        &self.y
+    }
+
+    /// With `Z = cols·W + b` (`M = N·OH·OW` rows, `K = KH·KW·Cin`) and `dZ` the interior of `dY`
+    /// times `[y > 0]` when there is a ReLU (border places are constants: no gradient):
+    /// - `dW += colsᵀ·dZ` (`[K, M]·[M, Cout]`): each weight meets every input value it multiplied;
+    /// - `db += Σ_rows dZ`;
+    /// - `dcols = dZ·Wᵀ` (`[M, Cout]·[Cout, K]`), then `dX = col2im(dcols)`: an input pixel that
+    ///   appears in several patches (overlapping windows) collects the gradient of each.
+    ///
+    /// For an input that arrived already padded, `dX` is the gradient with respect to it, border
+    /// places included (the VALID convolution's).
+    fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
+        let own = self.geom;
+        self.geom = self.input_geometry(x);
+        self.backward_as(x, dy, need_dx);
+        self.geom = own;
     }
 
     fn input_grad(&self) -> &Tensor<T> {
