@@ -193,7 +193,14 @@ impl Learner {
                 *g = argmax(row);
             }
         }
-        let q_next = self.target.forward(&batch.next_states);
+        // The target network's pass over s' and the online network's over s are independent:
+        // they run side by side, each layer's work still split over the pool (a thread that
+        // finishes its share early takes work from the other pass instead of waiting).
+        let (target, online) = (&mut self.target, &mut self.online);
+        let (q_next, q) = rayon::join(
+            || target.forward(&batch.next_states),
+            || online.forward(&batch.states),
+        );
         for (i, row) in q_next.data().chunks_exact(na).enumerate() {
             let future = if self.double {
                 row[self.next_greedy[i]]
@@ -203,7 +210,6 @@ impl Learner {
             let cont = if batch.dones[i] { 0.0 } else { 1.0 };
             self.y[i] = batch.rewards[i] + self.gamma * cont * future;
         }
-        let q = self.online.forward(&batch.states);
         let mut max_q_sum = 0.0;
         for (i, row) in q.data().chunks_exact(na).enumerate() {
             self.q_taken[i] = row[batch.actions[i]];
