@@ -28,7 +28,10 @@ const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 /// padding already around them as a zero border ([`Conv2d::with_border`]), so conv2 and conv3 run
 /// as VALID convolutions over `[N, 24, 22, 32]` and `[N, 13, 12, 64]`
 /// ([`ConvGeom::as_valid`]). The arithmetic is the table's; what goes is a ReLU pass and a
-/// padding copy per layer (about 11 MB of memory traffic per batch-48 forward pass).
+/// padding copy per layer (about 11 MB of memory traffic per batch-48 forward pass). conv1 reads
+/// a training batch in place too when it arrives inside conv1's padding ([`input_border`]).
+/// conv3 runs by Winograd's F(2×2, 3×3) at batches of 8 or more ([`Conv2d::with_winograd`]):
+/// the same sums, rounded differently.
 pub fn article_qnet<T: Float>(
     input: [usize; 3],
     n_actions: usize,
@@ -68,7 +71,7 @@ pub fn article_qnet<T: Float>(
         if let Some(next) = same.get(i + 1) {
             conv = conv.with_border(next.as_valid().1);
         }
-        net.push(conv.with_relu());
+        net.push(conv.with_relu().with_winograd(true));
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
     let flat = shape.iter().product();

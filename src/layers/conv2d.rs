@@ -125,15 +125,21 @@ impl<T: Float> Conv2d<T> {
     /// and the input gradient when the input is read in place (the weight gradient stays a gather
     /// GEMM). Other shapes ignore it.
     ///
-    /// Off by default. Measured on the article's conv3 (64→64 channels, 11×10 outputs, batch 48)
-    /// it does 4/9 of the multiply-adds, but its 16 products reduce over only 64 channels and the
-    /// transforms add two passes over 16× expanded tiles: the train step came out 1–2% faster on
-    /// one thread, no faster on two, and acting (batch 1) 30% slower, since the filters are
-    /// transformed on every call.
+    /// Off by default; [`crate::dqn::article_qnet`] turns it on for conv3. It does 4/9 of the
+    /// multiply-adds, but its 16 products reduce over only 64 channels and the transforms add two
+    /// passes over 16× expanded tiles. Batches under 8 keep the direct product: at batch 1
+    /// (acting) Winograd was 30% slower, since the filters are transformed on every call. In the
+    /// train step (batch 48) it measured 2–5% faster.
     pub fn with_winograd(mut self, on: bool) -> Self {
         let g = self.geom;
         self.winograd = on && (g.kh, g.kw, g.sh, g.sw) == (3, 3, 1, 1);
         self
+    }
+
+    /// Whether a batch of `n` runs by Winograd: only batches of at least 8, since the filter
+    /// transform on every call costs more than Winograd saves on one image (acting).
+    fn use_winograd(&self, n: usize) -> bool {
+        self.winograd && n >= 8
     }
 
     /// Applies `max(·, 0)` to the output (a fused ReLU: `∂y/∂z = [y > 0]`).
@@ -320,7 +326,7 @@ impl<T: Float> Conv2d<T> {
                 .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
             Some(&self.out_rows[..])
         };
-        if self.winograd {
+        if self.use_winograd(n) {
             // VALID over the (padded) input: every 4×4 input tile of a 2×2 output tile.
             let (hp, wp) = g.padded();
             let (hb, wb) = self.border.around(g.oh, g.ow);
@@ -397,7 +403,7 @@ impl<T: Float> Conv2d<T> {
             relu: false,
         });
         let b = self.in_border;
-        if need_dx && direct && self.winograd && b.top <= 2 && b.left <= 2 {
+        if need_dx && direct && self.use_winograd(n) && b.top <= 2 && b.left <= 2 {
             // dX = the adjoint convolution of dZ (the rotated, transposed filter), by Winograd:
             // interior input pixel (iy, ix) = (oy + top, ox + left) collects
             // Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx], i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.
