@@ -226,6 +226,9 @@ struct Part<T> {
     m: Vec<T>,
     p: Vec<usize>,
     q: Vec<usize>,
+    /// Where each tile position's 16 input pixels start in an image (`None` outside it): the
+    /// same for every image, so worked out once per chunk.
+    pixels: Vec<Option<usize>>,
 }
 
 /// The convolution of [`WinogradShape`] by F(2×2, 3×3): `u` from [`winograd_filters`], `bias`
@@ -314,8 +317,18 @@ impl<T: Float> Chunk<'_, T> {
         if part.zeros.len() < s.ci {
             part.zeros.resize(s.ci, T::zero());
         }
+        part.pixels.clear();
+        for a in 0..ty {
+            for b in 0..tx {
+                part.pixels.extend((0..16).map(|k| {
+                    let iy = (2 * a + k / 4).checked_sub(s.pad_top)?;
+                    let ix = (2 * b + k % 4).checked_sub(s.pad_left)?;
+                    (iy < s.h && ix < s.w).then_some((iy * s.w + ix) * s.ci)
+                }));
+            }
+        }
         let (v, m) = (&mut part.v[..nv], &mut part.m[..nm]);
-        self.input(v, &part.zeros[..s.ci]);
+        self.input(v, &part.zeros[..s.ci], &part.pixels);
         // M_ξ = V_ξ · U_ξ: rows are tiles (16·I apart in V, 16·O in M), the reduction runs
         // over input channels.
         fill_iota(&mut part.p, rows, 16 * s.ci);
@@ -340,37 +353,27 @@ impl<T: Float> Chunk<'_, T> {
 
     /// `V[tile, ξ, i]` for every tile of the chunk: tile `(ty, tx)` covers input rows
     /// `2·ty − pad_top ..+ 4` and columns `2·tx − pad_left ..+ 4` (zeros outside the image).
-    fn input(&self, v: &mut [T], zeros: &[T]) {
+    /// `pixels`: where each tile position's 16 pixels start in an image (`None`: outside).
+    fn input(&self, v: &mut [T], zeros: &[T], pixels: &[Option<usize>]) {
         let s = self.s;
-        let (ty, tx) = s.tiles();
         let fast = fast_f32::<T>() && s.ci.is_multiple_of(L);
         let mut tiles = v.chunks_exact_mut(16 * s.ci);
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
-            for a in 0..ty {
-                for b in 0..tx {
-                    // The tile's 16 input pixels (`ci` values each; zeros outside the image).
-                    let mut px: [&[T]; 16] = [zeros; 16];
-                    for (k, px) in px.iter_mut().enumerate() {
-                        let iy = (2 * a + k / 4).checked_sub(s.pad_top);
-                        let ix = (2 * b + k % 4).checked_sub(s.pad_left);
-                        if let (Some(iy), Some(ix)) = (iy, ix) {
-                            if iy < s.h && ix < s.w {
-                                *px = &img[(iy * s.w + ix) * s.ci..][..s.ci];
-                            }
-                        }
-                    }
-                    let vt = tiles.next().expect("one V block per tile");
-                    #[cfg(target_arch = "x86_64")]
-                    if fast {
-                        let px32 = px.map(bytemuck::cast_slice::<T, f32>);
-                        let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
-                        // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every pixel
-                        // slice holds `ci` values, `vt` 16·ci, and `ci` is a multiple of 16.
-                        unsafe { avx512::input_tile(&px32, vt32, s.ci) };
-                        continue;
-                    }
-                    input_tile(&px, vt, s.ci);
+            for starts in pixels.chunks_exact(16) {
+                // The tile's 16 input pixels (`ci` values each; zeros outside the image).
+                let px: [&[T]; 16] =
+                    std::array::from_fn(|k| starts[k].map_or(zeros, |o| &img[o..o + s.ci]));
+                let vt = tiles.next().expect("one V block per tile");
+                #[cfg(target_arch = "x86_64")]
+                if fast {
+                    let px32 = px.map(bytemuck::cast_slice::<T, f32>);
+                    let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
+                    // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every pixel
+                    // slice holds `ci` values, `vt` 16·ci, and `ci` is a multiple of 16.
+                    unsafe { avx512::input_tile(&px32, vt32, s.ci) };
+                    continue;
                 }
+                input_tile(&px, vt, s.ci);
             }
         }
     }
