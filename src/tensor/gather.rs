@@ -545,6 +545,15 @@ pub(crate) mod avx512 {
             let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
             let mut rbuf = [(0, 0); TB];
             let qr = Steps::new(qb, &mut rbuf);
+            // A block that reads each row's values as one run, rows not overlapping (judged by
+            // the task's first two rows; a plain `A·B` over a large `A`, e.g. dense1's weights
+            // in its input gradient): every tile reads new memory, so the next tile's lines are
+            // requested while this one computes. (Convolutions' rows overlap and come from
+            // cache: there it measured no faster.)
+            let streamed = match qr.runs {
+                Some(&[(_, len)]) => p.windows(2).take(1).all(|w| w[1] >= w[0] + len),
+                _ => false,
+            };
             let bb = if qb.is_empty() {
                 b.as_ptr()
             } else {
@@ -556,48 +565,43 @@ pub(crate) mod avx512 {
             } else {
                 End::Store
             };
-            let mut r = 0;
-            while r < nr {
-                let h = (nr - r).min(mr);
-                let d0 = dest.at(r);
-                // Row offsets from the tile's first row (rows past `h` are never used).
-                let crow: [usize; 10] =
-                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
-                let mut wide = 0;
-                if h == 1 {
-                    // A single row (dense1 at batch 1: a GEMV over 3.6 MB of weights, bound by
-                    // memory): 128-column panels, so each row of `b` is read in one sweep.
-                    while n - wide >= 128 {
-                        let st = match start {
-                            Start::Bias(bias) => Start::Bias(bias.add(wide)),
-                            s => s,
-                        };
-                        let (pr, cp) = (&p[r..r + 1], c.add(d0 + wide));
-                        tile::<1, 8, true>(
-                            a.as_ptr(),
-                            pr,
-                            qr,
-                            bb.add(wide),
-                            ldb,
-                            cp,
-                            &[0],
-                            [!0; 8],
-                            st,
-                            end,
-                        );
-                        wide += 128;
+            // Panels outer, row tiles inner: one panel's block of `b` (128 steps × 64 columns,
+            // 32 KiB) stays in L1 across all the task's row tiles. (Both of dense1's panels,
+            // 64 KiB, would not: each tile would read them again from L2.)
+            for j0 in (0..n).step_by(64) {
+                let (m, nv) = panel_masks(n, j0);
+                let mut r = 0;
+                while r < nr {
+                    let h = (nr - r).min(mr);
+                    let d0 = dest.at(r);
+                    let pr = &p[r..r + h];
+                    let ap = a.as_ptr();
+                    if h == 1 && n - j0 / 128 * 128 >= 128 {
+                        // A single row (dense1 at batch 1: a GEMV over 3.6 MB of weights, bound
+                        // by memory): 128-column panels, so each row of `b` is read in one sweep.
+                        if j0 % 128 == 0 {
+                            let st = match start {
+                                Start::Bias(bias) => Start::Bias(bias.add(j0)),
+                                s => s,
+                            };
+                            let (cp, bp) = (c.add(d0 + j0), bb.add(j0));
+                            tile::<1, 8, true>(ap, pr, qr, bp, ldb, cp, &[0], [!0; 8], st, end);
+                        }
+                        r += mr;
+                        continue;
                     }
-                }
-                for j0 in (wide..n).step_by(64) {
-                    let (m, nv) = panel_masks(n, j0);
+                    if streamed && j0 == 0 && r + mr < nr {
+                        let next = &p[r + mr..(r + 2 * mr).min(nr)];
+                        prefetch_rows(ap, next, qr);
+                    }
+                    // Row offsets from the tile's first row (rows past `h` are never used).
+                    let crow: [usize; 10] =
+                        std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
                     let st = match start {
                         Start::Bias(bias) => Start::Bias(bias.add(j0)),
                         s => s,
                     };
-                    let cp = c.add(d0 + j0);
-                    let bp = bb.add(j0);
-                    let ap = a.as_ptr();
-                    let pr = &p[r..r + h];
+                    let (cp, bp) = (c.add(d0 + j0), bb.add(j0));
                     if h == mr {
                         match mr {
                             10 => tile_nv::<10>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
@@ -607,8 +611,26 @@ pub(crate) mod avx512 {
                     } else {
                         tile_any(h, nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end);
                     }
+                    r += mr;
                 }
-                r += mr;
+            }
+        }
+    }
+
+    /// Requests into L1 the cache lines that rows `p` read over the steps `q` (one run).
+    ///
+    /// # Safety
+    /// AVX-512F available (for the target feature); the addresses need not be valid (a
+    /// prefetch never faults), but they are: the rows are the next tile's.
+    #[target_feature(enable = "avx512f")]
+    unsafe fn prefetch_rows(a: *const f32, p: &[usize], q: Steps<'_>) {
+        if let Some(&[(first, len)]) = q.runs {
+            for &pr in p {
+                let lo = a.wrapping_add(pr + first) as usize & !63;
+                let hi = a.wrapping_add(pr + first + len) as usize;
+                for line in (lo..hi).step_by(64) {
+                    _mm_prefetch::<_MM_HINT_T0>(line as *const i8);
+                }
             }
         }
     }
