@@ -260,6 +260,10 @@ pub(crate) mod avx512 {
     /// would read its input once instead of twice, measured no faster.)
     const TB: usize = 128;
 
+    /// Values of `A` (256 KiB) a task's block must read before its rows count as streamed
+    /// from memory and get prefetched.
+    const STREAMED: usize = 1 << 16;
+
     /// Splits a block of reduction offsets into runs of consecutive values, `(first, length)`,
     /// so the tile walks each run with pointer increments instead of reading `q` per step.
     fn runs(q: &[usize], out: &mut [(usize, usize); TB]) -> usize {
@@ -546,12 +550,15 @@ pub(crate) mod avx512 {
             let mut rbuf = [(0, 0); TB];
             let qr = Steps::new(qb, &mut rbuf);
             // A block that reads each row's values as one run, rows not overlapping (judged by
-            // the task's first two rows; a plain `A·B` over a large `A`, e.g. dense1's weights
-            // in its input gradient): every tile reads new memory, so the next tile's lines are
-            // requested while this one computes. (Convolutions' rows overlap and come from
-            // cache: there it measured no faster.)
+            // the task's first two rows), over more than L2 holds comfortably (a plain `A·B`
+            // over a large `A`, e.g. dense1's weights in its input gradient): every tile reads
+            // new memory, so the next tile's lines are requested while this one computes.
+            // (Convolutions' rows overlap and come from cache, and Winograd's products read
+            // what the transform just wrote: there the prefetches only cost instructions.)
             let streamed = match qr.runs {
-                Some(&[(_, len)]) => p.windows(2).take(1).all(|w| w[1] >= w[0] + len),
+                Some(&[(_, len)]) => {
+                    nr * len >= STREAMED && p.windows(2).take(1).all(|w| w[1] >= w[0] + len)
+                }
                 _ => false,
             };
             let bb = if qb.is_empty() {
