@@ -86,18 +86,18 @@ fn layers(c: &mut Criterion) {
         };
         bench_layer(c, name, &|| built(i), &shape);
     }
-    // conv3 as built, but by Winograd F(2×2, 3×3) (`Conv2d::with_winograd`, off by default):
-    // the GFLOP/s count the direct convolution's multiply-adds, so they compare with conv3's.
-    let conv3_winograd = || -> Box<dyn Layer<f32>> {
+    // conv3 as built runs by Winograd F(2×2, 3×3) at batches of 8 or more
+    // (`Conv2d::with_winograd`); here the same layer by the direct gather GEMM, to compare.
+    // The GFLOP/s of both count the direct convolution's multiply-adds.
+    let conv3_direct = || -> Box<dyn Layer<f32>> {
         let same = ConvGeom::new(11, 10, 64, 64, 3, 3, (1, 1), Padding::Same).unwrap();
         let (valid, border) = same.as_valid();
         let conv = Conv2d::new("conv3", valid)
             .with_input_border(border)
-            .with_relu()
-            .with_winograd(true);
+            .with_relu();
         Box::new(conv)
     };
-    bench_layer(c, "conv3_winograd", &conv3_winograd, &[13, 12, 64]);
+    bench_layer(c, "conv3_direct", &conv3_direct, &[13, 12, 64]);
     bench_layer(c, "dense1", &|| built(3), &[11, 10, 64]);
     bench_layer(
         c,
