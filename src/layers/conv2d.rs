@@ -129,7 +129,8 @@ impl<T: Float> Conv2d<T> {
     /// multiply-adds, but its 16 products reduce over only 64 channels and the transforms add two
     /// passes over 16× expanded tiles. Batches under 8 keep the direct product: at batch 1
     /// (acting) Winograd was 30% slower, since the filters are transformed on every call. In the
-    /// train step (batch 48) it measured 2–5% faster.
+    /// train step (batch 48) it measured 2–5% faster than the direct product at first, and level
+    /// to 2% faster once the direct product's loads were fixed (plain instead of masked).
     pub fn with_winograd(mut self, on: bool) -> Self {
         let g = self.geom;
         self.winograd = on && (g.kh, g.kw, g.sh, g.sw) == (3, 3, 1, 1);
