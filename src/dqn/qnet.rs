@@ -71,6 +71,7 @@ pub fn article_qnet<T: Float>(
         if let Some(next) = same.get(i + 1) {
             conv = conv.with_border(next.as_valid().1);
         }
+        // Winograd where it applies: conv3 (3×3, stride 1); the others ignore it.
         net.push(conv.with_relu().with_winograd(true));
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.

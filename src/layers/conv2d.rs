@@ -621,6 +621,8 @@ impl<T: Float> Layer<T> for Conv2d<T> {
     ///
     /// The input may also arrive already padded (see [`Conv2d::input_geometry`]).
     fn forward(&mut self, x: &Tensor<T>) {
+        // The body reads `self.geom`: for a pre-padded input it runs with the VALID geometry,
+        // and the layer's own is put back after.
         let own = self.geom;
         self.geom = self.input_geometry(x);
         self.forward_as(x);
