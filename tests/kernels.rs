@@ -28,6 +28,13 @@ fn assert_close(what: &str, a: &[f32], b: &[f32], tol: f32) -> Result<(), TestCa
     Ok(())
 }
 
+/// Sets a layer's parameters (in its order: weight, bias) to the given values.
+fn set_params<T: Float>(layer: &mut dyn Layer<T>, values: &[&Tensor<T>]) {
+    for (p, v) in layer.params_mut().iter_mut().zip(values) {
+        p.value.data_mut().copy_from_slice(v.data());
+    }
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
 
@@ -133,8 +140,7 @@ proptest! {
         let mut layer = Conv2d::<f32>::new("c", g);
         let wt = uniform::<f32>(&[kh, kw, cin, cout], &mut r);
         let bt = uniform::<f32>(&[cout], &mut r);
-        layer.params_mut()[0].value.data_mut().copy_from_slice(wt.data());
-        layer.params_mut()[1].value.data_mut().copy_from_slice(bt.data());
+        set_params(&mut layer, &[&wt, &bt]);
         let x = uniform::<f32>(&[n, h, w, cin], &mut r);
         let dy = uniform::<f32>(&[n, g.oh, g.ow, cout], &mut r);
         layer.forward(&x);
@@ -179,8 +185,7 @@ proptest! {
         }
         let wt = uniform::<f32>(&[k, k, cin, cout], &mut r);
         let bt = uniform::<f32>(&[cout], &mut r);
-        layer.params_mut()[0].value.data_mut().copy_from_slice(wt.data());
-        layer.params_mut()[1].value.data_mut().copy_from_slice(bt.data());
+        set_params(&mut layer, &[&wt, &bt]);
         // A larger batch first leaves interior values where the smaller batch has border.
         let big = uniform::<f32>(&[n + 1, h, w, cin], &mut r);
         layer.forward(&big);
@@ -380,16 +385,8 @@ fn prepadded_case<T: Float>(
     let (mut plain, mut padded) = (make(), make());
     let wt = uniform::<T>(&[k, k, cin, cout], &mut r);
     let bt = uniform::<T>(&[cout], &mut r);
-    for l in [&mut plain, &mut padded] {
-        l.params_mut()[0]
-            .value
-            .data_mut()
-            .copy_from_slice(wt.data());
-        l.params_mut()[1]
-            .value
-            .data_mut()
-            .copy_from_slice(bt.data());
-    }
+    set_params(&mut plain, &[&wt, &bt]);
+    set_params(&mut padded, &[&wt, &bt]);
     let x = uniform::<T>(&[n, h, w, cin], &mut r);
     let (hp, wp) = g.padded();
     let mut xp = Vec::new();
@@ -485,14 +482,7 @@ fn article_convolutions_match_reference() {
         let mut layer = Conv2d::<f32>::new("c", g);
         let wt = uniform::<f32>(&[k, k, cin, cout], &mut r);
         let bt = uniform::<f32>(&[cout], &mut r);
-        layer.params_mut()[0]
-            .value
-            .data_mut()
-            .copy_from_slice(wt.data());
-        layer.params_mut()[1]
-            .value
-            .data_mut()
-            .copy_from_slice(bt.data());
+        set_params(&mut layer, &[&wt, &bt]);
         let x = uniform::<f32>(&[n, h, w, cin], &mut r);
         let dy = uniform::<f32>(&[n, g.oh, g.ow, cout], &mut r);
         layer.forward(&x);
@@ -545,10 +535,7 @@ fn batch_size_changes_are_consistent() {
     let mut layer = Conv2d::<f32>::new("c", g);
     let mut r = rng(3);
     let wt = uniform::<f32>(&[3, 3, 3, 4], &mut r);
-    layer.params_mut()[0]
-        .value
-        .data_mut()
-        .copy_from_slice(wt.data());
+    set_params(&mut layer, &[&wt]);
     let x = uniform::<f32>(&[5, 12, 10, 3], &mut r);
     layer.forward(&x);
     let big = layer.output().clone();
