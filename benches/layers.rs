@@ -13,7 +13,7 @@ use criterion::{criterion_group, BenchmarkId, Criterion, Throughput};
 use invaders::dqn::{article_qnet, Batch, Learner};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
-use invaders::tensor::{ConvGeom, Padding, Tensor};
+use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Duration;
@@ -86,18 +86,36 @@ fn layers(c: &mut Criterion) {
         };
         bench_layer(c, name, &|| built(i), &shape);
     }
-    // conv3 as built runs by Winograd F(2×2, 3×3) at batches of 8 or more
-    // (`Conv2d::with_winograd`); here the same layer by the direct gather GEMM, to compare.
-    // The GFLOP/s of both count the direct convolution's multiply-adds.
-    let conv3_direct = || -> Box<dyn Layer<f32>> {
-        let same = ConvGeom::new(11, 10, 64, 64, 3, 3, (1, 1), Padding::Same).unwrap();
-        let (valid, border) = same.as_valid();
-        let conv = Conv2d::new("conv3", valid)
-            .with_input_border(border)
-            .with_relu();
-        Box::new(conv)
+    // conv2 and conv3 as built run by Winograd at batches of 8 or more (`Conv2d::with_winograd`),
+    // conv1 does not. Here each the other way, to compare: conv1 by F(2×2, 2×2) over 4×4 blocks,
+    // conv2 and conv3 by the direct gather GEMM. All GFLOP/s count the direct convolution's
+    // multiply-adds.
+    let other = |i: usize| -> Box<dyn Layer<f32>> {
+        let (h, w, cin, cout, k, s) = [
+            (88, 80, 4, 32, 8, 4),
+            (22, 20, 32, 64, 4, 2),
+            (11, 10, 64, 64, 3, 1),
+        ][i];
+        let name = format!("conv{}", i + 1);
+        let same = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+        let conv = if i == 0 {
+            // With conv2's padding around its output, as built.
+            let next = Border {
+                top: 1,
+                bottom: 1,
+                left: 1,
+                right: 1,
+            };
+            Conv2d::new(&name, same).with_border(next)
+        } else {
+            let (valid, border) = same.as_valid();
+            Conv2d::new(&name, valid).with_input_border(border)
+        };
+        Box::new(conv.with_relu().with_winograd(i == 0))
     };
-    bench_layer(c, "conv3_direct", &conv3_direct, &[13, 12, 64]);
+    bench_layer(c, "conv1_winograd", &|| other(0), &[88, 80, 4]);
+    bench_layer(c, "conv2_direct", &|| other(1), &[24, 22, 32]);
+    bench_layer(c, "conv3_direct", &|| other(2), &[13, 12, 64]);
     bench_layer(c, "dense1", &|| built(3), &[11, 10, 64]);
     bench_layer(
         c,

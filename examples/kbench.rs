@@ -111,14 +111,16 @@ fn run() {
     }
     let batch: usize = args.get(4).map_or(48, |b| b.parse().unwrap());
     let (mut layer, shape): (Box<dyn Layer<f32>>, Vec<usize>) = match what {
-        "conv1" | "conv2" | "conv3" => {
-            let (h, w, cin, cout, k, s) = match what {
+        "conv1" | "conv2" | "conv3" | "conv1w" | "conv2w" | "conv3w" => {
+            // `convNw`: the same layer with Winograd on.
+            let (h, w, cin, cout, k, s) = match &what[..5] {
                 "conv1" => (88, 80, 4, 32, 8, 4),
                 "conv2" => (22, 20, 32, 64, 4, 2),
                 _ => (11, 10, 64, 64, 3, 1),
             };
             let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
-            (Box::new(Conv2d::new(what, g)), vec![batch, h, w, cin])
+            let conv = Conv2d::new(what, g).with_winograd(what.ends_with('w'));
+            (Box::new(conv), vec![batch, h, w, cin])
         }
         "dense1" => (Box::new(Dense::new(what, 7040, 128)), vec![batch, 7040]),
         _ => (Box::new(Dense::new(what, 128, 6)), vec![batch, 128]),

@@ -6,8 +6,9 @@ use common::{rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
-    gemm_matrixmultiply, gemm_reference, pad_input, winograd3x3, winograd_filters, Border,
-    ConvGeom, Float, GatherGemm, Init, Op, Padding, Tensor, WinogradScratch, WinogradShape,
+    gemm_matrixmultiply, gemm_reference, pad_input, winograd_conv, winograd_filters,
+    winograd_filters_s2d, Border, ConvGeom, Float, GatherGemm, Init, Op, Padding, Tensor,
+    WinogradKind, WinogradScratch, WinogradShape,
 };
 use proptest::prelude::*;
 
@@ -167,9 +168,15 @@ proptest! {
         top in 0usize..3, bottom in 0usize..3, left in 0usize..3, right in 0usize..3,
         in_border in any::<bool>(), winograd in any::<bool>(), seed in any::<u64>(),
     ) {
-        // Winograd's F(2×2, 3×3) (forward, and the input gradient when the input is read in
-        // place) for a 3×3 stride-1 filter.
-        let (k, s) = if winograd { (3, 1) } else { (k, s) };
+        // Winograd (batches of 8 or more): F(2×2, 3×3) for a 3×3 stride-1 filter (forward, and
+        // the input gradient when the input is read in place), or F(2×2, 2×2) over s × s
+        // blocks for a 2s × 2s filter of stride s (forward).
+        let (k, s) = match (winograd, seed % 2) {
+            (false, _) => (k, s),
+            (true, 0) => (3, 1),
+            (true, _) => (2 * s, s),
+        };
+        let (n, h, w) = if winograd { (n + 7, h.max(k), w.max(k)) } else { (n, h, w) };
         let pad = if same { Padding::Same } else { Padding::Valid };
         let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
         let border = Border { top, bottom, left, right };
@@ -223,7 +230,7 @@ proptest! {
     }
 }
 
-/// [`winograd3x3`] against the direct reference convolution, forward (bias, ReLU, SAME or VALID)
+/// [`winograd_conv`] against the direct reference convolution, forward (bias, ReLU, SAME or VALID)
 /// and as the adjoint (the input gradient: the rotated, transposed filter over `dY`), in `T`.
 /// With f32 and channel counts that are multiples of 16 this runs the AVX-512 transforms, and
 /// otherwise the portable ones.
@@ -274,10 +281,11 @@ fn winograd_case<T: Float>(
         pad_left: g.pad_left,
         co,
         out_image: g.oh * g.ow * co,
+        kind: WinogradKind::F2x3,
     };
     let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * co];
     let bias = Some(bt.data());
-    winograd3x3(
+    winograd_conv(
         shape,
         x.data(),
         &u,
@@ -307,9 +315,10 @@ fn winograd_case<T: Float>(
         pad_left: 2 - g.pad_left,
         co: ci,
         out_image: h * w * ci,
+        kind: WinogradKind::F2x3,
     };
     let mut dx = vec![T::of(f64::NAN); n * h * w * ci];
-    winograd3x3(
+    winograd_conv(
         shape,
         dy.data(),
         &u,
@@ -337,8 +346,88 @@ fn winograd_case<T: Float>(
     close("dx", &dx, &want)
 }
 
+/// [`winograd_conv`] by F(2×2, 2×2) over `s × s` blocks (a `2s × 2s` filter of stride `s`,
+/// VALID: the layer passes it an input padded already) against the direct reference, in `T`.
+/// With f32, `s·ci` and `co` multiples of 16 (conv1's 4 × 4, conv2's 2 × 32) this runs the
+/// AVX-512 transforms.
+#[allow(clippy::too_many_arguments)]
+fn winograd_s2d_case<T: Float>(
+    s: usize,
+    h: usize,
+    w: usize,
+    ci: usize,
+    co: usize,
+    n: usize,
+    relu: bool,
+    seed: u64,
+    tol: f64,
+) -> Result<(), TestCaseError> {
+    let g = ConvGeom::new(h, w, ci, co, 2 * s, 2 * s, (s, s), Padding::Valid).unwrap();
+    let mut r = rng(seed);
+    let wt = uniform::<T>(&[2 * s, 2 * s, ci, co], &mut r);
+    let bt = uniform::<T>(&[co], &mut r);
+    let x = uniform::<T>(&[n, h, w, ci], &mut r);
+    let mut u = Vec::new();
+    winograd_filters_s2d(wt.data(), s, ci, co, &mut u);
+    let mut pixels = Vec::new();
+    fill_iota(&mut pixels, g.oh * g.ow, co);
+    let shape = WinogradShape {
+        n,
+        h,
+        w,
+        ci,
+        oh: g.oh,
+        ow: g.ow,
+        pad_top: 0,
+        pad_left: 0,
+        co,
+        out_image: g.oh * g.ow * co,
+        kind: WinogradKind::S2d(s),
+    };
+    let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * co];
+    let mut scratch = WinogradScratch::default();
+    winograd_conv(
+        shape,
+        x.data(),
+        &u,
+        Some(bt.data()),
+        relu,
+        &mut y,
+        &pixels,
+        &mut scratch,
+    );
+    let mut want = vec![T::zero(); y.len()];
+    conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut want);
+    if relu {
+        want.iter_mut().for_each(|v| *v = v.max(T::zero()));
+    }
+    let scale = 1.0
+        + want
+            .iter()
+            .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
+    for (i, (a, b)) in y.iter().zip(&want).enumerate() {
+        let d = (a.to_f64().unwrap() - b.to_f64().unwrap()).abs();
+        prop_assert!(d <= tol * scale, "y[{}]: {} vs {}", i, a, b);
+    }
+    Ok(())
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    /// Winograd F(2×2, 2×2) over blocks, f32 (AVX-512 transforms where `s·ci` and `co` are
+    /// multiples of 16) and f64 (portable), odd and even output sizes.
+    #[test]
+    fn winograd_s2d_matches_reference(
+        s in 1usize..=4, extra_h in 0usize..12, extra_w in 0usize..12,
+        ci in prop_oneof![1usize..7, Just(4), Just(8), Just(16), Just(32)],
+        co in prop_oneof![1usize..20, Just(16), Just(32), Just(64)],
+        n in 1usize..4, relu in any::<bool>(), seed in any::<u64>(),
+    ) {
+        let (h, w) = (2 * s + extra_h, 2 * s + extra_w);
+        winograd_s2d_case::<f32>(s, h, w, ci, co, n, relu, seed, 2e-5)?;
+        winograd_s2d_case::<f64>(s, h, w, ci, co, n, relu, seed, 1e-12)?;
+    }
 
     /// Winograd F(2×2, 3×3) in f32 (AVX-512 transforms for 16, 32, 64 channels) and in f64
     /// (portable transforms, where only rounding can differ: 1e-12).
@@ -351,6 +440,56 @@ proptest! {
     ) {
         winograd_case::<f32>(h, w, ci, co, n, same, relu, seed, 2e-5)?;
         winograd_case::<f64>(h, w, ci, co, n, same, relu, seed, 1e-12)?;
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 16, ..ProptestConfig::default() })]
+
+    /// The article's conv1 (8×8 stride 4 over 4 frames) and conv2 (4×4 stride 2, 32 → 64
+    /// channels) as `Conv2d` layers with Winograd on, at a batch of 8 (where it runs, on the
+    /// AVX-512 transforms), SAME: the output matches the reference convolution, with the ReLU and
+    /// the border the network writes, and the gradients stay the direct ones.
+    #[test]
+    fn conv2d_winograd_blocks_match_reference(
+        conv1 in any::<bool>(), h in 8usize..30, w in 8usize..30, seed in any::<u64>(),
+    ) {
+        let (cin, cout, k, s) = if conv1 { (4, 32, 8, 4) } else { (32, 64, 4, 2) };
+        let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+        let border = Border { top: 1, bottom: 1, left: 1, right: 1 };
+        let mut layer = Conv2d::<f32>::new("c", g).with_border(border).with_relu().with_winograd(true);
+        let mut r = rng(seed);
+        let n = 8;
+        let wt = uniform::<f32>(&[k, k, cin, cout], &mut r);
+        let bt = uniform::<f32>(&[cout], &mut r);
+        set_params(&mut layer, &[&wt, &bt]);
+        let x = uniform::<f32>(&[n, h, w, cin], &mut r);
+        layer.forward(&x);
+        let mut z = vec![0.0; n * g.oh * g.ow * cout];
+        conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut z);
+        let (hb, wb) = border.around(g.oh, g.ow);
+        let mut at = Vec::new();
+        border.interior_offsets(n, g.oh, g.ow, cout, &mut at);
+        let mut y = vec![0.0; n * hb * wb * cout];
+        for (zrow, &o) in z.chunks_exact(cout).zip(&at) {
+            for (yv, &zv) in y[o..o + cout].iter_mut().zip(zrow) {
+                *yv = zv.max(0.0);
+            }
+        }
+        assert_close("y", layer.output().data(), &y, 1e-5)?;
+        let dy = uniform::<f32>(&[n, hb, wb, cout], &mut r);
+        let mut dz = vec![0.0; z.len()];
+        for ((dzrow, &o), zrow) in dz.chunks_exact_mut(cout).zip(&at).zip(z.chunks_exact(cout)) {
+            for ((d, &g), &zv) in dzrow.iter_mut().zip(&dy.data()[o..o + cout]).zip(zrow) {
+                *d = if zv > 0.0 { g } else { 0.0 };
+            }
+        }
+        layer.backward(&x, &dy, true);
+        let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
+        conv2d_reference_backward(&g, n, x.data(), wt.data(), &dz, &mut dx, &mut dw, &mut db);
+        assert_close("dx", layer.input_grad().data(), &dx, 1e-5)?;
+        assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5)?;
+        assert_close("db", layer.params()[1].grad.data(), &db, 1e-5)?;
     }
 }
 
@@ -582,19 +721,22 @@ fn results_do_not_depend_on_thread_count() {
             out.extend_from_slice(dense.output().data());
             out.extend_from_slice(dense.input_grad().data());
             out.extend_from_slice(dense.params()[0].grad.data());
-            // Winograd (forward and input gradient), over a batch that splits unevenly.
-            let g = ConvGeom::new(13, 12, 32, 48, 3, 3, (1, 1), Padding::Valid).unwrap();
-            let mut conv = Conv2d::<f32>::new("w", g).with_winograd(true).with_relu();
-            for p in conv.params_mut() {
-                let t = uniform::<f32>(p.value.shape(), &mut r);
-                p.value.data_mut().copy_from_slice(t.data());
+            // Winograd, F(2×2, 3×3) (forward and input gradient) and F(2×2, 2×2) over 2×2
+            // blocks (forward), over a batch of 9 (Winograd runs from 8), which splits unevenly.
+            for (cin, k, s) in [(32, 3, 1), (32, 4, 2)] {
+                let g = ConvGeom::new(13, 12, cin, 48, k, k, (s, s), Padding::Valid).unwrap();
+                let mut conv = Conv2d::<f32>::new("w", g).with_winograd(true).with_relu();
+                for p in conv.params_mut() {
+                    let t = uniform::<f32>(p.value.shape(), &mut r);
+                    p.value.data_mut().copy_from_slice(t.data());
+                }
+                let x = uniform::<f32>(&[9, 13, 12, cin], &mut r);
+                let dy = uniform::<f32>(&[9, g.oh, g.ow, 48], &mut r);
+                conv.forward(&x);
+                conv.backward(&x, &dy, true);
+                out.extend_from_slice(conv.output().data());
+                out.extend_from_slice(conv.input_grad().data());
             }
-            let x = uniform::<f32>(&[7, 13, 12, 32], &mut r);
-            let dy = uniform::<f32>(&[7, g.oh, g.ow, 48], &mut r);
-            conv.forward(&x);
-            conv.backward(&x, &dy, true);
-            out.extend_from_slice(conv.output().data());
-            out.extend_from_slice(conv.input_grad().data());
             out
         })
     };

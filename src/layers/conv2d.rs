@@ -3,9 +3,9 @@
 
 use super::{Layer, Param};
 use crate::tensor::{
-    col2im, fill_iota, gemm, im2col, pad_input, unpad_input, vectorized, winograd3x3,
-    winograd_filters, Border, ConvGeom, Float, GatherGemm, Init, Op, ScatterGemm, Tensor,
-    WinogradScratch, WinogradShape,
+    col2im, fill_iota, gemm, im2col, pad_input, unpad_input, vectorized, winograd_conv,
+    winograd_filters, winograd_filters_s2d, Border, ConvGeom, Float, GatherGemm, Init, Op,
+    ScatterGemm, Tensor, WinogradKind, WinogradScratch, WinogradShape,
 };
 use rayon::prelude::*;
 
@@ -72,10 +72,12 @@ pub struct Conv2d<T> {
     ph_rows: Vec<usize>,
     ph_q: Vec<usize>,
     ph_w: Vec<T>,
-    /// Fast path, 3×3 stride 1: run the forward product (and, for an input read in place, the
-    /// input gradient) by Winograd's F(2×2, 3×3) ([`crate::tensor::winograd3x3`]).
-    winograd: bool,
-    /// Winograd: the transformed filters `[16, I, O]`, the output pixel offsets, the scratch.
+    /// Fast path: run the forward product by Winograd's minimal filtering
+    /// ([`crate::tensor::winograd_conv`]), and for F(2×2, 3×3) also the input gradient of an
+    /// input read in place. `None`: the direct gather GEMM.
+    winograd: Option<WinogradKind>,
+    /// Winograd: the transformed filters (`[16, I, O]` or `[9, s²I, O]`), the output pixel
+    /// offsets, the scratch.
     wino_u: Vec<T>,
     wino_pix: Vec<usize>,
     wino: WinogradScratch<T>,
@@ -113,34 +115,45 @@ impl<T: Float> Conv2d<T> {
             ph_rows: Vec::new(),
             ph_q: Vec::new(),
             ph_w: Vec::new(),
-            winograd: false,
+            winograd: None,
             wino_u: Vec::new(),
             wino_pix: Vec::new(),
             wino: WinogradScratch::default(),
         }
     }
 
-    /// Runs a 3×3 stride-1 convolution on the fast path by Winograd's F(2×2, 3×3)
-    /// ([`crate::tensor::winograd3x3`]) instead of the direct gather GEMM: the forward product,
-    /// and the input gradient when the input is read in place (the weight gradient stays a gather
-    /// GEMM). Other shapes ignore it.
+    /// Runs the forward product on the fast path by Winograd's minimal filtering
+    /// ([`crate::tensor::winograd_conv`]) instead of the direct gather GEMM, where the shape
+    /// has one (other shapes ignore it):
+    /// - a 3×3 stride-1 filter by F(2×2, 3×3): 4/9 of the multiply-adds; also the input gradient
+    ///   when the input is read in place (the adjoint is again a 3×3 stride-1 convolution);
+    /// - a `2s × 2s` filter of stride `s` (conv1: 8×8 stride 4; conv2: 4×4 stride 2) by F(2×2,
+    ///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds (the input gradient keeps the
+    ///   direct phases, [`Conv2d::dx_by_phases`]).
     ///
-    /// Off by default; [`crate::dqn::article_qnet`] turns it on for conv3. It does 4/9 of the
-    /// multiply-adds, but its 16 products reduce over only 64 channels and the transforms add two
-    /// passes over 16× expanded tiles. Batches under 8 keep the direct product: at batch 1
-    /// (acting) Winograd was 30% slower, since the filters are transformed on every call. In the
-    /// train step (batch 48) it measured 2–5% faster than the direct product at first, and level
-    /// to 2% faster once the direct product's loads were fixed (plain instead of masked).
+    /// The weight gradient always stays a gather GEMM. Off by default;
+    /// [`crate::dqn::article_qnet`] turns it on for conv2 and conv3. Batches under 8 keep the
+    /// direct product: the filters are transformed on every call, and at batch 1 (acting)
+    /// F(2×2, 3×3) measured 30% slower for conv3. The products reduce over fewer values (64
+    /// channels for conv3, 128 for conv2) and the transforms add passes over tiles 2.25× the
+    /// input, so the saving is less than the multiply-adds: measured on the 1-thread train step,
+    /// conv3's about 2–5% and conv2's about 2%, while conv1's (4 input channels, so 9 products of
+    /// only 64 × 32 per 8×8 pixels) cost 2%.
     pub fn with_winograd(mut self, on: bool) -> Self {
         let g = self.geom;
-        self.winograd = on && (g.kh, g.kw, g.sh, g.sw) == (3, 3, 1, 1);
+        self.winograd = match (g.kh, g.kw, g.sh, g.sw) {
+            _ if !on => None,
+            (3, 3, 1, 1) => Some(WinogradKind::F2x3),
+            (kh, kw, sh, sw) if kh == kw && sh == sw && kh == 2 * sh => Some(WinogradKind::S2d(sh)),
+            _ => None,
+        };
         self
     }
 
-    /// Whether a batch of `n` runs by Winograd: only batches of at least 8, since the filter
+    /// The Winograd kind a batch of `n` runs by: only batches of at least 8, since the filter
     /// transform on every call costs more than Winograd saves on one image (acting).
-    fn use_winograd(&self, n: usize) -> bool {
-        self.winograd && n >= 8
+    fn use_winograd(&self, n: usize) -> Option<WinogradKind> {
+        self.winograd.filter(|_| n >= 8)
     }
 
     /// Applies `max(·, 0)` to the output (a fused ReLU: `∂y/∂z = [y > 0]`).
@@ -327,12 +340,16 @@ impl<T: Float> Conv2d<T> {
                 .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
             Some(&self.out_rows[..])
         };
-        if self.use_winograd(n) {
-            // VALID over the (padded) input: every 4×4 input tile of a 2×2 output tile.
+        if let Some(kind) = self.use_winograd(n) {
+            // VALID over the (padded) input: every input tile (4×4 pixels, or 3×3 blocks of
+            // s×s) of a 2×2 output tile.
             let (hp, wp) = g.padded();
             let (hb, wb) = self.border.around(g.oh, g.ow);
             let w = self.params[0].value.data();
-            winograd_filters(w, g.cin, g.cout, false, &mut self.wino_u);
+            match kind {
+                WinogradKind::F2x3 => winograd_filters(w, g.cin, g.cout, false, &mut self.wino_u),
+                WinogradKind::S2d(s) => winograd_filters_s2d(w, s, g.cin, g.cout, &mut self.wino_u),
+            }
             self.border
                 .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.wino_pix);
             let shape = WinogradShape {
@@ -346,10 +363,11 @@ impl<T: Float> Conv2d<T> {
                 pad_left: 0,
                 co: g.cout,
                 out_image: hb * wb * g.cout,
+                kind,
             };
             let bias = Some(self.params[1].value.data());
             let y = self.y.data_mut();
-            winograd3x3(
+            winograd_conv(
                 shape,
                 a,
                 &self.wino_u,
@@ -404,7 +422,8 @@ impl<T: Float> Conv2d<T> {
             relu: false,
         });
         let b = self.in_border;
-        if need_dx && direct && self.use_winograd(n) && b.top <= 2 && b.left <= 2 {
+        let adjoint = self.use_winograd(n) == Some(WinogradKind::F2x3);
+        if need_dx && direct && adjoint && b.top <= 2 && b.left <= 2 {
             // dX = the adjoint convolution of dZ (the rotated, transposed filter), by Winograd:
             // interior input pixel (iy, ix) = (oy + top, ox + left) collects
             // Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx], i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.
@@ -424,9 +443,10 @@ impl<T: Float> Conv2d<T> {
                 pad_left: 2 - b.left,
                 co: g.cin,
                 out_image: g.in_len(),
+                kind: WinogradKind::F2x3,
             };
             let dx = self.dx.data_mut();
-            winograd3x3(
+            winograd_conv(
                 shape,
                 dz,
                 &self.wino_u,

@@ -23,7 +23,10 @@ pub use gather::{
     fill_iota, gather_gemm_portable, scatter_gemm_portable, GatherGemm, Init, ScatterGemm,
 };
 pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
-pub use winograd::{winograd3x3, winograd_filters, WinogradScratch, WinogradShape};
+pub use winograd::{
+    winograd_conv, winograd_filters, winograd_filters_s2d, WinogradKind, WinogradScratch,
+    WinogradShape,
+};
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};
 

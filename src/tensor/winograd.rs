@@ -23,6 +23,24 @@
 //! between an input transform and an output transform that only add. `Bᵀ` and `Aᵀ` hold ±1 and 0,
 //! so the transforms round little; `G`'s halves are exact in binary.
 //!
+//! # Strided filters: F(2×2, 2×2) over a space-to-depth view
+//!
+//! A `2s × 2s` filter of stride `s` (conv1: 8×8 stride 4; conv2: 4×4 stride 2) is a 2×2 filter
+//! of stride 1 over the input cut into `s × s` pixel blocks, each block one "pixel" of `s²·I`
+//! channels (space-to-depth: channel `(dy·s + dx)·I + i` of block `(Y, X)` is channel `i` of
+//! pixel `(s·Y + dy, s·X + dx)`). F(2, 2) gives two outputs of a 2-tap filter over three inputs:
+//!
+//! ```text
+//!      ⎡1 −1  0⎤        ⎡1  0⎤
+//! Bᵀ = ⎢0  1  0⎥    G = ⎢1  1⎥    Aᵀ = ⎡1  1  0⎤
+//!      ⎣0 −1  1⎦        ⎣0  1⎦         ⎣0  1  1⎦
+//! ```
+//!
+//! (three multiplications for four), so a 3×3 tile of blocks gives 2×2 outputs from 9 products
+//! where the direct convolution needs 16: 9 GEMMs of `tiles × s²I × O`. The blocks are never
+//! copied: a block's channels for one `dy` are `s·I` consecutive values of the NHWC input (conv1:
+//! 4 pixels × 4 frames, one vector), read in place by the input transform.
+//!
 //! The same routine serves a convolution's forward pass and its input gradient (the adjoint
 //! convolution: the filter rotated by 180° with its channel axes swapped, [`winograd_filters`]).
 //! Work goes in chunks of whole images, enough tiles for one GEMM to fill its register tiles,
@@ -123,6 +141,44 @@ fn output_transform<T: Float>(m: &[Lanes<T>; 16]) -> [Lanes<T>; 4] {
     y
 }
 
+/// `V = Bᵀ·d·B` of F(2×2, 2×2) for a 3×3 tile of blocks `d` (row-major), lane by lane.
+#[inline(always)]
+fn input_transform9<T: Float>(d: &[Lanes<T>; 9]) -> [Lanes<T>; 9] {
+    // Bᵀ·d, column by column: rows d₀ − d₁, d₁, d₂ − d₁.
+    let mut t = [[T::zero(); L]; 9];
+    for c in 0..3 {
+        t[c] = sub(&d[c], &d[3 + c]);
+        t[3 + c] = d[3 + c];
+        t[6 + c] = sub(&d[6 + c], &d[3 + c]);
+    }
+    // (Bᵀ·d)·B, row by row.
+    let mut v = [[T::zero(); L]; 9];
+    for r in 0..3 {
+        let row = &t[3 * r..3 * r + 3];
+        v[3 * r] = sub(&row[0], &row[1]);
+        v[3 * r + 1] = row[1];
+        v[3 * r + 2] = sub(&row[2], &row[1]);
+    }
+    v
+}
+
+/// `Y = Aᵀ·m·A` of F(2×2, 2×2) for a 3×3 tile of products `m`: the 2×2 outputs, row-major.
+#[inline(always)]
+fn output_transform9<T: Float>(m: &[Lanes<T>; 9]) -> [Lanes<T>; 4] {
+    let mut s = [[T::zero(); L]; 6];
+    for c in 0..3 {
+        s[c] = add(&m[c], &m[3 + c]);
+        s[3 + c] = add(&m[3 + c], &m[6 + c]);
+    }
+    let mut y = [[T::zero(); L]; 4];
+    for r in 0..2 {
+        let row = &s[3 * r..3 * r + 3];
+        y[2 * r] = add(&row[0], &row[1]);
+        y[2 * r + 1] = add(&row[1], &row[2]);
+    }
+    y
+}
+
 /// The transformed filters `U_ξ = G·g·Gᵀ`, `[16, I, O]` (each `U_ξ` a row-major `I × O` matrix,
 /// the right operand of the ξ-th GEMM), from HWIO weights `w: [3, 3, Cin, Cout]`.
 ///
@@ -178,14 +234,79 @@ pub fn winograd_filters<T: Float>(w: &[T], cin: usize, cout: usize, adjoint: boo
     }
 }
 
+/// The transformed filters of F(2×2, 2×2) over `s × s` blocks, `[9, s²·Cin, Cout]`, from HWIO
+/// weights `w: [2s, 2s, Cin, Cout]`.
+///
+/// The block filter is `g[by, bx, (dy·s + dx)·Cin + c, o] = w[s·by + dy, s·bx + dx, c, o]`
+/// (`by, bx < 2`), and `U = G·g·Gᵀ` with `G`'s rows `(1, 0)`, `(1, 1)`, `(0, 1)`: place
+/// `(r, c)` is the sum of the taps `by ∈ rows[r]`, `bx ∈ rows[c]`. Sums of weights only, exact
+/// up to one rounding per addition.
+pub fn winograd_filters_s2d<T: Float>(w: &[T], s: usize, cin: usize, cout: usize, u: &mut Vec<T>) {
+    let k = 2 * s;
+    assert_eq!(w.len(), k * k * cin * cout, "winograd_filters_s2d: weights");
+    let ni = s * s * cin;
+    u.clear();
+    u.resize(9 * ni * cout, T::zero());
+    const ROWS: [&[usize]; 3] = [&[0], &[0, 1], &[1]];
+    for dy in 0..s {
+        for dx in 0..s {
+            for c in 0..cin {
+                let i = (dy * s + dx) * cin + c;
+                for (r, rows) in ROWS.iter().enumerate() {
+                    for (cc, cols) in ROWS.iter().enumerate() {
+                        let dst = ((3 * r + cc) * ni + i) * cout;
+                        for &by in *rows {
+                            for &bx in *cols {
+                                let src = (((s * by + dy) * k + s * bx + dx) * cin + c) * cout;
+                                for o in 0..cout {
+                                    u[dst + o] += w[src + o];
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Which minimal filtering a [`WinogradShape`] runs (see the module documentation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WinogradKind {
+    /// F(2×2, 3×3): a 3×3 filter of stride 1, 4×4 input tiles, 16 products.
+    F2x3,
+    /// F(2×2, 2×2) over `s × s` pixel blocks: a `2s × 2s` filter of stride `s`, 3×3 tiles of
+    /// blocks, 9 products.
+    S2d(usize),
+}
+
+impl WinogradKind {
+    /// Tile positions per side (4 or 3); their square is the number of products.
+    fn side(self) -> usize {
+        match self {
+            WinogradKind::F2x3 => 4,
+            WinogradKind::S2d(_) => 3,
+        }
+    }
+
+    /// The side of a block in pixels (1 for F(2×2, 3×3)).
+    fn block(self) -> usize {
+        match self {
+            WinogradKind::F2x3 => 1,
+            WinogradKind::S2d(s) => s,
+        }
+    }
+}
+
 /// The sizes of one Winograd convolution (everything but the data):
 ///
 /// ```text
 /// out[n, oy, ox, o] = bias[o] + Σ_{ky,kx<3, i} x[n, oy + ky − pad_top, ox + kx − pad_left, i] · g[ky, kx, i, o]
 /// ```
 ///
-/// with `x: [N, H, W, I]` read as zero outside the image, and output pixel `(oy, ox)` of image
-/// `n` written at `out[n·out_image + out_pixels[oy·OW + ox] ..][..O]`.
+/// for [`WinogradKind::F2x3`], and with `s·oy`, `s·ox` and `ky, kx < 2s` for
+/// [`WinogradKind::S2d`]`(s)`, with `x: [N, H, W, I]` read as zero outside the image, and output
+/// pixel `(oy, ox)` of image `n` written at `out[n·out_image + out_pixels[oy·OW + ox] ..][..O]`.
 #[derive(Clone, Copy, Debug)]
 pub struct WinogradShape {
     pub n: usize,
@@ -201,40 +322,57 @@ pub struct WinogradShape {
     pub co: usize,
     /// Values per output image.
     pub out_image: usize,
+    pub kind: WinogradKind,
 }
 
 impl WinogradShape {
     fn tiles(&self) -> (usize, usize) {
         (self.oh.div_ceil(2), self.ow.div_ceil(2))
     }
+
+    /// Products per tile: 16 or 9.
+    fn places(&self) -> usize {
+        self.kind.side() * self.kind.side()
+    }
+
+    /// Values one input block contributes per `dy` (a row of `s` pixels).
+    fn seg(&self) -> usize {
+        self.kind.block() * self.ci
+    }
+
+    /// Channels of a transformed place: `s²·I`.
+    fn channels(&self) -> usize {
+        self.kind.block() * self.seg()
+    }
 }
 
-/// The scratch of [`winograd3x3`]: per task, the transformed inputs `V [tiles, 16, I]`, the
-/// products `M [tiles, 16, O]` (each tile's 16 transformed places together, so the transforms
+/// The scratch of [`winograd_conv`]: per task, the transformed inputs `V [tiles, P, s²I]`, the
+/// products `M [tiles, P, O]` (each tile's `P` = 16 or 9 transformed places together, so the transforms
 /// read and write one contiguous block per tile) and the GEMM's offset tables. Kept between calls, so a train step
 /// allocates nothing.
 #[derive(Debug, Default)]
 pub struct WinogradScratch<T> {
     parts: Vec<Part<T>>,
+    /// Where each tile position's input pixels (block rows: `[tile, position, dy]`) start in an
+    /// image (`None` outside it): the same for every image, so worked out once per call.
+    pixels: Vec<Option<usize>>,
 }
 
 #[derive(Debug, Default)]
 struct Part<T> {
-    /// `I` zeros: the input pixels of a tile that lie outside the image.
+    /// `s·I` zeros: the input pixels (block rows) of a tile that lie outside the image.
     zeros: Vec<T>,
     v: Vec<T>,
     m: Vec<T>,
     p: Vec<usize>,
     q: Vec<usize>,
-    /// Where each tile position's 16 input pixels start in an image (`None` outside it): the
-    /// same for every image, so worked out once per chunk.
-    pixels: Vec<Option<usize>>,
 }
 
-/// The convolution of [`WinogradShape`] by F(2×2, 3×3): `u` from [`winograd_filters`], `bias`
+/// The convolution of [`WinogradShape`] by its [`WinogradKind`]: `u` from [`winograd_filters`]
+/// (F(2×2, 3×3)) or [`winograd_filters_s2d`] (F(2×2, 2×2) over blocks), `bias`
 /// (`O` values) added if given, `max(·, 0)` stored if `relu`. Writes only the output pixels.
 #[allow(clippy::too_many_arguments)]
-pub fn winograd3x3<T: Float>(
+pub fn winograd_conv<T: Float>(
     s: WinogradShape,
     x: &[T],
     u: &[T],
@@ -244,16 +382,33 @@ pub fn winograd3x3<T: Float>(
     out_pixels: &[usize],
     scratch: &mut WinogradScratch<T>,
 ) {
-    assert_eq!(x.len(), s.n * s.h * s.w * s.ci, "winograd3x3: input");
-    assert_eq!(u.len(), 16 * s.ci * s.co, "winograd3x3: filters");
-    assert_eq!(out_pixels.len(), s.oh * s.ow, "winograd3x3: output pixels");
+    assert_eq!(x.len(), s.n * s.h * s.w * s.ci, "winograd_conv: input");
+    assert_eq!(
+        u.len(),
+        s.places() * s.channels() * s.co,
+        "winograd_conv: filters"
+    );
+    assert_eq!(
+        out_pixels.len(),
+        s.oh * s.ow,
+        "winograd_conv: output pixels"
+    );
     assert!(
         out_pixels.iter().all(|&o| o + s.co <= s.out_image),
-        "winograd3x3: output pixel outside its image"
+        "winograd_conv: output pixel outside its image"
     );
-    assert!(out.len() >= s.n * s.out_image, "winograd3x3: output");
+    assert!(out.len() >= s.n * s.out_image, "winograd_conv: output");
     if let Some(b) = bias {
-        assert_eq!(b.len(), s.co, "winograd3x3: bias");
+        assert_eq!(b.len(), s.co, "winograd_conv: bias");
+    }
+    if let WinogradKind::S2d(blk) = s.kind {
+        // A block row is read whole or not at all, so every output's blocks must lie inside
+        // the image across (rows are checked one by one: any top padding is fine). An input
+        // padded already, a VALID convolution over it, as `Conv2d` passes it, satisfies this.
+        assert!(
+            blk > 0 && s.pad_left == 0 && blk * (s.ow + 1) <= s.w,
+            "winograd_conv: blocks of {blk} need no left padding and an input wide enough"
+        );
     }
     if s.n == 0 || s.oh == 0 || s.ow == 0 {
         return;
@@ -264,6 +419,24 @@ pub fn winograd3x3<T: Float>(
     // between the transforms and the products. (At least 128 tiles, 5 images and 1.2 MiB,
     // measured 3% slower on the train step; one image, 30 tiles, 1% slower.)
     let per_chunk = 48usize.div_ceil(ty * tx).min(s.n);
+    // Position k of tile (a, b) is block (2a + k / side, 2b + k % side); its row dy starts at
+    // pixel (blk·(2a + k / side) + dy, blk·(2b + k % side)), counted only if all `blk` pixels
+    // of the row are inside (a row cut by the edge feeds only dropped outputs).
+    let (places, blk, side) = (s.places(), s.kind.block(), s.kind.side());
+    let pixels = &mut scratch.pixels;
+    pixels.clear();
+    for a in 0..ty {
+        for b in 0..tx {
+            for k in 0..places {
+                pixels.extend((0..blk).map(|dy| {
+                    let iy = (blk * (2 * a + k / side) + dy).checked_sub(s.pad_top)?;
+                    let ix = (blk * (2 * b + k % side)).checked_sub(s.pad_left)?;
+                    (iy < s.h && ix + blk <= s.w).then_some((iy * s.w + ix) * s.ci)
+                }));
+            }
+        }
+    }
+    let pixels = &scratch.pixels[..];
     // A contiguous run of images per thread, each with its own scratch.
     let per_part = s.n.div_ceil(rayon::current_num_threads().max(1));
     let parts = s.n.div_ceil(per_part);
@@ -286,6 +459,7 @@ pub fn winograd3x3<T: Float>(
                     u,
                     bias,
                     relu,
+                    pixels,
                     out_pixels,
                 };
                 job.run(chunk, part);
@@ -301,6 +475,8 @@ struct Chunk<'a, T> {
     u: &'a [T],
     bias: Option<&'a [T]>,
     relu: bool,
+    /// The input offsets of [`WinogradScratch::pixels`].
+    pixels: &'a [Option<usize>],
     out_pixels: &'a [usize],
 }
 
@@ -309,43 +485,34 @@ impl<T: Float> Chunk<'_, T> {
         let s = self.s;
         let (ty, tx) = s.tiles();
         let rows = self.images * ty * tx;
+        let (places, ch, seg) = (s.places(), s.channels(), s.seg());
         // Grown, never shrunk: a short last chunk leaves the buffers' tails alone.
-        let (nv, nm) = (16 * rows * s.ci, 16 * rows * s.co);
+        let (nv, nm) = (places * rows * ch, places * rows * s.co);
         if part.v.len() < nv {
             part.v.resize(nv, T::zero());
         }
         if part.m.len() < nm {
             part.m.resize(nm, T::zero());
         }
-        if part.zeros.len() < s.ci {
-            part.zeros.resize(s.ci, T::zero());
-        }
-        part.pixels.clear();
-        for a in 0..ty {
-            for b in 0..tx {
-                part.pixels.extend((0..16).map(|k| {
-                    let iy = (2 * a + k / 4).checked_sub(s.pad_top)?;
-                    let ix = (2 * b + k % 4).checked_sub(s.pad_left)?;
-                    (iy < s.h && ix < s.w).then_some((iy * s.w + ix) * s.ci)
-                }));
-            }
+        if part.zeros.len() < seg {
+            part.zeros.resize(seg, T::zero());
         }
         let (v, m) = (&mut part.v[..nv], &mut part.m[..nm]);
-        self.input(v, &part.zeros[..s.ci], &part.pixels);
-        // M_ξ = V_ξ · U_ξ: rows are tiles (16·I apart in V, 16·O in M), the reduction runs
-        // over input channels.
-        fill_iota(&mut part.p, rows, 16 * s.ci);
-        fill_iota(&mut part.q, s.ci, 1);
-        for xi in 0..16 {
+        self.input(v, &part.zeros[..seg]);
+        // M_ξ = V_ξ · U_ξ: rows are tiles (P·s²I apart in V, P·O in M), the reduction runs
+        // over the transformed channels.
+        fill_iota(&mut part.p, rows, places * ch);
+        fill_iota(&mut part.q, ch, 1);
+        for xi in 0..places {
             T::gather_gemm(GatherGemm {
-                a: &v[xi * s.ci..],
+                a: &v[xi * ch..],
                 p: &part.p,
                 q: &part.q,
-                b: &self.u[xi * s.ci * s.co..][..s.ci * s.co],
+                b: &self.u[xi * ch * s.co..][..ch * s.co],
                 ldb: s.co,
                 n: s.co,
                 c: &mut m[xi * s.co..],
-                ldc: 16 * s.co,
+                ldc: places * s.co,
                 c_rows: None,
                 init: Init::Zero,
                 relu: false,
@@ -354,29 +521,47 @@ impl<T: Float> Chunk<'_, T> {
         self.output(m, out);
     }
 
-    /// `V[tile, ξ, i]` for every tile of the chunk: tile `(ty, tx)` covers input rows
-    /// `2·ty − pad_top ..+ 4` and columns `2·tx − pad_left ..+ 4` (zeros outside the image).
-    /// `pixels`: where each tile position's 16 pixels start in an image (`None`: outside).
-    fn input(&self, v: &mut [T], zeros: &[T], pixels: &[Option<usize>]) {
+    /// `V[tile, ξ, c]` for every tile of the chunk: tile `(ty, tx)` covers the blocks (pixels
+    /// for F(2×2, 3×3)) `2·ty ..+ side` and `2·tx ..+ side`, less the padding (zeros outside
+    /// the image). `pixels`: where each tile position's block rows start in an image.
+    fn input(&self, v: &mut [T], zeros: &[T]) {
         let s = self.s;
-        let fast = fast_f32::<T>() && s.ci.is_multiple_of(L);
-        let mut tiles = v.chunks_exact_mut(16 * s.ci);
+        let (places, ch, seg, blk) = (s.places(), s.channels(), s.seg(), s.kind.block());
+        let fast = fast_f32::<T>() && seg.is_multiple_of(L);
+        let mut tiles = v.chunks_exact_mut(places * ch);
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
-            for starts in pixels.chunks_exact(16) {
-                // The tile's 16 input pixels (`ci` values each; zeros outside the image).
-                let px: [&[T]; 16] =
-                    std::array::from_fn(|k| starts[k].map_or(zeros, |o| &img[o..o + s.ci]));
+            for starts in self.pixels.chunks_exact(places * blk) {
                 let vt = tiles.next().expect("one V block per tile");
                 #[cfg(target_arch = "x86_64")]
                 if fast {
-                    let px32 = px.map(bytemuck::cast_slice::<T, f32>);
+                    let img32 = bytemuck::cast_slice::<T, f32>(img);
+                    let z32 = bytemuck::cast_slice::<T, f32>(zeros);
                     let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
-                    // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every pixel
-                    // slice holds `ci` values, `vt` 16·ci, and `ci` is a multiple of 16.
-                    unsafe { avx512::input_tile(&px32, vt32, s.ci) };
+                    // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every start is
+                    // a block row of `seg` values inside the image (checked where the table is
+                    // built), `zeros` holds `seg`, `vt` places·ch = places·blk·seg, and `seg`
+                    // is a multiple of 16.
+                    unsafe {
+                        if places == 16 {
+                            avx512::input_tile(img32, z32, starts, vt32, blk, seg)
+                        } else {
+                            avx512::input_tile9(img32, z32, starts, vt32, blk, seg)
+                        }
+                    };
                     continue;
                 }
-                input_tile(&px, vt, s.ci);
+                // Block row dy of every position: `seg` values each, channels dy·seg.. of V.
+                for dy in 0..blk {
+                    let row = |k: usize| starts[k * blk + dy].map_or(zeros, |o| &img[o..o + seg]);
+                    let off = dy * seg;
+                    if places == 16 {
+                        let px: [&[T]; 16] = std::array::from_fn(row);
+                        input_tile(&px, vt, ch, off, seg, input_transform);
+                    } else {
+                        let px: [&[T]; 9] = std::array::from_fn(row);
+                        input_tile(&px, vt, ch, off, seg, input_transform9);
+                    }
+                }
             }
         }
     }
@@ -387,7 +572,8 @@ impl<T: Float> Chunk<'_, T> {
         let s = self.s;
         let (ty, tx) = s.tiles();
         let fast = fast_f32::<T>() && s.co.is_multiple_of(L);
-        let mut tiles = m.chunks_exact(16 * s.co);
+        let places = s.places();
+        let mut tiles = m.chunks_exact(places * s.co);
         for img in out.chunks_exact_mut(s.out_image) {
             for a in 0..ty {
                 for b in 0..tx {
@@ -406,50 +592,69 @@ impl<T: Float> Chunk<'_, T> {
                             bytemuck::cast_slice::<T, f32>(mt),
                             bytemuck::cast_slice_mut::<T, f32>(img),
                         );
-                        // SAFETY: AVX-512F and T = f32 checked; `mt` holds 16·co values, the
-                        // bias `co`, each destination `co` inside the image (checked on entry),
-                        // and `co` is a multiple of 16.
-                        unsafe { avx512::output_tile(mt32, s.co, bias, self.relu, img32, at) };
+                        // SAFETY: AVX-512F and T = f32 checked; `mt` holds places·co values,
+                        // the bias `co`, each destination `co` inside the image (checked on
+                        // entry), and `co` is a multiple of 16.
+                        unsafe {
+                            if places == 16 {
+                                avx512::output_tile(mt32, s.co, bias, self.relu, img32, at)
+                            } else {
+                                avx512::output_tile9(mt32, s.co, bias, self.relu, img32, at)
+                            }
+                        };
                         continue;
                     }
-                    output_tile(mt, s.co, self.bias, self.relu, img, at);
+                    if places == 16 {
+                        output_tile(mt, s.co, self.bias, self.relu, img, at, output_transform);
+                    } else {
+                        output_tile(mt, s.co, self.bias, self.relu, img, at, output_transform9);
+                    }
                 }
             }
         }
     }
 }
 
-/// One tile's input transform, `V[ξ, i]` (`16 × ci`) from its 16 pixels, `L` channels at a time.
-fn input_tile<T: Float>(px: &[&[T]; 16], v: &mut [T], ci: usize) {
-    for c0 in (0..ci).step_by(L) {
-        let l = (ci - c0).min(L);
-        let mut d = [[T::zero(); L]; 16];
+/// One tile's input transform for `len` channels: `V[ξ, off + c] = transform(d)[ξ][c]` (rows of
+/// `V` `stride` apart) from its `P` input pixels or block rows, `L` channels at a time.
+fn input_tile<T: Float, const P: usize>(
+    px: &[&[T]; P],
+    v: &mut [T],
+    stride: usize,
+    off: usize,
+    len: usize,
+    transform: fn(&[Lanes<T>; P]) -> [Lanes<T>; P],
+) {
+    for c0 in (0..len).step_by(L) {
+        let l = (len - c0).min(L);
+        let mut d = [[T::zero(); L]; P];
         for (d, px) in d.iter_mut().zip(px) {
             *d = load(&px[c0..], l);
         }
-        for (xi, val) in input_transform(&d).iter().enumerate() {
-            store(&mut v[xi * ci + c0..], val, l);
+        for (xi, val) in transform(&d).iter().enumerate() {
+            store(&mut v[xi * stride + off + c0..], val, l);
         }
     }
 }
 
-/// One tile's output transform from `M[ξ, o]` (`16 × co`): the 2×2 outputs (+ bias, ReLU),
+/// One tile's output transform from `M[ξ, o]` (`P × co`): the 2×2 outputs (+ bias, ReLU),
 /// each stored at its offset in `img` if it is inside the output.
-fn output_tile<T: Float>(
+fn output_tile<T: Float, const P: usize>(
     m: &[T],
     co: usize,
     bias: Option<&[T]>,
     relu: bool,
     img: &mut [T],
     at: [Option<usize>; 4],
+    transform: fn(&[Lanes<T>; P]) -> [Lanes<T>; 4],
 ) {
     for c0 in (0..co).step_by(L) {
         let l = (co - c0).min(L);
-        let mut mt = [[T::zero(); L]; 16];
+        let mut mt = [[T::zero(); L]; P];
         for (xi, mt) in mt.iter_mut().enumerate() {
             *mt = load(&m[xi * co + c0..], l);
         }
-        let mut y = output_transform(&mt);
+        let mut y = transform(&mt);
         if let Some(bias) = bias {
             let bl = load(&bias[c0..], l);
             for yv in y.iter_mut() {
@@ -484,44 +689,146 @@ fn fast_f32<T: Float>() -> bool {
 
 #[cfg(target_arch = "x86_64")]
 mod avx512 {
-    //! The transforms on 16 channels per zmm register (the tile's 16 values stay in registers).
+    //! The transforms on 16 channels per zmm register (the tile's values stay in registers).
     use std::arch::x86_64::*;
 
-    /// [`super::input_tile`] for f32.
+    /// Where a tile's input for position `k`, block row `dy`, starts: in the image, or the
+    /// zeros outside it.
     ///
     /// # Safety
-    /// AVX-512F must be available; every `px[k]` and `v[16·ci..]`'s rows must hold `ci` values,
-    /// `ci` a multiple of 16.
+    /// Every `Some` offset must be inside `img`.
+    #[inline(always)]
+    unsafe fn row(img: &[f32], zeros: &[f32], at: Option<usize>) -> *const f32 {
+        match at {
+            Some(o) => img.as_ptr().add(o),
+            None => zeros.as_ptr(),
+        }
+    }
+
+    /// [`super::input_tile`] with [`super::input_transform`] for a whole tile (all `blk` block
+    /// rows), for f32: `v[ξ·blk·seg + dy·seg + c]` from the rows `starts[k·blk + dy]`.
+    ///
+    /// # Safety
+    /// AVX-512F must be available; every `Some` start must have `seg` values in `img`, `zeros`
+    /// hold `seg`, `v` `16·blk·seg`; `seg` a multiple of 16.
     #[target_feature(enable = "avx512f")]
-    pub unsafe fn input_tile(px: &[&[f32]; 16], v: &mut [f32], ci: usize) {
-        debug_assert!(
-            ci.is_multiple_of(16) && v.len() >= 16 * ci && px.iter().all(|p| p.len() >= ci)
-        );
-        let vp = v.as_mut_ptr();
-        for c0 in (0..ci).step_by(16) {
-            let mut d = [_mm512_setzero_ps(); 16];
-            for k in 0..16 {
-                d[k] = _mm512_loadu_ps(px[k].as_ptr().add(c0));
-            }
-            let mut t = [_mm512_setzero_ps(); 16];
-            for c in 0..4 {
-                t[c] = _mm512_sub_ps(d[c], d[8 + c]);
-                t[4 + c] = _mm512_add_ps(d[4 + c], d[8 + c]);
-                t[8 + c] = _mm512_sub_ps(d[8 + c], d[4 + c]);
-                t[12 + c] = _mm512_sub_ps(d[4 + c], d[12 + c]);
-            }
-            for r in 0..4 {
-                let q = [t[4 * r], t[4 * r + 1], t[4 * r + 2], t[4 * r + 3]];
-                let at = |xi: usize| vp.add(xi * ci + c0);
-                _mm512_storeu_ps(at(4 * r), _mm512_sub_ps(q[0], q[2]));
-                _mm512_storeu_ps(at(4 * r + 1), _mm512_add_ps(q[1], q[2]));
-                _mm512_storeu_ps(at(4 * r + 2), _mm512_sub_ps(q[2], q[1]));
-                _mm512_storeu_ps(at(4 * r + 3), _mm512_sub_ps(q[1], q[3]));
+    pub unsafe fn input_tile(
+        img: &[f32],
+        zeros: &[f32],
+        starts: &[Option<usize>],
+        v: &mut [f32],
+        blk: usize,
+        seg: usize,
+    ) {
+        let stride = blk * seg;
+        debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && v.len() >= 16 * stride);
+        debug_assert!(starts.len() == 16 * blk);
+        debug_assert!(starts.iter().flatten().all(|&o| o + seg <= img.len()));
+        for dy in 0..blk {
+            let px: [*const f32; 16] =
+                std::array::from_fn(|k| row(img, zeros, starts[k * blk + dy]));
+            let vp = v.as_mut_ptr().add(dy * seg);
+            for c0 in (0..seg).step_by(16) {
+                let mut d = [_mm512_setzero_ps(); 16];
+                for k in 0..16 {
+                    d[k] = _mm512_loadu_ps(px[k].add(c0));
+                }
+                let mut t = [_mm512_setzero_ps(); 16];
+                for c in 0..4 {
+                    t[c] = _mm512_sub_ps(d[c], d[8 + c]);
+                    t[4 + c] = _mm512_add_ps(d[4 + c], d[8 + c]);
+                    t[8 + c] = _mm512_sub_ps(d[8 + c], d[4 + c]);
+                    t[12 + c] = _mm512_sub_ps(d[4 + c], d[12 + c]);
+                }
+                for r in 0..4 {
+                    let q = [t[4 * r], t[4 * r + 1], t[4 * r + 2], t[4 * r + 3]];
+                    let at = |xi: usize| vp.add(xi * stride + c0);
+                    _mm512_storeu_ps(at(4 * r), _mm512_sub_ps(q[0], q[2]));
+                    _mm512_storeu_ps(at(4 * r + 1), _mm512_add_ps(q[1], q[2]));
+                    _mm512_storeu_ps(at(4 * r + 2), _mm512_sub_ps(q[2], q[1]));
+                    _mm512_storeu_ps(at(4 * r + 3), _mm512_sub_ps(q[1], q[3]));
+                }
             }
         }
     }
 
-    /// [`super::output_tile`] for f32.
+    /// [`input_tile`] with [`super::input_transform9`] (9 positions).
+    ///
+    /// # Safety
+    /// As [`input_tile`], with `starts` of `9·blk` and `v` of `9·blk·seg` values.
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn input_tile9(
+        img: &[f32],
+        zeros: &[f32],
+        starts: &[Option<usize>],
+        v: &mut [f32],
+        blk: usize,
+        seg: usize,
+    ) {
+        let stride = blk * seg;
+        debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && v.len() >= 9 * stride);
+        debug_assert!(starts.len() == 9 * blk);
+        debug_assert!(starts.iter().flatten().all(|&o| o + seg <= img.len()));
+        for dy in 0..blk {
+            let px: [*const f32; 9] =
+                std::array::from_fn(|k| row(img, zeros, starts[k * blk + dy]));
+            let vp = v.as_mut_ptr().add(dy * seg);
+            for c0 in (0..seg).step_by(16) {
+                let mut d = [_mm512_setzero_ps(); 9];
+                for k in 0..9 {
+                    d[k] = _mm512_loadu_ps(px[k].add(c0));
+                }
+                let mut t = [_mm512_setzero_ps(); 9];
+                for c in 0..3 {
+                    t[c] = _mm512_sub_ps(d[c], d[3 + c]);
+                    t[3 + c] = d[3 + c];
+                    t[6 + c] = _mm512_sub_ps(d[6 + c], d[3 + c]);
+                }
+                for r in 0..3 {
+                    let q = [t[3 * r], t[3 * r + 1], t[3 * r + 2]];
+                    let at = |xi: usize| vp.add(xi * stride + c0);
+                    _mm512_storeu_ps(at(3 * r), _mm512_sub_ps(q[0], q[1]));
+                    _mm512_storeu_ps(at(3 * r + 1), q[1]);
+                    _mm512_storeu_ps(at(3 * r + 2), _mm512_sub_ps(q[2], q[1]));
+                }
+            }
+        }
+    }
+
+    /// The end of both output transforms: `+ bias`, `max(·, 0)`, each of the 2×2 outputs stored
+    /// at its destination (channels `c0 ..+ 16`) if it is inside the output.
+    ///
+    /// # Safety
+    /// AVX-512F; `bias` (if any) and `ip + a` readable and writable for channels `c0 ..+ 16`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    unsafe fn finish(
+        mut y: [__m512; 4],
+        bias: Option<&[f32]>,
+        relu: bool,
+        ip: *mut f32,
+        at: [Option<usize>; 4],
+        c0: usize,
+    ) {
+        if let Some(b) = bias {
+            let bv = _mm512_loadu_ps(b.as_ptr().add(c0));
+            for yv in y.iter_mut() {
+                *yv = _mm512_add_ps(*yv, bv);
+            }
+        }
+        if relu {
+            for yv in y.iter_mut() {
+                *yv = _mm512_max_ps(*yv, _mm512_setzero_ps());
+            }
+        }
+        for k in 0..4 {
+            if let Some(a) = at[k] {
+                _mm512_storeu_ps(ip.add(a + c0), y[k]);
+            }
+        }
+    }
+
+    /// [`super::output_tile`] with [`super::output_transform`], for f32.
     ///
     /// # Safety
     /// AVX-512F must be available; `m` must hold `16·co` values, `bias` (if any) `co`, and
@@ -554,22 +861,42 @@ mod avx512 {
                 y[2 * r] = _mm512_add_ps(_mm512_add_ps(q[0], q[1]), q[2]);
                 y[2 * r + 1] = _mm512_sub_ps(_mm512_sub_ps(q[1], q[2]), q[3]);
             }
-            if let Some(b) = bias {
-                let bv = _mm512_loadu_ps(b.as_ptr().add(c0));
-                for yv in y.iter_mut() {
-                    *yv = _mm512_add_ps(*yv, bv);
-                }
+            finish(y, bias, relu, ip, at, c0);
+        }
+    }
+
+    /// [`super::output_tile`] with [`super::output_transform9`], for f32.
+    ///
+    /// # Safety
+    /// As [`output_tile`], with `m` holding `9·co` values.
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn output_tile9(
+        m: &[f32],
+        co: usize,
+        bias: Option<&[f32]>,
+        relu: bool,
+        img: &mut [f32],
+        at: [Option<usize>; 4],
+    ) {
+        debug_assert!(co.is_multiple_of(16) && m.len() >= 9 * co);
+        debug_assert!(at.iter().flatten().all(|&a| a + co <= img.len()));
+        let (mp, ip) = (m.as_ptr(), img.as_mut_ptr());
+        for c0 in (0..co).step_by(16) {
+            let mut mt = [_mm512_setzero_ps(); 9];
+            for (xi, mt) in mt.iter_mut().enumerate() {
+                *mt = _mm512_loadu_ps(mp.add(xi * co + c0));
             }
-            if relu {
-                for yv in y.iter_mut() {
-                    *yv = _mm512_max_ps(*yv, _mm512_setzero_ps());
-                }
+            let mut s = [_mm512_setzero_ps(); 6];
+            for c in 0..3 {
+                s[c] = _mm512_add_ps(mt[c], mt[3 + c]);
+                s[3 + c] = _mm512_add_ps(mt[3 + c], mt[6 + c]);
             }
-            for k in 0..4 {
-                if let Some(a) = at[k] {
-                    _mm512_storeu_ps(ip.add(a + c0), y[k]);
-                }
+            let mut y = [_mm512_setzero_ps(); 4];
+            for r in 0..2 {
+                y[2 * r] = _mm512_add_ps(s[3 * r], s[3 * r + 1]);
+                y[2 * r + 1] = _mm512_add_ps(s[3 * r + 1], s[3 * r + 2]);
             }
+            finish(y, bias, relu, ip, at, c0);
         }
     }
 }
