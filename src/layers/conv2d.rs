@@ -4,8 +4,8 @@
 use super::{Layer, Param};
 use crate::tensor::{
     col2im, fill_iota, gemm, im2col, pad_input, unpad_input, vectorized, winograd_conv,
-    winograd_filters, winograd_filters_s2d, Border, ConvGeom, Float, GatherGemm, Init, Op,
-    ScatterGemm, Tensor, WinogradKind, WinogradScratch, WinogradShape,
+    winograd_filters, winograd_filters_s2d, winograd_wgrad, Border, ConvGeom, Float, GatherGemm,
+    Init, Op, ScatterGemm, Tensor, WinogradKind, WinogradScratch, WinogradShape,
 };
 use rayon::prelude::*;
 
@@ -407,22 +407,44 @@ impl<T: Float> Conv2d<T> {
             self.name
         );
         let direct = g.reads_input_directly();
-        // dW[k, co] += Σ_m xpad[pixels[m] + patch[k]] · dZ[m, co]
-        T::gather_gemm(GatherGemm {
-            a: if direct { x.data() } else { &self.xpad },
-            p: &self.patch,
-            q: &self.pixels,
-            b: dz,
-            ldb: g.cout,
-            n: g.cout,
-            c: self.params[0].grad.data_mut(),
-            ldc: g.cout,
-            c_rows: None,
-            init: Init::Accumulate,
-            relu: false,
-        });
+        let a = if direct { x.data() } else { &self.xpad };
+        let f2x3 = self.use_winograd(n) == Some(WinogradKind::F2x3);
+        if f2x3 {
+            // dW by Winograd: the 16 products' adjoints over the (padded) input's tiles.
+            let (hp, wp) = g.padded();
+            let shape = WinogradShape {
+                n,
+                h: hp,
+                w: wp,
+                ci: g.cin,
+                oh: g.oh,
+                ow: g.ow,
+                pad_top: 0,
+                pad_left: 0,
+                co: g.cout,
+                out_image: g.out_pixels() * g.cout,
+                kind: WinogradKind::F2x3,
+            };
+            let dw = self.params[0].grad.data_mut();
+            winograd_wgrad(shape, a, dz, dw, &mut self.wino);
+        } else {
+            // dW[k, co] += Σ_m xpad[pixels[m] + patch[k]] · dZ[m, co]
+            T::gather_gemm(GatherGemm {
+                a,
+                p: &self.patch,
+                q: &self.pixels,
+                b: dz,
+                ldb: g.cout,
+                n: g.cout,
+                c: self.params[0].grad.data_mut(),
+                ldc: g.cout,
+                c_rows: None,
+                init: Init::Accumulate,
+                relu: false,
+            });
+        }
         let b = self.in_border;
-        let adjoint = self.use_winograd(n) == Some(WinogradKind::F2x3);
+        let adjoint = f2x3;
         if need_dx && direct && adjoint && b.top <= 2 && b.left <= 2 {
             // dX = the adjoint convolution of dZ (the rotated, transposed filter), by Winograd:
             // interior input pixel (iy, ix) = (oy + top, ox + left) collects

@@ -24,8 +24,8 @@ pub use gather::{
 };
 pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 pub use winograd::{
-    winograd_conv, winograd_filters, winograd_filters_s2d, WinogradKind, WinogradScratch,
-    WinogradShape,
+    winograd_conv, winograd_filters, winograd_filters_s2d, winograd_wgrad, WinogradKind,
+    WinogradScratch, WinogradShape,
 };
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};

@@ -344,6 +344,19 @@ impl WinogradShape {
     fn channels(&self) -> usize {
         self.kind.block() * self.seg()
     }
+
+    /// Values from one tile's block of `V` to the next: its `P·s²I` values and `L` unused, so
+    /// the same place of consecutive tiles is not a multiple of 4 KiB apart (for conv3,
+    /// 16 × 64 values are exactly 4 KiB): a GEMM walking down the tiles would otherwise find
+    /// every row in the same L1 set.
+    fn v_stride(&self) -> usize {
+        self.places() * self.channels() + L
+    }
+
+    /// Likewise for `M` (and `dM`): `P·O` values and `L` unused per tile.
+    fn m_stride(&self) -> usize {
+        self.places() * self.co + L
+    }
 }
 
 /// The scratch of [`winograd_conv`]: per task, the transformed inputs `V [tiles, P, s²I]`, the
@@ -356,6 +369,8 @@ pub struct WinogradScratch<T> {
     /// Where each tile position's input pixels (block rows: `[tile, position, dy]`) start in an
     /// image (`None` outside it): the same for every image, so worked out once per call.
     pixels: Vec<Option<usize>>,
+    /// The weight gradient's `dU [16, I, O]` ([`winograd_wgrad`]).
+    du: Vec<T>,
 }
 
 #[derive(Debug, Default)]
@@ -419,23 +434,7 @@ pub fn winograd_conv<T: Float>(
     // between the transforms and the products. (At least 128 tiles, 5 images and 1.2 MiB,
     // measured 3% slower on the train step; one image, 30 tiles, 1% slower.)
     let per_chunk = 48usize.div_ceil(ty * tx).min(s.n);
-    // Position k of tile (a, b) is block (2a + k / side, 2b + k % side); its row dy starts at
-    // pixel (blk·(2a + k / side) + dy, blk·(2b + k % side)), counted only if all `blk` pixels
-    // of the row are inside (a row cut by the edge feeds only dropped outputs).
-    let (places, blk, side) = (s.places(), s.kind.block(), s.kind.side());
-    let pixels = &mut scratch.pixels;
-    pixels.clear();
-    for a in 0..ty {
-        for b in 0..tx {
-            for k in 0..places {
-                pixels.extend((0..blk).map(|dy| {
-                    let iy = (blk * (2 * a + k / side) + dy).checked_sub(s.pad_top)?;
-                    let ix = (blk * (2 * b + k % side)).checked_sub(s.pad_left)?;
-                    (iy < s.h && ix + blk <= s.w).then_some((iy * s.w + ix) * s.ci)
-                }));
-            }
-        }
-    }
+    input_offsets(&s, &mut scratch.pixels);
     let pixels = &scratch.pixels[..];
     // A contiguous run of images per thread, each with its own scratch.
     let per_part = s.n.div_ceil(rayon::current_num_threads().max(1));
@@ -467,6 +466,229 @@ pub fn winograd_conv<T: Float>(
         });
 }
 
+/// Fills `pixels` (`[tile, position, dy]`) with where each tile position's block rows start in
+/// an image (`None` outside it).
+///
+/// Position k of tile (a, b) is block (2a + k / side, 2b + k % side); its row dy starts at pixel
+/// (blk·(2a + k / side) + dy, blk·(2b + k % side)), counted only if all `blk` pixels of the row
+/// are inside (a row cut by the edge feeds only dropped outputs).
+fn input_offsets(s: &WinogradShape, pixels: &mut Vec<Option<usize>>) {
+    let (ty, tx) = s.tiles();
+    let (places, blk, side) = (s.places(), s.kind.block(), s.kind.side());
+    pixels.clear();
+    for a in 0..ty {
+        for b in 0..tx {
+            for k in 0..places {
+                pixels.extend((0..blk).map(|dy| {
+                    let iy = (blk * (2 * a + k / side) + dy).checked_sub(s.pad_top)?;
+                    let ix = (blk * (2 * b + k % side)).checked_sub(s.pad_left)?;
+                    (iy < s.h && ix + blk <= s.w).then_some((iy * s.w + ix) * s.ci)
+                }));
+            }
+        }
+    }
+}
+
+/// The weight gradient of a [`WinogradKind::F2x3`] convolution (no bias, no ReLU: `dz` is the
+/// gradient of the plain sum, `[N, OH, OW, O]`), added to `dw` (`[3, 3, I, O]`).
+///
+/// The forward pass is `Y = Aᵀ[Σ_i U_i ⊙ V_i]A` per tile with `U = G·g·Gᵀ`, so by the chain
+/// rule, adjoint by adjoint:
+///
+/// ```text
+/// dM = A·dY·Aᵀ                                (2×2 → 4×4: the output transform's adjoint)
+/// dU_ξ[i, o] = Σ_tiles V_ξ[tile, i] · dM_ξ[tile, o]     (16 GEMMs reducing over the tiles)
+/// dg = Gᵀ·dU·G                                (4×4 → 3×3: the filter transform's adjoint)
+/// ```
+///
+/// `dM` is zero for the outputs a tile has past an odd edge (dropped in the forward pass). The
+/// GEMMs do 4 multiply-adds per input pixel and filter pair where the direct weight gradient
+/// does 9, and reduce over all tiles of the batch. Chunks of images go one after another and
+/// every `dU` value sums its chunks in order, so the result does not depend on the thread
+/// count; within a chunk, images are transformed in parallel and the 16 GEMMs run in parallel.
+pub fn winograd_wgrad<T: Float>(
+    s: WinogradShape,
+    x: &[T],
+    dz: &[T],
+    dw: &mut [T],
+    scratch: &mut WinogradScratch<T>,
+) {
+    assert_eq!(
+        s.kind,
+        WinogradKind::F2x3,
+        "winograd_wgrad: F(2×2, 3×3) only"
+    );
+    assert_eq!(x.len(), s.n * s.h * s.w * s.ci, "winograd_wgrad: input");
+    assert_eq!(dz.len(), s.n * s.oh * s.ow * s.co, "winograd_wgrad: dz");
+    assert_eq!(dw.len(), 9 * s.ci * s.co, "winograd_wgrad: dw");
+    if s.n == 0 || s.oh == 0 || s.ow == 0 {
+        return;
+    }
+    let (ty, tx) = s.tiles();
+    let (ci, co) = (s.ci, s.co);
+    // 4 images of conv3 per chunk: 120 tiles, V and dM 480 KiB each, in L2.
+    let per_chunk = 96usize.div_ceil(ty * tx).min(s.n);
+    input_offsets(&s, &mut scratch.pixels);
+    if scratch.parts.is_empty() {
+        scratch.parts.push(Part::default());
+    }
+    let part = &mut scratch.parts[0];
+    let img_tiles = ty * tx;
+    let rows = per_chunk * img_tiles;
+    part.v.resize(part.v.len().max(16 * rows * ci), T::zero());
+    part.m.resize(part.m.len().max(16 * rows * co), T::zero());
+    part.zeros.resize(part.zeros.len().max(ci), T::zero());
+    scratch.du.clear();
+    scratch.du.resize(16 * ci * co, T::zero());
+    let (image, dz_image) = (s.h * s.w * ci, s.oh * s.ow * co);
+    // The products reduce over tiles, so each place's values for consecutive tiles lie next
+    // to each other (`I` or `O` apart), not a whole tile's block apart: a 4 KiB stride per step
+    // (conv3's 16 × 64 values) would touch a new page, and a new TLB entry, at every step.
+    for first in (0..s.n).step_by(per_chunk) {
+        let images = per_chunk.min(s.n - first);
+        let tiles = images * img_tiles;
+        let (v, m) = (
+            &mut part.v[..16 * tiles * ci],
+            &mut part.m[..16 * tiles * co],
+        );
+        let (zeros, pixels) = (&part.zeros[..ci], &scratch.pixels[..]);
+        // V `[image, ξ, tile, I]` (the forward pass's input transform), image by image in
+        // parallel; dM `[ξ, chunk tile, O]`.
+        let xs = &x[first * image..][..images * image];
+        let dzs = &dz[first * dz_image..][..images * dz_image];
+        v.par_chunks_mut(16 * img_tiles * ci)
+            .zip(xs.par_chunks(image))
+            .for_each(|(v, x)| {
+                let job = Chunk {
+                    s,
+                    images: 1,
+                    x,
+                    u: &[],
+                    bias: None,
+                    relu: false,
+                    pixels,
+                    out_pixels: &[],
+                };
+                job.input_by_place(v, zeros);
+            });
+        output_adjoint(&s, dzs, m);
+        // dU_ξ += V_ξᵀ · dM_ξ: rows are input channels, the reduction runs over the chunk's
+        // tiles (gathered from V image by image; dM's rows in order).
+        fill_iota(&mut part.p, ci, 1);
+        part.q.clear();
+        for img in 0..images {
+            part.q
+                .extend((0..img_tiles).map(|t| (img * 16 * img_tiles + t) * ci));
+        }
+        let (p, q, v, m) = (&part.p[..], &part.q[..], &*v, &*m);
+        scratch
+            .du
+            .par_chunks_mut(ci * co)
+            .enumerate()
+            .for_each(|(xi, du)| {
+                T::gather_gemm(GatherGemm {
+                    a: &v[xi * img_tiles * ci..],
+                    p,
+                    q,
+                    b: &m[xi * tiles * co..][..tiles * co],
+                    ldb: co,
+                    n: co,
+                    c: du,
+                    ldc: co,
+                    c_rows: None,
+                    init: Init::Accumulate,
+                    relu: false,
+                })
+            });
+    }
+    filter_adjoint(&scratch.du, ci, co, dw);
+}
+
+/// `dM = A·dY·Aᵀ` for every tile of a chunk of images: `dz` `[images, OH, OW, O]` into `m`
+/// `[ξ, tiles, O]`, zeros for outputs past the edge. In one dimension `A` maps `(y₀, y₁)` to
+/// `(y₀, y₀ + y₁, y₀ − y₁, −y₁)`: the transpose of `Aᵀ`'s rows `m₀ + m₁ + m₂` and
+/// `m₁ − m₂ − m₃`. (A few adds per value: one thread does the whole chunk.)
+fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T]) {
+    let (ty, tx) = s.tiles();
+    let co = s.co;
+    let stride = m.len() / 16;
+    let fast = fast_f32::<T>() && co.is_multiple_of(L);
+    let zeros = [T::zero(); L];
+    let mut t = 0;
+    for img in dz.chunks_exact(s.oh * s.ow * co) {
+        for a in 0..ty {
+            for b in 0..tx {
+                // Where each of the tile's outputs starts in `img` (None past the edge).
+                let at: [Option<usize>; 4] = std::array::from_fn(|k| {
+                    let (oy, ox) = (2 * a + k / 2, 2 * b + k % 2);
+                    (oy < s.oh && ox < s.ow).then_some((oy * s.ow + ox) * co)
+                });
+                let mt = &mut m[t * co..];
+                t += 1;
+                #[cfg(target_arch = "x86_64")]
+                if fast {
+                    let (img32, mt32) = (
+                        bytemuck::cast_slice::<T, f32>(img),
+                        bytemuck::cast_slice_mut::<T, f32>(mt),
+                    );
+                    // SAFETY: AVX-512F and T = f32 checked; every `Some` output holds `co`
+                    // values inside the image; `mt` reaches place 15 of this tile (`t` is
+                    // below the chunk's tile count, `stride / co`); `co` is a multiple of 16.
+                    unsafe { avx512::adjoint_tile(img32, at, mt32, stride, co) };
+                    continue;
+                }
+                for c0 in (0..co).step_by(L) {
+                    let l = (co - c0).min(L);
+                    let y: [Lanes<T>; 4] =
+                        std::array::from_fn(|k| at[k].map_or(zeros, |o| load(&img[o + c0..], l)));
+                    // A·dY: rows y₀, y₀ + y₁, y₀ − y₁, −y₁ of each column; then ·Aᵀ on each row.
+                    let mut r4 = [zeros; 8];
+                    for c in 0..2 {
+                        r4[c] = y[c];
+                        r4[2 + c] = add(&y[c], &y[2 + c]);
+                        r4[4 + c] = sub(&y[c], &y[2 + c]);
+                        r4[6 + c] = sub(&zeros, &y[2 + c]);
+                    }
+                    for r in 0..4 {
+                        let (t0, t1) = (&r4[2 * r], &r4[2 * r + 1]);
+                        let row = [*t0, add(t0, t1), sub(t0, t1), sub(&zeros, t1)];
+                        for (c, val) in row.iter().enumerate() {
+                            store(&mut mt[(4 * r + c) * stride + c0..], val, l);
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// `dw[ky, kx, i, o] += (Gᵀ·dU_{·}[i, o]·G)[ky, kx]`: the adjoint of [`winograd_filters`]. In one
+/// dimension `Gᵀ` maps `(u₀, u₁, u₂, u₃)` to `(u₀ + ½u₁ + ½u₂, ½u₁ − ½u₂, ½u₁ + ½u₂ + u₃)`.
+fn filter_adjoint<T: Float>(du: &[T], ci: usize, co: usize, dw: &mut [T]) {
+    let half = T::of(0.5);
+    let gt = |u: [T; 4]| -> [T; 3] {
+        [
+            u[0] + half * u[1] + half * u[2],
+            half * u[1] - half * u[2],
+            half * u[1] + half * u[2] + u[3],
+        ]
+    };
+    for i in 0..ci {
+        for o in 0..co {
+            let u: [T; 16] = std::array::from_fn(|xi| du[(xi * ci + i) * co + o]);
+            // Gᵀ on the left (each column), then G on the right (each row).
+            let cols: [[T; 3]; 4] =
+                std::array::from_fn(|c| gt([u[c], u[4 + c], u[8 + c], u[12 + c]]));
+            for ky in 0..3 {
+                let row = gt([cols[0][ky], cols[1][ky], cols[2][ky], cols[3][ky]]);
+                for (kx, &val) in row.iter().enumerate() {
+                    dw[((ky * 3 + kx) * ci + i) * co + o] += val;
+                }
+            }
+        }
+    }
+}
+
 /// A run of whole images through the three stages.
 struct Chunk<'a, T> {
     s: WinogradShape,
@@ -487,7 +709,8 @@ impl<T: Float> Chunk<'_, T> {
         let rows = self.images * ty * tx;
         let (places, ch, seg) = (s.places(), s.channels(), s.seg());
         // Grown, never shrunk: a short last chunk leaves the buffers' tails alone.
-        let (nv, nm) = (places * rows * ch, places * rows * s.co);
+        let (vs, ms) = (s.v_stride(), s.m_stride());
+        let (nv, nm) = (rows * vs, rows * ms);
         if part.v.len() < nv {
             part.v.resize(nv, T::zero());
         }
@@ -499,9 +722,9 @@ impl<T: Float> Chunk<'_, T> {
         }
         let (v, m) = (&mut part.v[..nv], &mut part.m[..nm]);
         self.input(v, &part.zeros[..seg]);
-        // M_ξ = V_ξ · U_ξ: rows are tiles (P·s²I apart in V, P·O in M), the reduction runs
-        // over the transformed channels.
-        fill_iota(&mut part.p, rows, places * ch);
+        // M_ξ = V_ξ · U_ξ: rows are tiles (`v_stride` apart in V, `m_stride` in M), the
+        // reduction runs over the transformed channels.
+        fill_iota(&mut part.p, rows, vs);
         fill_iota(&mut part.q, ch, 1);
         for xi in 0..places {
             T::gather_gemm(GatherGemm {
@@ -512,7 +735,7 @@ impl<T: Float> Chunk<'_, T> {
                 ldb: s.co,
                 n: s.co,
                 c: &mut m[xi * s.co..],
-                ldc: places * s.co,
+                ldc: ms,
                 c_rows: None,
                 init: Init::Zero,
                 relu: false,
@@ -528,7 +751,7 @@ impl<T: Float> Chunk<'_, T> {
         let s = self.s;
         let (places, ch, seg, blk) = (s.places(), s.channels(), s.seg(), s.kind.block());
         let fast = fast_f32::<T>() && seg.is_multiple_of(L);
-        let mut tiles = v.chunks_exact_mut(places * ch);
+        let mut tiles = v.chunks_exact_mut(s.v_stride());
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
             for starts in self.pixels.chunks_exact(places * blk) {
                 let vt = tiles.next().expect("one V block per tile");
@@ -543,7 +766,7 @@ impl<T: Float> Chunk<'_, T> {
                     // is a multiple of 16.
                     unsafe {
                         if places == 16 {
-                            avx512::input_tile(img32, z32, starts, vt32, blk, seg)
+                            avx512::input_tile(img32, z32, starts, vt32, ch, blk, seg)
                         } else {
                             avx512::input_tile9(img32, z32, starts, vt32, blk, seg)
                         }
@@ -566,6 +789,42 @@ impl<T: Float> Chunk<'_, T> {
         }
     }
 
+    /// [`Chunk::input`] for one image into `V [ξ, tile, s²I]` (each place's tiles together, for
+    /// a product that reduces over the tiles) instead of `[tile, ξ, s²I]`.
+    fn input_by_place(&self, v: &mut [T], zeros: &[T]) {
+        let s = self.s;
+        let (places, ch, seg, blk) = (s.places(), s.channels(), s.seg(), s.kind.block());
+        let (ty, tx) = s.tiles();
+        let stride = ty * tx * ch;
+        assert!(self.images == 1 && v.len() >= places * stride);
+        let fast = fast_f32::<T>() && seg.is_multiple_of(L);
+        let img = self.x;
+        for (t, starts) in self.pixels.chunks_exact(places * blk).enumerate() {
+            let vt = &mut v[t * ch..];
+            #[cfg(target_arch = "x86_64")]
+            if fast && places == 16 {
+                let img32 = bytemuck::cast_slice::<T, f32>(img);
+                let z32 = bytemuck::cast_slice::<T, f32>(zeros);
+                let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
+                // SAFETY: as in `input`, with places `stride` apart: `vt` holds
+                // 15·stride + ch values (the tile's offset is below `stride`).
+                unsafe { avx512::input_tile(img32, z32, starts, vt32, stride, blk, seg) };
+                continue;
+            }
+            for dy in 0..blk {
+                let row = |k: usize| starts[k * blk + dy].map_or(zeros, |o| &img[o..o + seg]);
+                let off = dy * seg;
+                if places == 16 {
+                    let px: [&[T]; 16] = std::array::from_fn(row);
+                    input_tile(&px, vt, stride, off, seg, input_transform);
+                } else {
+                    let px: [&[T]; 9] = std::array::from_fn(row);
+                    input_tile(&px, vt, stride, off, seg, input_transform9);
+                }
+            }
+        }
+    }
+
     /// `Y = Aᵀ·M·A` (+ bias, ReLU) for every tile, stored where the output pixels go (the
     /// second row or column of a tile past an odd output edge is dropped).
     fn output(&self, m: &[T], out: &mut [T]) {
@@ -573,7 +832,7 @@ impl<T: Float> Chunk<'_, T> {
         let (ty, tx) = s.tiles();
         let fast = fast_f32::<T>() && s.co.is_multiple_of(L);
         let places = s.places();
-        let mut tiles = m.chunks_exact(places * s.co);
+        let mut tiles = m.chunks_exact(s.m_stride());
         for img in out.chunks_exact_mut(s.out_image) {
             for a in 0..ty {
                 for b in 0..tx {
@@ -706,22 +965,24 @@ mod avx512 {
     }
 
     /// [`super::input_tile`] with [`super::input_transform`] for a whole tile (all `blk` block
-    /// rows), for f32: `v[ξ·blk·seg + dy·seg + c]` from the rows `starts[k·blk + dy]`.
+    /// rows), for f32: `v[ξ·stride + dy·seg + c]` from the rows `starts[k·blk + dy]`.
     ///
     /// # Safety
     /// AVX-512F must be available; every `Some` start must have `seg` values in `img`, `zeros`
-    /// hold `seg`, `v` `16·blk·seg`; `seg` a multiple of 16.
+    /// hold `seg`, `stride ≥ blk·seg` and `v` `15·stride + blk·seg` values; `seg` a multiple
+    /// of 16.
     #[target_feature(enable = "avx512f")]
     pub unsafe fn input_tile(
         img: &[f32],
         zeros: &[f32],
         starts: &[Option<usize>],
         v: &mut [f32],
+        stride: usize,
         blk: usize,
         seg: usize,
     ) {
-        let stride = blk * seg;
-        debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && v.len() >= 16 * stride);
+        debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && stride >= blk * seg);
+        debug_assert!(v.len() >= 15 * stride + blk * seg);
         debug_assert!(starts.len() == 16 * blk);
         debug_assert!(starts.iter().flatten().all(|&o| o + seg <= img.len()));
         for dy in 0..blk {
@@ -790,6 +1051,49 @@ mod avx512 {
                     _mm512_storeu_ps(at(3 * r), _mm512_sub_ps(q[0], q[1]));
                     _mm512_storeu_ps(at(3 * r + 1), q[1]);
                     _mm512_storeu_ps(at(3 * r + 2), _mm512_sub_ps(q[2], q[1]));
+                }
+            }
+        }
+    }
+
+    /// [`super::output_adjoint`] for one tile, f32: `m[ξ·stride + c]` from the tile's 2×2
+    /// outputs at `img[at[k] + c]` (zeros for `None`).
+    ///
+    /// # Safety
+    /// AVX-512F must be available; every `Some` offset must have `co` values in `img`, `m` hold
+    /// `15·stride + co` values, and `co` be a multiple of 16.
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn adjoint_tile(
+        img: &[f32],
+        at: [Option<usize>; 4],
+        m: &mut [f32],
+        stride: usize,
+        co: usize,
+    ) {
+        debug_assert!(co.is_multiple_of(16) && m.len() >= 15 * stride + co);
+        debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
+        let (ip, mp) = (img.as_ptr(), m.as_mut_ptr());
+        let zero = _mm512_setzero_ps();
+        for c0 in (0..co).step_by(16) {
+            let y: [__m512; 4] =
+                std::array::from_fn(|k| at[k].map_or(zero, |o| _mm512_loadu_ps(ip.add(o + c0))));
+            let mut t = [zero; 8];
+            for c in 0..2 {
+                t[c] = y[c];
+                t[2 + c] = _mm512_add_ps(y[c], y[2 + c]);
+                t[4 + c] = _mm512_sub_ps(y[c], y[2 + c]);
+                t[6 + c] = _mm512_sub_ps(zero, y[2 + c]);
+            }
+            for r in 0..4 {
+                let (t0, t1) = (t[2 * r], t[2 * r + 1]);
+                let row = [
+                    t0,
+                    _mm512_add_ps(t0, t1),
+                    _mm512_sub_ps(t0, t1),
+                    _mm512_sub_ps(zero, t1),
+                ];
+                for (c, &val) in row.iter().enumerate() {
+                    _mm512_storeu_ps(mp.add((4 * r + c) * stride + c0), val);
                 }
             }
         }
