@@ -73,8 +73,8 @@ pub struct Conv2d<T> {
     ph_q: Vec<usize>,
     ph_w: Vec<T>,
     /// Fast path: run the forward product by Winograd's minimal filtering
-    /// ([`crate::tensor::winograd_conv`]), and for F(2×2, 3×3) also the input gradient of an
-    /// input read in place. `None`: the direct gather GEMM.
+    /// ([`crate::tensor::winograd_conv`]), and for F(2×2, 3×3) also the weight gradient and the
+    /// input gradient of an input read in place. `None`: the direct gather GEMMs.
     winograd: Option<WinogradKind>,
     /// Winograd: the transformed filters (`[16, I, O]` or `[9, s²I, O]`), the output pixel
     /// offsets, the scratch.
@@ -126,19 +126,21 @@ impl<T: Float> Conv2d<T> {
     /// ([`crate::tensor::winograd_conv`]) instead of the direct gather GEMM, where the shape
     /// has one (other shapes ignore it):
     /// - a 3×3 stride-1 filter by F(2×2, 3×3): 4/9 of the multiply-adds; also the input gradient
-    ///   when the input is read in place (the adjoint is again a 3×3 stride-1 convolution);
+    ///   when the input is read in place (the adjoint is again a 3×3 stride-1 convolution) and
+    ///   the weight gradient ([`crate::tensor::winograd_wgrad`]: the transforms' adjoints);
     /// - a `2s × 2s` filter of stride `s` (conv1: 8×8 stride 4; conv2: 4×4 stride 2) by F(2×2,
-    ///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds (the input gradient keeps the
-    ///   direct phases, [`Conv2d::dx_by_phases`]).
+    ///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds (both gradients stay direct:
+    ///   the input gradient by phases, the weight gradient a gather GEMM).
     ///
-    /// The weight gradient always stays a gather GEMM. Off by default;
+    /// Off by default;
     /// [`crate::dqn::article_qnet`] turns it on for conv2 and conv3. Batches under 8 keep the
     /// direct product: the filters are transformed on every call, and at batch 1 (acting)
     /// F(2×2, 3×3) measured 30% slower for conv3. The products reduce over fewer values (64
     /// channels for conv3, 128 for conv2) and the transforms add passes over tiles 2.25× the
     /// input, so the saving is less than the multiply-adds: measured on the 1-thread train step,
-    /// conv3's about 2–5% and conv2's about 2%, while conv1's (4 input channels, so 9 products of
-    /// only 64 × 32 per 8×8 pixels) cost 2%.
+    /// conv3's forward and input gradient about 2–5%, its weight gradient about 4% and conv2's
+    /// forward about 2%, while conv1's forward (4 input channels, so 9 products of only 64 × 32
+    /// per 8×8 pixels) cost 2%.
     pub fn with_winograd(mut self, on: bool) -> Self {
         let g = self.geom;
         self.winograd = match (g.kh, g.kw, g.sh, g.sw) {

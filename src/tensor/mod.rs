@@ -6,8 +6,11 @@
 //!
 //! Buffers are allocated once and reused: [`Tensor::set_shape`] changes the shape in place and only
 //! allocates when the new size exceeds every size seen before, so after the first pass at the
-//! largest batch nothing in a forward or backward pass allocates.
+//! largest batch nothing in a forward or backward pass allocates. Every buffer of 1 KiB or more
+//! starts on a 64-byte cache line (the crate's global allocator, `align.rs`), so the kernels'
+//! AVX-512 vectors never straddle two lines.
 
+mod align;
 mod conv;
 mod float;
 mod gather;
