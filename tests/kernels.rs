@@ -356,8 +356,9 @@ fn winograd_case<T: Float>(
     close("dw", &dww, &dw)
 }
 
-/// [`winograd_conv`] by F(2×2, 2×2) over `s × s` blocks (a `2s × 2s` filter of stride `s`,
-/// VALID: the layer passes it an input padded already) against the direct reference, in `T`.
+/// [`winograd_conv`] and [`winograd_wgrad`] by F(2×2, 2×2) over `s × s` blocks (a `2s × 2s`
+/// filter of stride `s`, VALID: the layer passes an input padded already) against the direct
+/// reference, in `T`.
 /// With f32, `s·ci` and `co` multiples of 16 (conv1's 4 × 4, conv2's 2 × 32) this runs the
 /// AVX-512 transforms.
 #[allow(clippy::too_many_arguments)]
@@ -411,15 +412,38 @@ fn winograd_s2d_case<T: Float>(
     if relu {
         want.iter_mut().for_each(|v| *v = v.max(T::zero()));
     }
-    let scale = 1.0
-        + want
-            .iter()
-            .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
-    for (i, (a, b)) in y.iter().zip(&want).enumerate() {
-        let d = (a.to_f64().unwrap() - b.to_f64().unwrap()).abs();
-        prop_assert!(d <= tol * scale, "y[{}]: {} vs {}", i, a, b);
-    }
-    Ok(())
+    let close = |what: &str, a: &[T], b: &[T]| -> Result<(), TestCaseError> {
+        let scale = 1.0
+            + b.iter()
+                .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            let d = (x.to_f64().unwrap() - y.to_f64().unwrap()).abs();
+            prop_assert!(d <= tol * scale, "{}[{}]: {} vs {}", what, i, x, y);
+        }
+        Ok(())
+    };
+    close("y", &y, &want)?;
+    // Weight gradient (added to what `dw` holds: start from ones) against the reference's.
+    let dy = uniform::<T>(&[n, g.oh, g.ow, co], &mut r);
+    let (mut dx, mut dw, mut db) = (
+        vec![T::zero(); x.len()],
+        vec![T::zero(); wt.len()],
+        vec![T::zero(); co],
+    );
+    conv2d_reference_backward(
+        &g,
+        n,
+        x.data(),
+        wt.data(),
+        dy.data(),
+        &mut dx,
+        &mut dw,
+        &mut db,
+    );
+    let mut dww = vec![T::one(); dw.len()];
+    winograd_wgrad(shape, x.data(), dy.data(), &mut dww, &mut scratch);
+    dw.iter_mut().for_each(|v| *v += T::one());
+    close("dw", &dww, &dw)
 }
 
 proptest! {

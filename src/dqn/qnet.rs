@@ -73,7 +73,8 @@ pub fn article_qnet<T: Float>(
         }
         // Winograd for conv2 (F(2×2, 2×2) over 2×2 blocks) and conv3 (F(2×2, 3×3)). conv1
         // would take F(2×2, 2×2) over 4×4 blocks, but with 4 input channels its transforms
-        // cost more than the products save: the train step measured 2% slower with it.
+        // cost more than the products save: the train step measured 2% slower with it, and
+        // its weight gradient alone level.
         net.push(conv.with_relu().with_winograd(i > 0));
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.

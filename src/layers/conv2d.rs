@@ -72,9 +72,10 @@ pub struct Conv2d<T> {
     ph_rows: Vec<usize>,
     ph_q: Vec<usize>,
     ph_w: Vec<T>,
-    /// Fast path: run the forward product by Winograd's minimal filtering
-    /// ([`crate::tensor::winograd_conv`]), and for F(2×2, 3×3) also the weight gradient and the
-    /// input gradient of an input read in place. `None`: the direct gather GEMMs.
+    /// Fast path: run the forward product and the weight gradient by Winograd's minimal
+    /// filtering ([`crate::tensor::winograd_conv`], [`crate::tensor::winograd_wgrad`]), and for
+    /// F(2×2, 3×3) also the input gradient of an input read in place. `None`: the direct
+    /// gather GEMMs.
     winograd: Option<WinogradKind>,
     /// Winograd: the transformed filters (`[16, I, O]` or `[9, s²I, O]`), the output pixel
     /// offsets, the scratch.
@@ -162,8 +163,8 @@ impl<T: Float> Conv2d<T> {
     ///   when the input is read in place (the adjoint is again a 3×3 stride-1 convolution) and
     ///   the weight gradient ([`crate::tensor::winograd_wgrad`]: the transforms' adjoints);
     /// - a `2s × 2s` filter of stride `s` (conv1: 8×8 stride 4; conv2: 4×4 stride 2) by F(2×2,
-    ///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds (both gradients stay direct:
-    ///   the input gradient by phases, the weight gradient a gather GEMM).
+    ///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds; also the weight gradient (the
+    ///   input gradient stays direct, by phases).
     ///
     /// Off by default;
     /// [`crate::dqn::article_qnet`] turns it on for conv2 and conv3. Batches under 8 keep the
@@ -172,8 +173,10 @@ impl<T: Float> Conv2d<T> {
     /// channels for conv3, 128 for conv2) and the transforms add passes over tiles 2.25× the
     /// input, so the saving is less than the multiply-adds: measured on the 1-thread train step,
     /// conv3's forward and input gradient about 2–5%, its weight gradient about 4% and conv2's
-    /// forward about 2%, while conv1's forward (4 input channels, so 9 products of only 64 × 32
-    /// per 8×8 pixels) cost 2%.
+    /// forward about 2%; conv2's weight gradient went from 4.7 to 3.6 ms. conv1's forward (4
+    /// input channels, so 9 products of only 64 × 32 per 8×8 pixels, and 5.9 MB of input read
+    /// by a transform that cannot hide the memory behind arithmetic) cost 2% of the step, and
+    /// its weight gradient measured level.
     pub fn with_winograd(mut self, on: bool) -> Self {
         let g = self.geom;
         self.winograd = match (g.kh, g.kw, g.sh, g.sw) {
@@ -439,8 +442,8 @@ impl<T: Float> Conv2d<T> {
         let direct = g.reads_input_directly();
         let a = if direct { x.data() } else { &self.xpad };
         let f2x3 = self.use_winograd(n) == Some(WinogradKind::F2x3);
-        if f2x3 {
-            // dW by Winograd: the 16 products' adjoints over the (padded) input's tiles.
+        if let Some(kind) = self.use_winograd(n) {
+            // dW by Winograd: the products' adjoints over the (padded) input's tiles.
             let (hp, wp) = g.padded();
             let shape = WinogradShape {
                 n,
@@ -453,7 +456,7 @@ impl<T: Float> Conv2d<T> {
                 pad_left: 0,
                 co: g.cout,
                 out_image: g.out_pixels() * g.cout,
-                kind: WinogradKind::F2x3,
+                kind,
             };
             let dw = self.params[0].grad.data_mut();
             winograd_wgrad(shape, a, dz, dw, &mut self.wino);

@@ -489,8 +489,9 @@ fn input_offsets(s: &WinogradShape, pixels: &mut Vec<Option<usize>>) {
     }
 }
 
-/// The weight gradient of a [`WinogradKind::F2x3`] convolution (no bias, no ReLU: `dz` is the
-/// gradient of the plain sum, `[N, OH, OW, O]`), added to `dw` (`[3, 3, I, O]`).
+/// The weight gradient of a Winograd convolution (no bias, no ReLU: `dz` is the gradient of the
+/// plain sum, `[N, OH, OW, O]`), added to `dw` (`[3, 3, I, O]`, or `[2s, 2s, I, O]` for
+/// [`WinogradKind::S2d`]`(s)`).
 ///
 /// The forward pass is `Y = Aᵀ[Σ_i U_i ⊙ V_i]A` per tile with `U = G·g·Gᵀ`, so by the chain
 /// rule, adjoint by adjoint:
@@ -501,9 +502,11 @@ fn input_offsets(s: &WinogradShape, pixels: &mut Vec<Option<usize>>) {
 /// dg = Gᵀ·dU·G                                (4×4 → 3×3: the filter transform's adjoint)
 /// ```
 ///
-/// `dM` is zero for the outputs a tile has past an odd edge (dropped in the forward pass). The
-/// GEMMs do 4 multiply-adds per input pixel and filter pair where the direct weight gradient
-/// does 9, and reduce over all tiles of the batch. Chunks of images go one after another and
+/// (9 places, 3×3 and 2×2 for F(2×2, 2×2) over blocks, whose `dg` is then put back from the
+/// block filter into the `2s × 2s` one.) `dM` is zero for the outputs a tile has past an odd
+/// edge (dropped in the forward pass). The GEMMs do 4 multiply-adds per input pixel and filter
+/// pair where the direct weight gradient does 9 (9 where it does 16 over blocks), and reduce
+/// over all tiles of the batch. Chunks of images go one after another and
 /// every `dU` value sums its chunks in order, so the result does not depend on the thread
 /// count; within a chunk, images are transformed in parallel and the 16 GEMMs run in parallel.
 pub fn winograd_wgrad<T: Float>(
@@ -513,19 +516,25 @@ pub fn winograd_wgrad<T: Float>(
     dw: &mut [T],
     scratch: &mut WinogradScratch<T>,
 ) {
-    assert_eq!(
-        s.kind,
-        WinogradKind::F2x3,
-        "winograd_wgrad: F(2×2, 3×3) only"
-    );
+    let k = match s.kind {
+        WinogradKind::F2x3 => 3,
+        WinogradKind::S2d(blk) => 2 * blk,
+    };
     assert_eq!(x.len(), s.n * s.h * s.w * s.ci, "winograd_wgrad: input");
     assert_eq!(dz.len(), s.n * s.oh * s.ow * s.co, "winograd_wgrad: dz");
-    assert_eq!(dw.len(), 9 * s.ci * s.co, "winograd_wgrad: dw");
+    assert_eq!(dw.len(), k * k * s.ci * s.co, "winograd_wgrad: dw");
+    if let WinogradKind::S2d(blk) = s.kind {
+        assert!(
+            blk > 0 && s.pad_left == 0 && blk * (s.ow + 1) <= s.w,
+            "winograd_wgrad: blocks of {blk} need no left padding and an input wide enough"
+        );
+    }
     if s.n == 0 || s.oh == 0 || s.ow == 0 {
         return;
     }
     let (ty, tx) = s.tiles();
-    let (ci, co) = (s.ci, s.co);
+    // `ci` here is a transformed place's channel count (s²·I over blocks).
+    let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
     // 4 images of conv3 per chunk: 120 tiles, V and dM 480 KiB each, in L2.
     let per_chunk = 96usize.div_ceil(ty * tx).min(s.n);
     input_offsets(&s, &mut scratch.pixels);
@@ -535,12 +544,14 @@ pub fn winograd_wgrad<T: Float>(
     let part = &mut scratch.parts[0];
     let img_tiles = ty * tx;
     let rows = per_chunk * img_tiles;
-    part.v.resize(part.v.len().max(16 * rows * ci), T::zero());
-    part.m.resize(part.m.len().max(16 * rows * co), T::zero());
-    part.zeros.resize(part.zeros.len().max(ci), T::zero());
+    part.v
+        .resize(part.v.len().max(places * rows * ci), T::zero());
+    part.m
+        .resize(part.m.len().max(places * rows * co), T::zero());
+    part.zeros.resize(part.zeros.len().max(seg), T::zero());
     scratch.du.clear();
-    scratch.du.resize(16 * ci * co, T::zero());
-    let (image, dz_image) = (s.h * s.w * ci, s.oh * s.ow * co);
+    scratch.du.resize(places * ci * co, T::zero());
+    let (image, dz_image) = (s.h * s.w * s.ci, s.oh * s.ow * co);
     // The products reduce over tiles, so each place's values for consecutive tiles lie next
     // to each other (`I` or `O` apart), not a whole tile's block apart: a 4 KiB stride per step
     // (conv3's 16 × 64 values) would touch a new page, and a new TLB entry, at every step.
@@ -548,15 +559,15 @@ pub fn winograd_wgrad<T: Float>(
         let images = per_chunk.min(s.n - first);
         let tiles = images * img_tiles;
         let (v, m) = (
-            &mut part.v[..16 * tiles * ci],
-            &mut part.m[..16 * tiles * co],
+            &mut part.v[..places * tiles * ci],
+            &mut part.m[..places * tiles * co],
         );
-        let (zeros, pixels) = (&part.zeros[..ci], &scratch.pixels[..]);
+        let (zeros, pixels) = (&part.zeros[..seg], &scratch.pixels[..]);
         // V `[image, ξ, tile, I]` (the forward pass's input transform), image by image in
         // parallel; dM `[ξ, chunk tile, O]`.
         let xs = &x[first * image..][..images * image];
         let dzs = &dz[first * dz_image..][..images * dz_image];
-        v.par_chunks_mut(16 * img_tiles * ci)
+        v.par_chunks_mut(places * img_tiles * ci)
             .zip(xs.par_chunks(image))
             .for_each(|(v, x)| {
                 let job = Chunk {
@@ -578,7 +589,7 @@ pub fn winograd_wgrad<T: Float>(
         part.q.clear();
         for img in 0..images {
             part.q
-                .extend((0..img_tiles).map(|t| (img * 16 * img_tiles + t) * ci));
+                .extend((0..img_tiles).map(|t| (img * places * img_tiles + t) * ci));
         }
         let (p, q, v, m) = (&part.p[..], &part.q[..], &*v, &*m);
         scratch
@@ -601,7 +612,10 @@ pub fn winograd_wgrad<T: Float>(
                 })
             });
     }
-    filter_adjoint(&scratch.du, ci, co, dw);
+    match s.kind {
+        WinogradKind::F2x3 => filter_adjoint(&scratch.du, ci, co, dw),
+        WinogradKind::S2d(blk) => filter_adjoint_s2d(&scratch.du, blk, s.ci, co, dw),
+    }
 }
 
 /// `dM = A·dY·Aᵀ` for every tile of a chunk of images: `dz` `[images, OH, OW, O]` into `m`
@@ -611,7 +625,8 @@ pub fn winograd_wgrad<T: Float>(
 fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T]) {
     let (ty, tx) = s.tiles();
     let co = s.co;
-    let stride = m.len() / 16;
+    let places = s.places();
+    let stride = m.len() / places;
     let fast = fast_f32::<T>() && co.is_multiple_of(L);
     let zeros = [T::zero(); L];
     let mut t = 0;
@@ -632,28 +647,36 @@ fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T]) {
                         bytemuck::cast_slice_mut::<T, f32>(mt),
                     );
                     // SAFETY: AVX-512F and T = f32 checked; every `Some` output holds `co`
-                    // values inside the image; `mt` reaches place 15 of this tile (`t` is
-                    // below the chunk's tile count, `stride / co`); `co` is a multiple of 16.
-                    unsafe { avx512::adjoint_tile(img32, at, mt32, stride, co) };
+                    // values inside the image; `mt` reaches the last place of this tile (`t`
+                    // is below the chunk's tile count, `stride / co`); `co` is a multiple of 16.
+                    unsafe {
+                        if places == 16 {
+                            avx512::adjoint_tile(img32, at, mt32, stride, co)
+                        } else {
+                            avx512::adjoint_tile9(img32, at, mt32, stride, co)
+                        }
+                    };
                     continue;
                 }
+                // A·dY, column by column, then ·Aᵀ, row by row: with F(2×2, 3×3)'s `A`,
+                // (y₀, y₁) ↦ (y₀, y₀ + y₁, y₀ − y₁, −y₁); with F(2×2, 2×2)'s, (y₀, y₀ + y₁, y₁).
+                let side = if places == 16 { 4 } else { 3 };
+                let a1 = |y0: &Lanes<T>, y1: &Lanes<T>| -> [Lanes<T>; 4] {
+                    if side == 4 {
+                        [*y0, add(y0, y1), sub(y0, y1), sub(&zeros, y1)]
+                    } else {
+                        [*y0, add(y0, y1), *y1, zeros]
+                    }
+                };
                 for c0 in (0..co).step_by(L) {
                     let l = (co - c0).min(L);
                     let y: [Lanes<T>; 4] =
                         std::array::from_fn(|k| at[k].map_or(zeros, |o| load(&img[o + c0..], l)));
-                    // A·dY: rows y₀, y₀ + y₁, y₀ − y₁, −y₁ of each column; then ·Aᵀ on each row.
-                    let mut r4 = [zeros; 8];
-                    for c in 0..2 {
-                        r4[c] = y[c];
-                        r4[2 + c] = add(&y[c], &y[2 + c]);
-                        r4[4 + c] = sub(&y[c], &y[2 + c]);
-                        r4[6 + c] = sub(&zeros, &y[2 + c]);
-                    }
-                    for r in 0..4 {
-                        let (t0, t1) = (&r4[2 * r], &r4[2 * r + 1]);
-                        let row = [*t0, add(t0, t1), sub(t0, t1), sub(&zeros, t1)];
-                        for (c, val) in row.iter().enumerate() {
-                            store(&mut mt[(4 * r + c) * stride + c0..], val, l);
+                    let cols = [a1(&y[0], &y[2]), a1(&y[1], &y[3])];
+                    for r in 0..side {
+                        let row = a1(&cols[0][r], &cols[1][r]);
+                        for (c, val) in row[..side].iter().enumerate() {
+                            store(&mut mt[(side * r + c) * stride + c0..], val, l);
                         }
                     }
                 }
@@ -683,6 +706,34 @@ fn filter_adjoint<T: Float>(du: &[T], ci: usize, co: usize, dw: &mut [T]) {
                 let row = gt([cols[0][ky], cols[1][ky], cols[2][ky], cols[3][ky]]);
                 for (kx, &val) in row.iter().enumerate() {
                     dw[((ky * 3 + kx) * ci + i) * co + o] += val;
+                }
+            }
+        }
+    }
+}
+
+/// The adjoint of [`winograd_filters_s2d`]: `dU [9, s²·Cin, Cout]` to the block filter's
+/// gradient `dg = Gᵀ·dU·G` (in one dimension `(u₀, u₁, u₂) ↦ (u₀ + u₁, u₁ + u₂)`), added into
+/// `dw [2s, 2s, Cin, Cout]` at `dw[s·by + dy, s·bx + dx, c] += dg[by, bx, (dy·s + dx)·Cin + c]`.
+fn filter_adjoint_s2d<T: Float>(du: &[T], s: usize, cin: usize, cout: usize, dw: &mut [T]) {
+    let k = 2 * s;
+    let ni = s * s * cin;
+    let gt = |u: [T; 3]| -> [T; 2] { [u[0] + u[1], u[1] + u[2]] };
+    for dy in 0..s {
+        for dx in 0..s {
+            for c in 0..cin {
+                let i = (dy * s + dx) * cin + c;
+                for o in 0..cout {
+                    let u: [T; 9] = std::array::from_fn(|xi| du[(xi * ni + i) * cout + o]);
+                    // Gᵀ on the left (each column), then G on the right (each row).
+                    let cols: [[T; 2]; 3] =
+                        std::array::from_fn(|cc| gt([u[cc], u[3 + cc], u[6 + cc]]));
+                    for by in 0..2 {
+                        let row = gt([cols[0][by], cols[1][by], cols[2][by]]);
+                        for (bx, &val) in row.iter().enumerate() {
+                            dw[(((s * by + dy) * k + s * bx + dx) * cin + c) * cout + o] += val;
+                        }
+                    }
                 }
             }
         }
@@ -768,7 +819,7 @@ impl<T: Float> Chunk<'_, T> {
                         if places == 16 {
                             avx512::input_tile(img32, z32, starts, vt32, ch, blk, seg)
                         } else {
-                            avx512::input_tile9(img32, z32, starts, vt32, blk, seg)
+                            avx512::input_tile9(img32, z32, starts, vt32, ch, blk, seg)
                         }
                     };
                     continue;
@@ -802,13 +853,19 @@ impl<T: Float> Chunk<'_, T> {
         for (t, starts) in self.pixels.chunks_exact(places * blk).enumerate() {
             let vt = &mut v[t * ch..];
             #[cfg(target_arch = "x86_64")]
-            if fast && places == 16 {
+            if fast {
                 let img32 = bytemuck::cast_slice::<T, f32>(img);
                 let z32 = bytemuck::cast_slice::<T, f32>(zeros);
                 let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
                 // SAFETY: as in `input`, with places `stride` apart: `vt` holds
-                // 15·stride + ch values (the tile's offset is below `stride`).
-                unsafe { avx512::input_tile(img32, z32, starts, vt32, stride, blk, seg) };
+                // (places − 1)·stride + ch values (the tile's offset is below `stride`).
+                unsafe {
+                    if places == 16 {
+                        avx512::input_tile(img32, z32, starts, vt32, stride, blk, seg)
+                    } else {
+                        avx512::input_tile9(img32, z32, starts, vt32, stride, blk, seg)
+                    }
+                };
                 continue;
             }
             for dy in 0..blk {
@@ -1016,18 +1073,19 @@ mod avx512 {
     /// [`input_tile`] with [`super::input_transform9`] (9 positions).
     ///
     /// # Safety
-    /// As [`input_tile`], with `starts` of `9·blk` and `v` of `9·blk·seg` values.
+    /// As [`input_tile`], with `starts` of `9·blk` and `v` of `8·stride + blk·seg` values.
     #[target_feature(enable = "avx512f")]
     pub unsafe fn input_tile9(
         img: &[f32],
         zeros: &[f32],
         starts: &[Option<usize>],
         v: &mut [f32],
+        stride: usize,
         blk: usize,
         seg: usize,
     ) {
-        let stride = blk * seg;
-        debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && v.len() >= 9 * stride);
+        debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && stride >= blk * seg);
+        debug_assert!(v.len() >= 8 * stride + blk * seg);
         debug_assert!(starts.len() == 9 * blk);
         debug_assert!(starts.iter().flatten().all(|&o| o + seg <= img.len()));
         for dy in 0..blk {
@@ -1094,6 +1152,42 @@ mod avx512 {
                 ];
                 for (c, &val) in row.iter().enumerate() {
                     _mm512_storeu_ps(mp.add((4 * r + c) * stride + c0), val);
+                }
+            }
+        }
+    }
+
+    /// [`super::output_adjoint`] of F(2×2, 2×2) for one tile, f32: `m[ξ·stride + c]` (9 places)
+    /// from the tile's 2×2 outputs, `A` mapping `(y₀, y₁)` to `(y₀, y₀ + y₁, y₁)`.
+    ///
+    /// # Safety
+    /// As [`adjoint_tile`], with `m` holding `8·stride + co` values.
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn adjoint_tile9(
+        img: &[f32],
+        at: [Option<usize>; 4],
+        m: &mut [f32],
+        stride: usize,
+        co: usize,
+    ) {
+        debug_assert!(co.is_multiple_of(16) && m.len() >= 8 * stride + co);
+        debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
+        let (ip, mp) = (img.as_ptr(), m.as_mut_ptr());
+        let zero = _mm512_setzero_ps();
+        for c0 in (0..co).step_by(16) {
+            let y: [__m512; 4] =
+                std::array::from_fn(|k| at[k].map_or(zero, |o| _mm512_loadu_ps(ip.add(o + c0))));
+            let mut t = [zero; 6];
+            for c in 0..2 {
+                t[c] = y[c];
+                t[2 + c] = _mm512_add_ps(y[c], y[2 + c]);
+                t[4 + c] = y[2 + c];
+            }
+            for r in 0..3 {
+                let (t0, t1) = (t[2 * r], t[2 * r + 1]);
+                let row = [t0, _mm512_add_ps(t0, t1), t1];
+                for (c, &val) in row.iter().enumerate() {
+                    _mm512_storeu_ps(mp.add((3 * r + c) * stride + c0), val);
                 }
             }
         }
