@@ -26,7 +26,8 @@ use rayon::prelude::*;
 /// for an input read in place, one gather GEMM per stride phase writes each `dX` value once
 /// (`Conv2d::dx_by_phases`); otherwise `dZ·Wᵀ` (with `Wᵀ` packed) is added tile by tile straight
 /// onto a padded input gradient ([`crate::tensor::ScatterGemm`], col2im fused), whose interior
-/// is then `dX`.
+/// is then `dX`. [`Conv2d::with_winograd`] replaces these products by Winograd's minimal
+/// filtering where the shape allows it (conv2 and conv3 of the article's network).
 ///
 /// The fused ReLU and the border are what a separate [`super::Relu`] layer and the next layer's
 /// padding would otherwise do, each a pass over the whole activation: at batch 48 that is about

@@ -42,11 +42,12 @@
 //! 4 pixels × 4 frames, one vector), read in place by the input transform.
 //!
 //! The same routine serves a convolution's forward pass and its input gradient (the adjoint
-//! convolution: the filter rotated by 180° with its channel axes swapped, [`winograd_filters`]).
-//! Work goes in chunks of whole images, enough tiles for one GEMM to fill its register tiles,
-//! whose transformed inputs and products (1.2 MB for conv3's 64 channels) stay in L2; each rayon
-//! task takes a contiguous run of images with its own scratch. Every output is computed from
-//! its own tile in a fixed order, so the results do not depend on the thread count.
+//! convolution: the filter rotated by 180° with its channel axes swapped, [`winograd_filters`]);
+//! [`winograd_wgrad`] computes the weight gradient through the transforms' adjoints. Work goes in
+//! chunks of whole images, enough tiles for one GEMM to fill its register tiles, whose
+//! transformed inputs and products (480 KiB for two images of conv3) stay in L2; each rayon task
+//! takes a contiguous run of images with its own scratch. Every output is computed from its own
+//! tile in a fixed order, so the results do not depend on the thread count.
 
 use super::{fill_iota, Float, GatherGemm, Init};
 use rayon::prelude::*;
