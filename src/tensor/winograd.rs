@@ -801,42 +801,12 @@ impl<T: Float> Chunk<'_, T> {
     /// the image). `pixels`: where each tile position's block rows start in an image.
     fn input(&self, v: &mut [T], zeros: &[T]) {
         let s = self.s;
-        let (places, ch, seg, blk) = (s.places(), s.channels(), s.seg(), s.kind.block());
-        let fast = fast_f32::<T>() && seg.is_multiple_of(L);
+        let (places, blk) = (s.places(), s.kind.block());
         let mut tiles = v.chunks_exact_mut(s.v_stride());
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
             for starts in self.pixels.chunks_exact(places * blk) {
                 let vt = tiles.next().expect("one V block per tile");
-                #[cfg(target_arch = "x86_64")]
-                if fast {
-                    let img32 = bytemuck::cast_slice::<T, f32>(img);
-                    let z32 = bytemuck::cast_slice::<T, f32>(zeros);
-                    let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
-                    // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every start is
-                    // a block row of `seg` values inside the image (checked where the table is
-                    // built), `zeros` holds `seg`, `vt` places·ch = places·blk·seg, and `seg`
-                    // is a multiple of 16.
-                    unsafe {
-                        if places == 16 {
-                            avx512::input_tile(img32, z32, starts, vt32, ch, blk, seg)
-                        } else {
-                            avx512::input_tile9(img32, z32, starts, vt32, ch, blk, seg)
-                        }
-                    };
-                    continue;
-                }
-                // Block row dy of every position: `seg` values each, channels dy·seg.. of V.
-                for dy in 0..blk {
-                    let row = |k: usize| starts[k * blk + dy].map_or(zeros, |o| &img[o..o + seg]);
-                    let off = dy * seg;
-                    if places == 16 {
-                        let px: [&[T]; 16] = std::array::from_fn(row);
-                        input_tile(&px, vt, ch, off, seg, input_transform);
-                    } else {
-                        let px: [&[T]; 9] = std::array::from_fn(row);
-                        input_tile(&px, vt, ch, off, seg, input_transform9);
-                    }
-                }
+                input_tile_any(&s, img, zeros, starts, vt, s.channels());
             }
         }
     }
@@ -845,41 +815,12 @@ impl<T: Float> Chunk<'_, T> {
     /// a product that reduces over the tiles) instead of `[tile, ξ, s²I]`.
     fn input_by_place(&self, v: &mut [T], zeros: &[T]) {
         let s = self.s;
-        let (places, ch, seg, blk) = (s.places(), s.channels(), s.seg(), s.kind.block());
+        let (places, ch, blk) = (s.places(), s.channels(), s.kind.block());
         let (ty, tx) = s.tiles();
         let stride = ty * tx * ch;
         assert!(self.images == 1 && v.len() >= places * stride);
-        let fast = fast_f32::<T>() && seg.is_multiple_of(L);
-        let img = self.x;
         for (t, starts) in self.pixels.chunks_exact(places * blk).enumerate() {
-            let vt = &mut v[t * ch..];
-            #[cfg(target_arch = "x86_64")]
-            if fast {
-                let img32 = bytemuck::cast_slice::<T, f32>(img);
-                let z32 = bytemuck::cast_slice::<T, f32>(zeros);
-                let vt32 = bytemuck::cast_slice_mut::<T, f32>(vt);
-                // SAFETY: as in `input`, with places `stride` apart: `vt` holds
-                // (places − 1)·stride + ch values (the tile's offset is below `stride`).
-                unsafe {
-                    if places == 16 {
-                        avx512::input_tile(img32, z32, starts, vt32, stride, blk, seg)
-                    } else {
-                        avx512::input_tile9(img32, z32, starts, vt32, stride, blk, seg)
-                    }
-                };
-                continue;
-            }
-            for dy in 0..blk {
-                let row = |k: usize| starts[k * blk + dy].map_or(zeros, |o| &img[o..o + seg]);
-                let off = dy * seg;
-                if places == 16 {
-                    let px: [&[T]; 16] = std::array::from_fn(row);
-                    input_tile(&px, vt, stride, off, seg, input_transform);
-                } else {
-                    let px: [&[T]; 9] = std::array::from_fn(row);
-                    input_tile(&px, vt, stride, off, seg, input_transform9);
-                }
-            }
+            input_tile_any(&s, self.x, zeros, starts, &mut v[t * ch..], stride);
         }
     }
 
@@ -928,6 +869,51 @@ impl<T: Float> Chunk<'_, T> {
                     }
                 }
             }
+        }
+    }
+}
+
+/// One tile's input transform, all its block rows: `v[ξ·stride + dy·seg + c]` from the rows
+/// `starts[k·blk + dy]` of `img` (`zeros` outside it), on the AVX-512 transforms where they run.
+/// `stride` is `s²I` for the tile-major `V` of the forward pass, the image's tiles times that
+/// for the place-major `V` of the weight gradient.
+fn input_tile_any<T: Float>(
+    s: &WinogradShape,
+    img: &[T],
+    zeros: &[T],
+    starts: &[Option<usize>],
+    v: &mut [T],
+    stride: usize,
+) {
+    let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
+    #[cfg(target_arch = "x86_64")]
+    if fast_f32::<T>() && seg.is_multiple_of(L) {
+        let img32 = bytemuck::cast_slice::<T, f32>(img);
+        let z32 = bytemuck::cast_slice::<T, f32>(zeros);
+        let v32 = bytemuck::cast_slice_mut::<T, f32>(v);
+        // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every start is a block row of
+        // `seg` values inside the image (checked where the table is built), `zeros` holds `seg`,
+        // `v` reaches place `places − 1` (the callers' slices run to the end of their block),
+        // and `seg` is a multiple of 16.
+        unsafe {
+            if places == 16 {
+                avx512::input_tile(img32, z32, starts, v32, stride, blk, seg)
+            } else {
+                avx512::input_tile9(img32, z32, starts, v32, stride, blk, seg)
+            }
+        };
+        return;
+    }
+    // Block row dy of every position: `seg` values each, channels dy·seg.. of each place.
+    for dy in 0..blk {
+        let row = |k: usize| starts[k * blk + dy].map_or(zeros, |o| &img[o..o + seg]);
+        let off = dy * seg;
+        if places == 16 {
+            let px: [&[T]; 16] = std::array::from_fn(row);
+            input_tile(&px, v, stride, off, seg, input_transform);
+        } else {
+            let px: [&[T]; 9] = std::array::from_fn(row);
+            input_tile(&px, v, stride, off, seg, input_transform9);
         }
     }
 }
