@@ -61,6 +61,35 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<String>> {
         .collect()
 }
 
+/// A run bounded by emulator frames instead of episodes starts, stops on its budget and saves
+/// its configuration (it once panicked writing `config.toml`: the unbounded episode count did
+/// not fit TOML's integers).
+#[test]
+fn train_by_frames() {
+    let root = tmp("frames");
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = root.join("quick.toml");
+    std::fs::write(&cfg, QUICK).unwrap();
+    let run = root.join("run");
+    let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
+    let text = ok(&invaders(&[
+        "train",
+        "--config",
+        cfg_s,
+        "--frames",
+        "900",
+        "--threads",
+        "1",
+        "--out",
+        run_s,
+    ]));
+    assert!(text.contains("frames"), "{text}");
+    let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(saved.contains("max_frames = 900"), "{saved}");
+    assert!(run.join("checkpoint.safetensors").is_file());
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 #[test]
 fn train_eval_resume_plot() {
     let root = tmp("run");

@@ -18,7 +18,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use invaders::dqn::checkpoint::{self, write_atomic};
-use invaders::dqn::{Agent, Config, EpisodeRow, Preset};
+use invaders::dqn::{Agent, Config, EpisodeRow, Preset, NO_EPISODE_LIMIT};
 use invaders::env::SpaceInvaders;
 use invaders::plot::{plot_rewards, Curve};
 
@@ -134,7 +134,7 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     }
     if let Some(f) = args.frames {
         config.max_frames = f;
-        config.episodes = u64::MAX;
+        config.episodes = NO_EPISODE_LIMIT;
     }
     config.validate()?;
     if resumed.is_none() {

@@ -40,6 +40,10 @@ impl Preset {
     }
 }
 
+/// `episodes` of a run bounded by frames only: as many as TOML's integers hold (they are i64,
+/// so `u64::MAX` would not serialise into `config.toml`).
+pub const NO_EPISODE_LIMIT: u64 = i64::MAX as u64;
+
 /// Everything a training run depends on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -49,7 +53,8 @@ pub struct Config {
     /// Seed of every random generator of the run (network init, exploration, replay sampling,
     /// the emulator).
     pub seed: u64,
-    /// Stop after this many episodes (the article: 800).
+    /// Stop after this many episodes (the article: 800); [`NO_EPISODE_LIMIT`] when a frame
+    /// budget (`max_frames`) ends the run instead.
     pub episodes: u64,
     /// Or after this many emulator frames, whichever comes first (0: no frame limit).
     pub max_frames: u64,

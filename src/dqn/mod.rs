@@ -8,7 +8,7 @@ mod qnet;
 mod replay;
 
 pub use agent::{greedy, play_evaluation_episode, Agent, EpisodeRow};
-pub use config::{Config, Preset};
+pub use config::{Config, Preset, NO_EPISODE_LIMIT};
 pub use learner::{argmax, Batch, Learner, StepStats};
 pub use qnet::{article_qnet, input_border};
 pub use replay::{Replay, FLAG_ACTED, FLAG_DONE, FLAG_START};
