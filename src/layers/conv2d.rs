@@ -195,6 +195,28 @@ impl<T: Float> Conv2d<T> {
         self.winograd.filter(|_| n >= 8)
     }
 
+    /// The forward product of a batch of `n` as a Winograd convolution: VALID over the (padded)
+    /// input, every input tile (4×4 pixels, or 3×3 blocks of s×s) of a 2×2 output tile, into the
+    /// bordered output.
+    fn winograd_shape(&self, n: usize, kind: WinogradKind) -> WinogradShape {
+        let g = self.geom;
+        let (hp, wp) = g.padded();
+        let (hb, wb) = self.border.around(g.oh, g.ow);
+        WinogradShape {
+            n,
+            h: hp,
+            w: wp,
+            ci: g.cin,
+            oh: g.oh,
+            ow: g.ow,
+            pad_top: 0,
+            pad_left: 0,
+            co: g.cout,
+            out_image: hb * wb * g.cout,
+            kind,
+        }
+    }
+
     /// Applies `max(·, 0)` to the output (a fused ReLU: `∂y/∂z = [y > 0]`).
     pub fn with_relu(mut self) -> Self {
         self.relu = true;
@@ -377,8 +399,6 @@ impl<T: Float> Conv2d<T> {
         if let Some(kind) = self.use_winograd(n) {
             // VALID over the (padded) input: every input tile (4×4 pixels, or 3×3 blocks of
             // s×s) of a 2×2 output tile.
-            let (hp, wp) = g.padded();
-            let (hb, wb) = self.border.around(g.oh, g.ow);
             let w = self.params[0].value.data();
             match kind {
                 WinogradKind::F2x3 => winograd_filters(w, g.cin, g.cout, false, &mut self.wino_u),
@@ -386,19 +406,7 @@ impl<T: Float> Conv2d<T> {
             }
             self.border
                 .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.wino_pix);
-            let shape = WinogradShape {
-                n,
-                h: hp,
-                w: wp,
-                ci: g.cin,
-                oh: g.oh,
-                ow: g.ow,
-                pad_top: 0,
-                pad_left: 0,
-                co: g.cout,
-                out_image: hb * wb * g.cout,
-                kind,
-            };
+            let shape = self.winograd_shape(n, kind);
             let bias = Some(self.params[1].value.data());
             let y = self.y.data_mut();
             winograd_conv(
@@ -445,20 +453,7 @@ impl<T: Float> Conv2d<T> {
         let f2x3 = self.use_winograd(n) == Some(WinogradKind::F2x3);
         if let Some(kind) = self.use_winograd(n) {
             // dW by Winograd: the products' adjoints over the (padded) input's tiles.
-            let (hp, wp) = g.padded();
-            let shape = WinogradShape {
-                n,
-                h: hp,
-                w: wp,
-                ci: g.cin,
-                oh: g.oh,
-                ow: g.ow,
-                pad_top: 0,
-                pad_left: 0,
-                co: g.cout,
-                out_image: g.out_pixels() * g.cout,
-                kind,
-            };
+            let shape = self.winograd_shape(n, kind);
             let dw = self.params[0].grad.data_mut();
             winograd_wgrad(shape, a, dz, dw, &mut self.wino);
         } else {
