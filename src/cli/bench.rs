@@ -1,9 +1,12 @@
 //! `invaders bench`: the figures that matter for training speed, in one command.
 //!
 //! Times (medians over repeated runs) the article network's train step at batch 48, its batch-1
-//! forward pass (acting), the emulator's frames per second with the `article` preset's pipeline,
-//! and end-to-end agent steps per second of the `article` preset with learning on.
+//! forward pass (acting, on game frames: [`Sequential::infer`], whose sparse products depend on
+//! how many activations are zero, so `--checkpoint` times a trained network's), the emulator's
+//! frames per second with the `article` preset's pipeline, and end-to-end agent steps per second
+//! of the `article` preset with learning on.
 
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
@@ -11,8 +14,9 @@ use clap::Args;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use invaders::dqn::{Agent, Batch, Config, Learner, Preset};
+use invaders::dqn::{checkpoint, Agent, Batch, Config, Learner, Preset};
 use invaders::env::{Observer, SpaceInvaders};
+use invaders::layers::Sequential;
 use invaders::tensor::Tensor;
 
 #[derive(Debug, Args)]
@@ -26,6 +30,11 @@ pub struct BenchArgs {
     /// Train steps to time.
     #[arg(long, default_value_t = 30)]
     steps: usize,
+    /// Time acting with this checkpoint's online network (a run directory or its
+    /// `checkpoint.safetensors`) instead of a newly initialised one. A trained network's
+    /// activations are mostly zeros, which acting skips.
+    #[arg(long, value_name = "PATH")]
+    checkpoint: Option<PathBuf>,
 }
 
 fn median(mut xs: Vec<f64>) -> f64 {
@@ -78,25 +87,19 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let flops = 2.0 * config.batch_size as f64 * (3.0 * macs + (macs - first));
     let gflops = flops / (step_ms * 1e-3) / 1e9;
 
-    // Acting: a batch-1 forward pass.
-    let x1 = Tensor::from_vec(
-        &[1, input[0], input[1], input[2]],
-        (0..input.iter().product())
-            .map(|_| rng.random_range(-1.0..1.0))
-            .collect(),
-    );
-    for _ in 0..20 {
-        learner.online.forward(&x1);
-    }
-    let act_ms = median(
-        (0..300)
-            .map(|_| {
-                let t = Instant::now();
-                learner.online.forward(&x1);
-                t.elapsed().as_secs_f64() * 1e3
-            })
-            .collect(),
-    );
+    // Acting: a batch-1 forward pass on game frames, as the agent acts.
+    let act_ms = match &args.checkpoint {
+        None => time_acting(&mut learner.online, &config, &mut rng)?,
+        Some(path) => {
+            let file = if path.is_dir() {
+                path.join("checkpoint.safetensors")
+            } else {
+                path.clone()
+            };
+            let mut ckpt = checkpoint::load(&file)?;
+            time_acting(&mut ckpt.learner.online, &ckpt.config, &mut rng)?
+        }
+    };
 
     // The emulator with the article's pipeline and input normalisation, random actions.
     let mut env = SpaceInvaders::new(&config.env, 0).context("cannot start Space Invaders")?;
@@ -146,6 +149,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "train_step_ms": step_ms,
                 "train_step_gflops": gflops,
                 "act_ms": act_ms,
+                "act_checkpoint": args.checkpoint,
                 "env_frames_per_s": env_fps,
                 "agent_steps_per_s": agent_steps_per_s,
                 "env_share_of_training": env_share,
@@ -154,9 +158,55 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     } else {
         println!("threads                 {threads}");
         println!("train step (batch 48)   {step_ms:.2} ms  ({gflops:.1} GFLOP/s)");
-        println!("act (batch-1 forward)   {act_ms:.3} ms");
+        let net = match &args.checkpoint {
+            Some(p) => format!("{}'s network", p.display()),
+            None => "an initial network".to_string(),
+        };
+        println!("act (batch-1 forward)   {act_ms:.3} ms  ({net}, game frames)");
         println!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
         println!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
     }
     Ok(())
+}
+
+/// The median time of `net`'s batch-1 forward pass ([`Sequential::infer`], as the agent acts) on
+/// 64 observations from a game played with random actions through `config`'s pipeline, each
+/// timed 5 times (after one pass to warm up).
+fn time_acting(
+    net: &mut Sequential<f32>,
+    config: &Config,
+    rng: &mut ChaCha8Rng,
+) -> anyhow::Result<f64> {
+    let mut env = SpaceInvaders::new(&config.env, 1).context("cannot start Space Invaders")?;
+    let mut observer = Observer::new(config.pipeline);
+    let table = config.normalization.table();
+    let [h, w, c] = config.input_shape();
+    env.reset();
+    observer.reset(&env);
+    let mut frames = Vec::with_capacity(64);
+    for step in 0..64 * 10 {
+        let r = env.step(rng.random_range(0..env.n_actions()));
+        observer.step(&env);
+        if step % 10 == 9 {
+            let mut x = Tensor::from_vec(&[1, h, w, c], vec![0.0; h * w * c]);
+            observer.write_input(&table, x.data_mut());
+            frames.push(x);
+        }
+        if r.terminal || r.truncated {
+            env.reset();
+            observer.reset(&env);
+        }
+    }
+    for x in &frames {
+        net.infer(x);
+    }
+    let mut times = Vec::with_capacity(5 * frames.len());
+    for _ in 0..5 {
+        for x in &frames {
+            let t = Instant::now();
+            net.infer(x);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    Ok(median(times))
 }

@@ -71,7 +71,7 @@ impl EpisodeRow {
 }
 
 /// `argmax_a Q(s, a)` for the observer's current stack `s`: writes the normalised stack into
-/// `input` (`[1, 88, 80, k]`) and runs a batch-1 forward pass.
+/// `input` (`[1, 88, 80, k]`) and runs a batch-1 forward pass ([`Sequential::infer`]).
 pub fn greedy(
     net: &mut Sequential<f32>,
     observer: &Observer,
@@ -79,7 +79,7 @@ pub fn greedy(
     input: &mut Tensor<f32>,
 ) -> usize {
     observer.write_input(table, input.data_mut());
-    argmax(net.forward(input).data())
+    argmax(net.infer(input).data())
 }
 
 /// Plays one episode with an ε-greedy policy and no learning (evaluation); `on_step` sees the

@@ -75,11 +75,16 @@ pub fn article_qnet<T: Float>(
         // would take F(2×2, 2×2) over 4×4 blocks, but with 4 input channels its transforms
         // cost more than the products save: the train step measured 2% slower with it, and
         // its weight gradient alone level.
-        net.push(conv.with_relu().with_winograd(i > 0));
+        // conv2 and conv3 read a ReLU's output: acting skips its zeros.
+        net.push(
+            conv.with_relu()
+                .with_winograd(i > 0)
+                .with_sparse_inference(i > 0),
+        );
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
     let flat = shape.iter().product();
-    net.push(Dense::new("dense1", flat, 128));
+    net.push(Dense::new("dense1", flat, 128).with_sparse_inference(true));
     net.push(Relu::new("relu4", &[128]));
     net.push(Dense::new("dense2", 128, n_actions));
     for p in net.params_mut() {

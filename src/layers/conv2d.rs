@@ -4,8 +4,8 @@
 use super::{Layer, Param};
 use crate::tensor::{
     col2im, fill_iota, gemm, im2col, pad_input, unpad_input, winograd_conv, winograd_filters,
-    winograd_filters_s2d, winograd_wgrad, Border, ConvGeom, Float, GatherGemm, Init, Op,
-    ScatterGemm, Tensor, WinogradKind, WinogradScratch, WinogradShape,
+    winograd_filters_s2d, winograd_wgrad, Border, ConvGeom, Float, GatherGemm, Init, Nonzeros, Op,
+    ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch, WinogradShape,
 };
 use rayon::prelude::*;
 
@@ -83,6 +83,12 @@ pub struct Conv2d<T> {
     wino_u: Vec<T>,
     wino_pix: Vec<usize>,
     wino: WinogradScratch<T>,
+    /// [`Layer::infer`] at batch 1 by [`SparseConv`] (the input is a ReLU's output), with the
+    /// input's nonzeros, each output pixel's window start and each tap's offset, in pixels.
+    sparse: bool,
+    nz: Nonzeros<T>,
+    sp_windows: Vec<usize>,
+    sp_taps: Vec<usize>,
 }
 
 /// `dZ` row by row for one image (see [`Conv2d::pre_activation_grad`]): row `m` of `z` is `dY`'s
@@ -154,7 +160,20 @@ impl<T: Float> Conv2d<T> {
             wino_u: Vec::new(),
             wino_pix: Vec::new(),
             wino: WinogradScratch::default(),
+            sparse: false,
+            nz: Nonzeros::default(),
+            sp_windows: Vec::new(),
+            sp_taps: Vec::new(),
         }
+    }
+
+    /// Acts ([`Layer::infer`] at batch 1) by a product over the input's nonzero values only
+    /// ([`crate::tensor::SparseConv`]): for a layer whose input is a ReLU's output, which in a
+    /// trained network is mostly exact zeros. Off by default; [`crate::dqn::article_qnet`]
+    /// turns it on for conv2 and conv3.
+    pub fn with_sparse_inference(mut self, on: bool) -> Self {
+        self.sparse = on;
+        self
     }
 
     /// Runs the forward product on the fast path by Winograd's minimal filtering
@@ -647,6 +666,58 @@ impl<T: Float> Conv2d<T> {
         self.zero_border(n);
     }
 
+    /// [`Layer::infer`] of one image by [`SparseConv`], with `self.geom` the input's geometry:
+    /// output pixel `(oy, ox)`'s window starts at padded pixel `(oy·SH, ox·SW)` and tap
+    /// `(ky, kx)` is `ky·WP + kx` pixels further on.
+    fn infer_sparse(&mut self, x: &Tensor<T>) {
+        let g = self.geom;
+        assert_eq!(
+            x.shape(),
+            [1, g.h, g.w, g.cin],
+            "{}: input shape",
+            self.name
+        );
+        self.y.set_shape(&self.out_shape(1));
+        let a: &[T] = if g.reads_input_directly() {
+            x.data()
+        } else {
+            pad_input(&g, 1, x.data(), &mut self.xpad);
+            &self.xpad
+        };
+        self.nz.collect(a, g.cin);
+        if self.nz.len() > a.len() / 4 {
+            // Measured at batch 1 on one thread (an untrained network on game frames at about
+            // 40% nonzero, a trained one at 1–5%): the sparse product loads a weight row from L2
+            // for every nonzero value and tap, where the dense one shares each load between
+            // several output pixels, and the two break even at about a quarter nonzero.
+            return self.forward_as(x);
+        }
+        let (_, wp) = g.padded();
+        self.sp_windows.clear();
+        for oy in 0..g.oh {
+            self.sp_windows
+                .extend((0..g.ow).map(|ox| oy * g.sh * wp + ox * g.sw));
+        }
+        self.sp_taps.clear();
+        for ky in 0..g.kh {
+            self.sp_taps.extend((0..g.kw).map(|kx| ky * wp + kx));
+        }
+        self.border
+            .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.out_rows);
+        SparseConv {
+            x: &self.nz,
+            windows: &self.sp_windows,
+            taps: &self.sp_taps,
+            w: self.params[0].value.data(),
+            bias: self.params[1].value.data(),
+            relu: self.relu,
+            y: self.y.data_mut(),
+            rows: &self.out_rows,
+        }
+        .run();
+        self.zero_border(1);
+    }
+
     /// [`Layer::backward`] with `self.geom` the input's geometry.
     fn backward_as(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         let g = self.geom;
@@ -697,6 +768,18 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         let own = self.geom;
         self.geom = self.input_geometry(x);
         self.forward_as(x);
+        self.geom = own;
+    }
+
+    /// At batch 1 with [`Conv2d::with_sparse_inference`]: the sum over the input's nonzero
+    /// values only ([`SparseConv`]); otherwise [`Layer::forward`].
+    fn infer(&mut self, x: &Tensor<T>) {
+        if !self.sparse || x.batch() != 1 {
+            return self.forward(x);
+        }
+        let own = self.geom;
+        self.geom = self.input_geometry(x);
+        self.infer_sparse(x);
         self.geom = own;
     }
 

@@ -1,7 +1,7 @@
 //! Fully connected layer.
 
 use super::{Layer, Param};
-use crate::tensor::{fill_iota, gemm, Float, GatherGemm, Init, Op, Tensor};
+use crate::tensor::{fill_iota, gemm, Float, GatherGemm, Init, Nonzeros, Op, SparseConv, Tensor};
 
 /// `y = x·W + b` with `x: [N, In]`, `W: [In, Out]` (TensorFlow's layout), `b: [Out]`, `y: [N, Out]`.
 ///
@@ -23,6 +23,9 @@ pub struct Dense<T> {
     /// Fast path, input gradient: `dYᵀ` `[Out, N]` and `dXᵀ` `[In, N]`.
     dyt: Vec<T>,
     dxt: Vec<T>,
+    /// [`Layer::infer`] at batch 1 over the input's nonzeros ([`SparseConv`]), and those.
+    sparse: bool,
+    nz: Nonzeros<T>,
 }
 
 impl<T: Float> Dense<T> {
@@ -43,7 +46,19 @@ impl<T: Float> Dense<T> {
             iota_out: Vec::new(),
             dyt: Vec::new(),
             dxt: Vec::new(),
+            sparse: false,
+            nz: Nonzeros::default(),
         }
+    }
+
+    /// Acts ([`Layer::infer`] at batch 1) by `y = b + Σ_{i : x_i ≠ 0} x_i·W[i, :]`, reading only
+    /// the weight rows of nonzero inputs ([`crate::tensor::SparseConv`] with one pixel and one
+    /// tap): for a layer whose input is a ReLU's output. dense1's 3.6 MB of weights do not fit in
+    /// L2, so reading them bounds a batch-1 forward pass, and a trained network's conv3 output is
+    /// about 96% zeros. Off by default; [`crate::dqn::article_qnet`] turns it on for dense1.
+    pub fn with_sparse_inference(mut self, on: bool) -> Self {
+        self.sparse = on;
+        self
     }
 }
 
@@ -170,6 +185,28 @@ impl<T: Float> Layer<T> for Dense<T> {
             T::one(),
             y,
         );
+    }
+
+    /// At batch 1 with [`Dense::with_sparse_inference`]: the sum over nonzero inputs only;
+    /// otherwise [`Layer::forward`].
+    fn infer(&mut self, x: &Tensor<T>) {
+        if !self.sparse || x.batch() != 1 {
+            return self.forward(x);
+        }
+        assert_eq!(x.len(), self.n_in, "{}: input shape", self.name);
+        self.nz.collect(x.data(), self.n_in);
+        self.y.set_shape(&[1, self.n_out]);
+        SparseConv {
+            x: &self.nz,
+            windows: &[0],
+            taps: &[0],
+            w: self.params[0].value.data(),
+            bias: self.params[1].value.data(),
+            relu: false,
+            y: self.y.data_mut(),
+            rows: &[0],
+        }
+        .run();
     }
 
     fn output(&self) -> &Tensor<T> {

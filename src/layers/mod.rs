@@ -58,7 +58,14 @@ pub trait Layer<T: Float>: Send {
     /// Computes `y = f(x)` into the layer's output buffer, keeping what backward needs.
     fn forward(&mut self, x: &Tensor<T>);
 
-    /// The output of the last [`Layer::forward`].
+    /// A forward pass that no backward pass follows (acting): the same `y`, up to rounding,
+    /// by whatever kernel is fastest for it; what backward would need is not kept. The default
+    /// is [`Layer::forward`].
+    fn infer(&mut self, x: &Tensor<T>) {
+        self.forward(x)
+    }
+
+    /// The output of the last [`Layer::forward`] or [`Layer::infer`].
     fn output(&self) -> &Tensor<T>;
 
     /// Given the same `x` as the last forward pass and `dY`, adds `∂L/∂θ` to every parameter

@@ -57,6 +57,17 @@ impl<T: Float> Sequential<T> {
         self.output()
     }
 
+    /// [`Sequential::forward`] for acting: every layer's [`Layer::infer`] (a batch-1 pass
+    /// skips the zeros the ReLUs leave). No backward pass may follow it.
+    pub fn infer(&mut self, x: &Tensor<T>) -> &Tensor<T> {
+        for i in 0..self.layers.len() {
+            let (before, rest) = self.layers.split_at_mut(i);
+            let input = before.last().map_or(x, |l| l.output());
+            rest[0].infer(input);
+        }
+        self.output()
+    }
+
     /// The output of the last forward pass.
     pub fn output(&self) -> &Tensor<T> {
         self.layers.last().expect("empty network").output()

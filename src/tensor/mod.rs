@@ -15,6 +15,7 @@ mod conv;
 mod float;
 mod gather;
 mod gemm;
+mod sparse;
 mod winograd;
 
 pub use conv::{
@@ -26,6 +27,7 @@ pub use gather::{
     fill_iota, gather_gemm_portable, scatter_gemm_portable, GatherGemm, Init, ScatterGemm,
 };
 pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
+pub use sparse::{Nonzeros, SparseConv};
 pub use winograd::{
     winograd_conv, winograd_filters, winograd_filters_s2d, winograd_wgrad, WinogradKind,
     WinogradScratch, WinogradShape,

@@ -1,0 +1,232 @@
+//! Acting on sparse activations: products that skip the exact zeros a ReLU leaves.
+//!
+//! Every layer after the first reads a ReLU's output, and a trained Q-network's are mostly
+//! exact zeros: on Space Invaders frames, the 800-episode `article` run's conv1, conv2 and conv3
+//! outputs are 95%, 99% and 96% zeros (an untrained network's about 55%). A zero input adds
+//! nothing to any output, so a product that visits only the nonzero inputs does the same sums
+//! with a fraction of the work, and for dense1 (7040 × 128 weights, 3.6 MB, more than L2) a
+//! fraction of the memory traffic, which is what bounds a batch-1 forward pass.
+//!
+//! This is for acting (batch 1, no backward pass): a batch of 48 has few places that are zero in
+//! every sample, so training keeps the dense kernels.
+//!
+//! The product, for one image in NHWC: output row `r` (a pixel) is
+//! `y[r, :] = act(b + Σ_t Σ_{ci : x[p_r + o_t, ci] ≠ 0} x[p_r + o_t, ci] · W[t, ci, :])`
+//! over the taps `t` (filter places, each an offset `o_t` from the window's first pixel `p_r`).
+//! A dense layer is the case of one pixel, one tap and one row. The terms are summed in the same
+//! order as the dense product's (taps, then channels, ascending); only the zero terms are left
+//! out, so the sums agree with it up to rounding from the fused multiply-adds, and exactly
+//! skip a `0 · w` that would turn an infinite or NaN weight into NaN.
+
+use super::Float;
+
+/// The nonzero values of an image `[P, C]` (pixels, channels), pixel by pixel: pixel `p`'s are
+/// channels `index[start[p]..start[p + 1]]` with values `value[start[p]..start[p + 1]]`.
+/// The buffers are reused from call to call.
+#[derive(Clone, Debug, Default)]
+pub struct Nonzeros<T> {
+    start: Vec<usize>,
+    index: Vec<u32>,
+    value: Vec<T>,
+}
+
+impl<T: Float> Nonzeros<T> {
+    /// Collects the nonzero values of `x` (`[P, c]`), keeping each pixel's in channel order.
+    ///
+    /// Branch-free: every value is written to the next free place, which then moves on only
+    /// if the value is nonzero (the signs of a ReLU's inputs are coin flips to a predictor).
+    pub fn collect(&mut self, x: &[T], c: usize) {
+        assert!(
+            c > 0 && x.len().is_multiple_of(c),
+            "Nonzeros: {} values in pixels of {c}",
+            x.len()
+        );
+        assert!(c <= u32::MAX as usize, "Nonzeros: {c} channels");
+        let pixels = x.len() / c;
+        self.start.resize(pixels + 1, 0);
+        // 16 spare places: the SIMD path stores whole vectors, the scalar one the last value
+        // even when zero.
+        self.index.resize(x.len() + 16, 0);
+        self.value.resize(x.len() + 16, T::zero());
+        #[cfg(target_arch = "x86_64")]
+        if T::simd() && c.is_multiple_of(16) {
+            // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
+            return unsafe { avx512::collect(self, x, c) };
+        }
+        let mut k = 0;
+        for (p, px) in x.chunks_exact(c).enumerate() {
+            self.start[p] = k;
+            for (ci, &v) in px.iter().enumerate() {
+                self.index[k] = ci as u32;
+                self.value[k] = v;
+                k += (v != T::zero()) as usize;
+            }
+        }
+        self.start[pixels] = k;
+    }
+
+    /// How many values are nonzero.
+    pub fn len(&self) -> usize {
+        self.start.last().copied().unwrap_or(0)
+    }
+
+    /// Whether every value is zero.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The nonzero channels and values of pixel `p`.
+    #[inline]
+    pub fn pixel(&self, p: usize) -> (&[u32], &[T]) {
+        let (a, b) = (self.start[p], self.start[p + 1]);
+        (&self.index[a..b], &self.value[a..b])
+    }
+}
+
+/// The sparse product of one image (see the module's documentation).
+pub struct SparseConv<'a, T> {
+    /// The input's nonzeros, by pixel ([`Nonzeros::collect`] with `Cin` channels).
+    pub x: &'a Nonzeros<T>,
+    /// `p_r`: the pixel where output row `r`'s window starts.
+    pub windows: &'a [usize],
+    /// `o_t`: each tap's pixel offset from the window's start, in the weights' tap order.
+    pub taps: &'a [usize],
+    /// Weights `[taps, Cin, Cout]`.
+    pub w: &'a [T],
+    /// Bias `[Cout]`.
+    pub bias: &'a [T],
+    /// Apply `max(·, 0)`.
+    pub relu: bool,
+    /// The output; row `r` is written at `y[rows[r]..rows[r] + Cout]`.
+    pub y: &'a mut [T],
+    pub rows: &'a [usize],
+}
+
+impl<T: Float> SparseConv<'_, T> {
+    /// Computes every output row (one thread: a batch-1 product is too small to split).
+    pub fn run(self) {
+        let cout = self.bias.len();
+        assert_eq!(self.windows.len(), self.rows.len(), "SparseConv: rows");
+        let cin = self.w.len() / (self.taps.len() * cout).max(1);
+        assert_eq!(
+            self.w.len(),
+            self.taps.len() * cin * cout,
+            "SparseConv: weights"
+        );
+        if T::simd() && cout.is_multiple_of(16) && cout <= 128 {
+            #[cfg(target_arch = "x86_64")]
+            {
+                // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
+                return unsafe { avx512::run(self, cin, cout) };
+            }
+        }
+        let mut acc = vec![T::zero(); cout];
+        for (&p, &r) in self.windows.iter().zip(self.rows) {
+            acc.copy_from_slice(self.bias);
+            for (t, &o) in self.taps.iter().enumerate() {
+                let wt = &self.w[t * cin * cout..][..cin * cout];
+                let (index, value) = self.x.pixel(p + o);
+                for (&ci, &v) in index.iter().zip(value) {
+                    let row = &wt[ci as usize * cout..][..cout];
+                    for (a, &wv) in acc.iter_mut().zip(row) {
+                        *a += v * wv;
+                    }
+                }
+            }
+            let out = &mut self.y[r..r + cout];
+            for (o, &a) in out.iter_mut().zip(&acc) {
+                *o = if self.relu { a.max(T::zero()) } else { a };
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::{Float, Nonzeros, SparseConv};
+    use std::arch::x86_64::*;
+
+    /// [`Nonzeros::collect`] 16 channels at a time: the nonzero lanes are compressed to the
+    /// front of a register, which is stored whole (the spare places take the rest) before the
+    /// place moves on by their count.
+    ///
+    /// # Safety
+    /// The CPU must run AVX-512F, `T` must be `f32`, `c` a multiple of 16, and the buffers
+    /// sized by [`Nonzeros::collect`].
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn collect<T: Float>(nz: &mut Nonzeros<T>, x: &[T], c: usize) {
+        let x = cast::<T>(x);
+        let value: &mut [f32] = bytemuck::cast_slice_mut(&mut nz.value);
+        let index = &mut nz.index;
+        let lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+        let mut k = 0;
+        for (p, px) in x.chunks_exact(c).enumerate() {
+            nz.start[p] = k;
+            for (j, v16) in px.chunks_exact(16).enumerate() {
+                let v = _mm512_loadu_ps(v16.as_ptr());
+                let m = _mm512_cmp_ps_mask::<_CMP_NEQ_UQ>(v, _mm512_setzero_ps());
+                let ci = _mm512_add_epi32(lanes, _mm512_set1_epi32(16 * j as i32));
+                let (vs, is) = (&mut value[k..k + 16], &mut index[k..k + 16]);
+                _mm512_storeu_ps(vs.as_mut_ptr(), _mm512_maskz_compress_ps(m, v));
+                let ci = _mm512_maskz_compress_epi32(m, ci);
+                _mm512_storeu_si512(is.as_mut_ptr().cast(), ci);
+                k += m.count_ones() as usize;
+            }
+        }
+        nz.start[x.len() / c] = k;
+    }
+
+    /// [`SparseConv::run`] with the `Cout / 16` accumulators in registers.
+    ///
+    /// # Safety
+    /// The CPU must run AVX-512F, `T` must be `f32`, and `cout` a multiple of 16 up to 128.
+    pub unsafe fn run<T: Float>(g: SparseConv<'_, T>, cin: usize, cout: usize) {
+        match cout / 16 {
+            1 => rows::<T, 1>(g, cin),
+            2 => rows::<T, 2>(g, cin),
+            3 => rows::<T, 3>(g, cin),
+            4 => rows::<T, 4>(g, cin),
+            5 => rows::<T, 5>(g, cin),
+            6 => rows::<T, 6>(g, cin),
+            7 => rows::<T, 7>(g, cin),
+            _ => rows::<T, 8>(g, cin),
+        }
+    }
+
+    fn cast<T: Float>(s: &[T]) -> &[f32] {
+        bytemuck::cast_slice(s)
+    }
+
+    #[target_feature(enable = "avx512f")]
+    unsafe fn rows<T: Float, const NV: usize>(g: SparseConv<'_, T>, cin: usize) {
+        let cout = 16 * NV;
+        let (w, bias) = (cast::<T>(g.w), cast::<T>(g.bias));
+        let y: &mut [f32] = bytemuck::cast_slice_mut(g.y);
+        for (&p, &r) in g.windows.iter().zip(g.rows) {
+            let mut acc = [_mm512_setzero_ps(); NV];
+            for (v, a) in acc.iter_mut().enumerate() {
+                *a = _mm512_loadu_ps(bias[16 * v..].as_ptr());
+            }
+            for (t, &o) in g.taps.iter().enumerate() {
+                let wt = &w[t * cin * cout..][..cin * cout];
+                let (index, value) = g.x.pixel(p + o);
+                for (&ci, &v) in index.iter().zip(cast::<T>(value)) {
+                    let row = &wt[ci as usize * cout..][..cout];
+                    let xv = _mm512_set1_ps(v);
+                    for (j, a) in acc.iter_mut().enumerate() {
+                        *a = _mm512_fmadd_ps(xv, _mm512_loadu_ps(row[16 * j..].as_ptr()), *a);
+                    }
+                }
+            }
+            let out = &mut y[r..r + cout];
+            for (j, &a) in acc.iter().enumerate() {
+                let a = if g.relu {
+                    _mm512_max_ps(a, _mm512_setzero_ps())
+                } else {
+                    a
+                };
+                _mm512_storeu_ps(out[16 * j..].as_mut_ptr(), a);
+            }
+        }
+    }
+}

@@ -1,0 +1,229 @@
+//! Acting's sparse products ([`Layer::infer`] at batch 1) against the reference convolution and
+//! the layers' own dense forward pass, on inputs with exact zeros, in f32 (the AVX-512 kernels
+//! where the CPU has them) and f64 (the portable loops).
+
+mod common;
+
+use common::{rng, uniform};
+use invaders::dqn::article_qnet;
+use invaders::layers::init::VarianceScaling;
+use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::tensor::{conv2d_reference, Border, ConvGeom, Float, Nonzeros, Padding, Tensor};
+use proptest::prelude::*;
+use rand::Rng;
+
+/// `max |a − b| ≤ tol · (1 + max |b|)`.
+fn assert_close<T: Float>(what: &str, a: &[T], b: &[T], tol: f64) -> Result<(), TestCaseError> {
+    prop_assert_eq!(a.len(), b.len());
+    let scale = 1.0
+        + b.iter()
+            .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
+    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+        let d = (x.to_f64().unwrap() - y.to_f64().unwrap()).abs();
+        prop_assert!(d <= tol * scale, "{}[{}]: {} vs {}", what, i, x, y);
+    }
+    Ok(())
+}
+
+/// Uniform values in [-1, 1) of which about `zeros` (a fraction) are exact zeros, some `-0.0`.
+fn sparse<T: Float>(shape: &[usize], zeros: f64, r: &mut impl Rng) -> Tensor<T> {
+    let mut t = uniform::<T>(shape, r);
+    for v in t.data_mut() {
+        if r.random_bool(zeros) {
+            *v = if r.random_bool(0.5) {
+                T::zero()
+            } else {
+                -T::zero()
+            };
+        }
+    }
+    t
+}
+
+fn set_params<T: Float>(layer: &mut dyn Layer<T>, w: &Tensor<T>, b: &Tensor<T>) {
+    let p = layer.params_mut();
+    p[0].value.data_mut().copy_from_slice(w.data());
+    p[1].value.data_mut().copy_from_slice(b.data());
+}
+
+/// A convolution with sparse inference: `infer` at batch 1 gives the reference convolution's
+/// output (ReLU, border) whether the input is sparse enough for the sparse product (up to a
+/// quarter nonzero) or not, after a larger batch left values where the border now is.
+#[allow(clippy::too_many_arguments)]
+fn conv_case<T: Float>(
+    k: usize,
+    s: usize,
+    h: usize,
+    w: usize,
+    cin: usize,
+    cout: usize,
+    same: bool,
+    relu: bool,
+    border: usize,
+    zeros: f64,
+    seed: u64,
+    tol: f64,
+) -> Result<(), TestCaseError> {
+    let pad = if same { Padding::Same } else { Padding::Valid };
+    let (h, w) = (h.max(k), w.max(k));
+    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
+    let b = Border {
+        top: border,
+        bottom: 1,
+        left: border,
+        right: 0,
+    };
+    let mut layer = Conv2d::<T>::new("c", g)
+        .with_border(b)
+        .with_sparse_inference(true);
+    if relu {
+        layer = layer.with_relu();
+    }
+    let mut r = rng(seed);
+    let (wt, bt) = (
+        uniform::<T>(&[k, k, cin, cout], &mut r),
+        uniform::<T>(&[cout], &mut r),
+    );
+    set_params(&mut layer, &wt, &bt);
+    layer.forward(&uniform::<T>(&[2, h, w, cin], &mut r));
+    let x = sparse::<T>(&[1, h, w, cin], zeros, &mut r);
+    let mut z = vec![T::zero(); g.oh * g.ow * cout];
+    conv2d_reference(&g, 1, x.data(), wt.data(), bt.data(), &mut z);
+    let (hb, wb) = b.around(g.oh, g.ow);
+    let mut at = Vec::new();
+    b.interior_offsets(1, g.oh, g.ow, cout, &mut at);
+    let mut y = vec![T::zero(); hb * wb * cout];
+    for (zrow, &o) in z.chunks_exact(cout).zip(&at) {
+        for (yv, &zv) in y[o..o + cout].iter_mut().zip(zrow) {
+            *yv = if relu { zv.max(T::zero()) } else { zv };
+        }
+    }
+    layer.infer(&x);
+    prop_assert_eq!(layer.output().shape(), &[1, hb, wb, cout][..]);
+    assert_close("infer", layer.output().data(), &y, tol)?;
+    layer.forward(&x);
+    assert_close("forward", layer.output().data(), &y, tol)
+}
+
+/// A dense layer with sparse inference: `infer` at batch 1 gives `b + x·W`.
+fn dense_case<T: Float>(
+    n_in: usize,
+    n_out: usize,
+    zeros: f64,
+    seed: u64,
+    tol: f64,
+) -> Result<(), TestCaseError> {
+    let mut layer = Dense::<T>::new("d", n_in, n_out).with_sparse_inference(true);
+    let mut r = rng(seed);
+    let (wt, bt) = (
+        uniform::<T>(&[n_in, n_out], &mut r),
+        uniform::<T>(&[n_out], &mut r),
+    );
+    set_params(&mut layer, &wt, &bt);
+    layer.forward(&uniform::<T>(&[3, n_in], &mut r));
+    let x = sparse::<T>(&[1, n_in], zeros, &mut r);
+    let mut y = bt.data().to_vec();
+    for (i, &v) in x.data().iter().enumerate() {
+        for (j, yv) in y.iter_mut().enumerate() {
+            *yv += v * wt.data()[i * n_out + j];
+        }
+    }
+    layer.infer(&x);
+    prop_assert_eq!(layer.output().shape(), &[1, n_out][..]);
+    assert_close("infer", layer.output().data(), &y, tol)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    #[test]
+    fn nonzeros_lists_each_pixels_nonzero_channels(
+        pixels in 1usize..6, c in prop_oneof![1usize..40, Just(16), Just(32), Just(64)],
+        zeros in 0.0f64..1.0, seed in any::<u64>(),
+    ) {
+        let mut r = rng(seed);
+        let mut x = sparse::<f32>(&[pixels, c], zeros, &mut r);
+        if c > 2 {
+            x.data_mut()[2] = f32::NAN; // not a zero: kept
+        }
+        let mut nz = Nonzeros::default();
+        // Twice: the second call reuses the buffers of the first.
+        nz.collect(sparse::<f32>(&[pixels + 1, c], 0.5, &mut r).data(), c);
+        nz.collect(x.data(), c);
+        let mut total = 0;
+        for (p, px) in x.data().chunks_exact(c).enumerate() {
+            let (index, value) = nz.pixel(p);
+            let want: Vec<(u32, f32)> = px
+                .iter()
+                .enumerate()
+                .filter(|(_, v)| **v != 0.0)
+                .map(|(i, &v)| (i as u32, v))
+                .collect();
+            let got: Vec<(u32, f32)> = index.iter().copied().zip(value.iter().copied()).collect();
+            prop_assert_eq!(got.len(), want.len());
+            for ((gi, gv), (wi, wv)) in got.iter().zip(&want) {
+                prop_assert_eq!(gi, wi);
+                prop_assert!(gv.to_bits() == wv.to_bits(), "pixel {} channel {}", p, gi);
+            }
+            total += want.len();
+        }
+        prop_assert_eq!(nz.len(), total);
+    }
+
+    #[test]
+    fn conv2d_sparse_inference_matches_reference(
+        k in 1usize..=4, s in 1usize..=3, h in 3usize..12, w in 3usize..12,
+        cin in prop_oneof![1usize..20, Just(16), Just(32)],
+        cout in prop_oneof![1usize..20, Just(16), Just(64), Just(144)],
+        same in any::<bool>(), relu in any::<bool>(), border in 0usize..3,
+        zeros in prop_oneof![Just(1.0), Just(0.95), Just(0.8), Just(0.3)], seed in any::<u64>(),
+    ) {
+        conv_case::<f32>(k, s, h, w, cin, cout, same, relu, border, zeros, seed, 1e-5)?;
+        conv_case::<f64>(k, s, h, w, cin, cout, same, relu, border, zeros, seed, 1e-12)?;
+    }
+
+    #[test]
+    fn dense_sparse_inference_matches_reference(
+        n_in in prop_oneof![1usize..100, Just(7040)],
+        n_out in prop_oneof![1usize..40, Just(16), Just(128), Just(144)],
+        zeros in prop_oneof![Just(1.0), Just(0.95), Just(0.5), Just(0.0)], seed in any::<u64>(),
+    ) {
+        dense_case::<f32>(n_in, n_out, zeros, seed, 1e-5)?;
+        dense_case::<f64>(n_in, n_out, zeros, seed, 1e-12)?;
+    }
+}
+
+/// The article's network acts (`infer`, sparse products where the activations allow) as its
+/// forward pass computes: with the convolutions' biases lowered so that conv2 and conv3 see
+/// mostly zeros and take the sparse product, and as initialised, where they do not.
+#[test]
+fn article_network_infers_as_it_forwards() {
+    let mut r = rng(7);
+    for shift in [0.0f32, -0.3] {
+        let mut net = article_qnet::<f32>([88, 80, 4], 6, &VarianceScaling::HE, &mut r);
+        for p in net.params_mut() {
+            if p.name.starts_with("conv") && p.name.ends_with(".bias") {
+                p.value.data_mut().fill(shift);
+            }
+        }
+        for _ in 0..3 {
+            let x = uniform::<f32>(&[1, 88, 80, 4], &mut r);
+            let want = net.forward(&x).data().to_vec();
+            let zeros: Vec<f64> = net.layers()[..3]
+                .iter()
+                .map(|l| {
+                    let y = l.output().data();
+                    y.iter().filter(|v| **v == 0.0).count() as f64 / y.len() as f64
+                })
+                .collect();
+            if shift < 0.0 {
+                assert!(zeros[1] > 0.75 && zeros[2] > 0.75, "zeros {zeros:?}");
+            }
+            let got = net.infer(&x).data().to_vec();
+            let scale = 1.0 + want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            for (a, b) in got.iter().zip(&want) {
+                assert!((a - b).abs() <= 1e-5 * scale, "{got:?} vs {want:?}");
+            }
+        }
+    }
+}
