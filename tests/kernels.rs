@@ -781,3 +781,55 @@ fn results_do_not_depend_on_thread_count() {
     assert_eq!(one, run(2));
     assert_eq!(one, run(3));
 }
+
+/// The checks in front of the unsafe gather kernel refuse what would read or write out of
+/// bounds: an `A` offset past the end (the largest row start plus the largest step), and rows
+/// of `C` that overlap or go backwards.
+#[test]
+fn gather_gemm_refuses_out_of_range_tables() {
+    let (a, b) = (vec![1.0f32; 40], vec![1.0f32; 4 * 8]);
+    let (mut p, mut q) = (Vec::new(), Vec::new());
+    fill_iota(&mut p, 5, 4);
+    fill_iota(&mut q, 4, 1);
+    let run = |p: &[usize], rows: Option<&[usize]>| {
+        let (p, q, a, b) = (p.to_vec(), q.clone(), a.clone(), b.clone());
+        let rows = rows.map(<[usize]>::to_vec);
+        std::panic::catch_unwind(move || {
+            let mut c = vec![0.0f32; 100];
+            f32::gather_gemm(GatherGemm {
+                a: &a,
+                p: &p,
+                q: &q,
+                b: &b,
+                ldb: 8,
+                n: 8,
+                c: &mut c,
+                ldc: 8,
+                c_rows: rows.as_deref(),
+                init: Init::Zero,
+                relu: false,
+            })
+        })
+        .map_err(|e| {
+            e.downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .unwrap_or_default()
+        })
+    };
+    assert!(run(&p, None).is_ok());
+    // The largest offset is the last row's start plus the last step: 16 + 3 < 40; one row
+    // starting at 37 would read a[40].
+    let mut far = p.clone();
+    far[2] = 37;
+    assert!(run(&far, None)
+        .unwrap_err()
+        .contains("A index out of range"));
+    far[2] = 36;
+    assert!(run(&far, None).is_ok());
+    let apart = [0, 8, 16, 30, 40];
+    assert!(run(&p, Some(&apart)).is_ok());
+    for bad in [[0, 8, 15, 30, 40], [0, 8, 16, 40, 30]] {
+        let err = run(&p, Some(&bad)).unwrap_err();
+        assert!(err.contains("c_rows overlap or decrease"), "{err}");
+    }
+}

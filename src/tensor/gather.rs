@@ -57,6 +57,51 @@ pub struct GatherGemm<'a, T> {
 
 /// Where row `r` of `C` starts in `c`: `c_rows[r]`, or `r·ldc` without a table.
 #[inline]
+/// The largest offset in a table (0 if empty).
+fn largest(v: &[usize]) -> usize {
+    // Branch-free folds, so that compiled for AVX-512 (`wide`) they run 8 lanes wide: the checks
+    // scan every offset table of every product (over 20 000 rows for conv1), and as baseline
+    // SSE2, which has no 64-bit max, they took 1.5% of a train step.
+    #[inline(always)]
+    fn scan(v: &[usize]) -> usize {
+        v.iter().fold(0, |m, &x| m.max(x))
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx512f")]
+        unsafe fn wide(v: &[usize]) -> usize {
+            scan(v)
+        }
+        if avx512::available() {
+            // SAFETY: `available` checked that this CPU runs AVX-512F.
+            return unsafe { wide(v) };
+        }
+    }
+    scan(v)
+}
+
+/// Whether each row start is at least `n` past the one before (rows increase, never overlap).
+fn rows_apart(starts: &[usize], n: usize) -> bool {
+    #[inline(always)]
+    fn scan(starts: &[usize], n: usize) -> bool {
+        starts
+            .windows(2)
+            .fold(true, |ok, w| ok & (w[1] >= w[0] + n))
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx512f")]
+        unsafe fn wide(starts: &[usize], n: usize) -> bool {
+            scan(starts, n)
+        }
+        if avx512::available() {
+            // SAFETY: `available` checked that this CPU runs AVX-512F.
+            return unsafe { wide(starts, n) };
+        }
+    }
+    scan(starts, n)
+}
+
 fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize {
     c_rows.map_or(r * ldc, |cr| cr[r])
 }
@@ -79,7 +124,7 @@ impl<T: Float> GatherGemm<'_, T> {
             Some(cr) => {
                 assert_eq!(cr.len(), rows, "gather_gemm: c_rows length");
                 assert!(
-                    cr.windows(2).all(|w| w[1] >= w[0] + self.n),
+                    rows_apart(cr, self.n),
                     "gather_gemm: c_rows overlap or decrease"
                 );
             }
@@ -97,10 +142,8 @@ impl<T: Float> GatherGemm<'_, T> {
                 self.b.len() >= (steps - 1) * self.ldb + self.n,
                 "gather_gemm: B too short"
             );
-            let pmax = self.p.iter().copied().max().unwrap_or(0);
-            let qmax = self.q.iter().copied().max().unwrap_or(0);
             assert!(
-                pmax + qmax < self.a.len(),
+                largest(self.p) + largest(self.q) < self.a.len(),
                 "gather_gemm: A index out of range"
             );
         }
@@ -160,10 +203,8 @@ impl<T: Float> ScatterGemm<'_, T> {
                 self.b.len() >= (steps - 1) * self.ldb + self.n,
                 "scatter_gemm: B too short"
             );
-            let pmax = self.p.iter().copied().max().unwrap_or(0);
-            let qmax = self.q.iter().copied().max().unwrap_or(0);
             assert!(
-                pmax + qmax < self.a.len(),
+                largest(self.p) + largest(self.q) < self.a.len(),
                 "scatter_gemm: A index out of range"
             );
         }
