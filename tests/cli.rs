@@ -87,6 +87,30 @@ fn train_by_frames() {
     let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
     assert!(saved.contains("max_frames = 900"), "{saved}");
     assert!(run.join("checkpoint.safetensors").is_file());
+    // `bench` prints its figures as one JSON object, acting also timed with this run's network.
+    let text = ok(&invaders(&[
+        "bench",
+        "--threads",
+        "1",
+        "--steps",
+        "2",
+        "--json",
+        "--checkpoint",
+        run_s,
+    ]));
+    let json: serde_json::Value = serde_json::from_str(text.trim()).expect(&text);
+    for key in [
+        "train_step_ms",
+        "train_step_gflops",
+        "act_ms",
+        "act_checkpoint_ms",
+        "env_frames_per_s",
+        "agent_steps_per_s",
+    ] {
+        let v = json[key].as_f64().unwrap_or(-1.0);
+        assert!(v > 0.0 && v.is_finite(), "{key} in {text}");
+    }
+    assert_eq!(json["threads"], 1, "{text}");
     let _ = std::fs::remove_dir_all(&root);
 }
 
@@ -251,6 +275,10 @@ fn bad_inputs_give_clear_errors() {
     fails_with(
         &invaders(&["train", "--resume", &path("nothing-here")]),
         "checkpoint",
+    );
+    fails_with(
+        &invaders(&["bench", "--checkpoint", &path("nothing-here")]),
+        "nothing-here",
     );
     std::fs::write(
         root.join("corrupt.safetensors"),

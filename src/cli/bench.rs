@@ -2,7 +2,7 @@
 //!
 //! Times (medians over repeated runs) the article network's train step at batch 48, its batch-1
 //! forward pass (acting, on game frames: [`Sequential::infer`], whose sparse products depend on
-//! how many activations are zero, so `--checkpoint` times a trained network's), the emulator's
+//! how many activations are zero, so `--checkpoint` also times a trained network's), the emulator's
 //! frames per second with the `article` preset's pipeline, and end-to-end agent steps per second
 //! of the `article` preset with learning on.
 
@@ -30,8 +30,8 @@ pub struct BenchArgs {
     /// Train steps to time.
     #[arg(long, default_value_t = 30)]
     steps: usize,
-    /// Time acting with this checkpoint's online network (a run directory or its
-    /// `checkpoint.safetensors`) instead of a newly initialised one. A trained network's
+    /// Also time acting with this checkpoint's online network (a run directory or its
+    /// `checkpoint.safetensors`), besides a newly initialised one. A trained network's
     /// activations are mostly zeros, which acting skips.
     #[arg(long, value_name = "PATH")]
     checkpoint: Option<PathBuf>,
@@ -47,6 +47,18 @@ pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
 }
 
 fn bench(args: &BenchArgs) -> anyhow::Result<()> {
+    // A bad checkpoint fails before anything is timed.
+    let mut trained = match &args.checkpoint {
+        None => None,
+        Some(path) => {
+            let file = if path.is_dir() {
+                path.join("checkpoint.safetensors")
+            } else {
+                path.clone()
+            };
+            Some(checkpoint::load(&file)?)
+        }
+    };
     let threads = rayon::current_num_threads();
     let config = Config::preset(Preset::Article);
     let mut rng = ChaCha8Rng::seed_from_u64(0);
@@ -88,17 +100,14 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let gflops = flops / (step_ms * 1e-3) / 1e9;
 
     // Acting: a batch-1 forward pass on game frames, as the agent acts.
-    let act_ms = match &args.checkpoint {
-        None => time_acting(&mut learner.online, &config, &mut rng)?,
-        Some(path) => {
-            let file = if path.is_dir() {
-                path.join("checkpoint.safetensors")
-            } else {
-                path.clone()
-            };
-            let mut ckpt = checkpoint::load(&file)?;
-            time_acting(&mut ckpt.learner.online, &ckpt.config, &mut rng)?
-        }
+    let act_ms = time_acting(&mut learner.online, &config, &mut rng)?;
+    let act_trained_ms = match &mut trained {
+        None => None,
+        Some(ckpt) => Some(time_acting(
+            &mut ckpt.learner.online,
+            &ckpt.config,
+            &mut rng,
+        )?),
     };
 
     // The emulator with the article's pipeline and input normalisation, random actions.
@@ -150,6 +159,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "train_step_gflops": gflops,
                 "act_ms": act_ms,
                 "act_checkpoint": args.checkpoint,
+                "act_checkpoint_ms": act_trained_ms,
                 "env_frames_per_s": env_fps,
                 "agent_steps_per_s": agent_steps_per_s,
                 "env_share_of_training": env_share,
@@ -158,11 +168,10 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     } else {
         println!("threads                 {threads}");
         println!("train step (batch 48)   {step_ms:.2} ms  ({gflops:.1} GFLOP/s)");
-        let net = match &args.checkpoint {
-            Some(p) => format!("{}'s network", p.display()),
-            None => "an initial network".to_string(),
-        };
-        println!("act (batch-1 forward)   {act_ms:.3} ms  ({net}, game frames)");
+        println!("act (batch-1 forward)   {act_ms:.3} ms  (an initial network, game frames)");
+        if let (Some(ms), Some(p)) = (act_trained_ms, &args.checkpoint) {
+            println!("act, trained network    {ms:.3} ms  ({})", p.display());
+        }
         println!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
         println!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
     }
