@@ -111,6 +111,14 @@ fn run() {
     }
     let batch: usize = args.get(4).map_or(48, |b| b.parse().unwrap());
     let (mut layer, shape): (Box<dyn Layer<f32>>, Vec<usize>) = match what {
+        "conv1p" => {
+            // conv1 as the train step runs it: VALID over a batch written inside its padding.
+            let g = ConvGeom::new(92, 84, 4, 32, 8, 8, (4, 4), Padding::Valid).unwrap();
+            (
+                Box::new(Conv2d::new(what, g).with_relu()),
+                vec![batch, 92, 84, 4],
+            )
+        }
         "conv1" | "conv2" | "conv3" | "conv1w" | "conv2w" | "conv3w" => {
             // `convNw`: the same layer with Winograd on.
             let (h, w, cin, cout, k, s) = match &what[..5] {

@@ -6,7 +6,7 @@ use common::{rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
-    gemm_matrixmultiply, gemm_reference, pad_input, winograd_conv, winograd_filters,
+    gemm_matrixmultiply, gemm_reference, pad_input, transpose, winograd_conv, winograd_filters,
     winograd_filters_s2d, winograd_wgrad, Border, ConvGeom, Float, GatherGemm, Init, Op, Padding,
     Tensor, WinogradKind, WinogradScratch, WinogradShape,
 };
@@ -831,5 +831,33 @@ fn gather_gemm_refuses_out_of_range_tables() {
     for bad in [[0, 8, 15, 30, 40], [0, 8, 16, 40, 30]] {
         let err = run(&p, Some(&bad)).unwrap_err();
         assert!(err.contains("c_rows overlap or decrease"), "{err}");
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+    /// `transpose` (16 × 16 register blocks and value-by-value edges on AVX-512, blocks of 64
+    /// rows otherwise) moves every value exactly, f32 and f64, for any shape.
+    #[test]
+    fn transpose_moves_every_value(
+        rows in prop_oneof![0usize..40, Just(48), Just(7040)],
+        cols in prop_oneof![1usize..40, Just(48), Just(128)],
+        seed in any::<u64>(),
+    ) {
+        fn case<T: Float>(rows: usize, cols: usize, seed: u64) -> Result<(), TestCaseError> {
+            let src = uniform::<T>(&[rows * cols], &mut rng(seed));
+            let mut dst = vec![T::nan(); rows * cols];
+            transpose(src.data(), rows, cols, &mut dst);
+            for r in 0..rows {
+                for c in 0..cols {
+                    let (a, b) = (dst[c * rows + r], src.data()[r * cols + c]);
+                    prop_assert!(a == b, "[{}, {}]: {} vs {}", r, c, a, b);
+                }
+            }
+            Ok(())
+        }
+        case::<f32>(rows, cols, seed)?;
+        case::<f64>(rows, cols, seed)?;
     }
 }

@@ -1,7 +1,9 @@
 //! Fully connected layer.
 
 use super::{Layer, Param};
-use crate::tensor::{fill_iota, gemm, Float, GatherGemm, Init, Nonzeros, Op, SparseConv, Tensor};
+use crate::tensor::{
+    fill_iota, gemm, transpose, Float, GatherGemm, Init, Nonzeros, Op, SparseConv, Tensor,
+};
 
 /// `y = x·W + b` with `x: [N, In]`, `W: [In, Out]` (TensorFlow's layout), `b: [Out]`, `y: [N, Out]`.
 ///
@@ -92,11 +94,7 @@ impl<T: Float> Dense<T> {
             // dXᵀ[i, n] = Σ_j W[i, j]·dYᵀ[j, n]: W's rows are read in place (no 3.6 MB
             // transpose of dense1's weights); only dY (tiny) and the result are transposed.
             self.dyt.resize(no * n, T::zero());
-            for (s, row) in dy.data().chunks_exact(no).enumerate() {
-                for (j, &v) in row.iter().enumerate() {
-                    self.dyt[j * n + s] = v;
-                }
-            }
+            transpose(dy.data(), n, no, &mut self.dyt);
             fill_iota(&mut self.x_rows, ni, no);
             fill_iota(&mut self.iota_out, no, 1);
             self.dxt.resize(ni * n, T::zero());
@@ -113,20 +111,9 @@ impl<T: Float> Dense<T> {
                 init: Init::Zero,
                 relu: false,
             });
-            // dX = (dXᵀ)ᵀ in blocks of 64 inputs: a block of dXᵀ (64 × N values) stays in L1
-            // while every sample's row takes its 64 values (a row-by-row transpose would read
-            // one value per cache line, N times over).
+            // dX = (dXᵀ)ᵀ.
             self.dx.set_shape(x.shape());
-            let dx = self.dx.data_mut();
-            for (b, block) in self.dxt.chunks(64 * n).enumerate() {
-                let i0 = 64 * b;
-                for (s, row) in dx.chunks_exact_mut(ni).enumerate() {
-                    let column = block.iter().skip(s).step_by(n);
-                    for (v, &t) in row[i0..].iter_mut().zip(column) {
-                        *v = t;
-                    }
-                }
-            }
+            transpose(&self.dxt, ni, n, self.dx.data_mut());
         }
     }
 }

@@ -16,6 +16,7 @@ mod float;
 mod gather;
 mod gemm;
 mod sparse;
+mod transpose;
 mod winograd;
 
 pub use conv::{
@@ -28,6 +29,7 @@ pub use gather::{
 };
 pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 pub use sparse::{Nonzeros, SparseConv};
+pub use transpose::transpose;
 pub use winograd::{
     winograd_conv, winograd_filters, winograd_filters_s2d, winograd_wgrad, WinogradKind,
     WinogradScratch, WinogradShape,
