@@ -158,10 +158,64 @@ fn train_step(c: &mut Criterion) {
     group.bench_function("act_forward_batch1", |b| {
         b.iter(|| learner.online.forward(&x1).data()[0])
     });
+    // As the agent acts: sparse products where the activations' zeros allow.
+    group.bench_function("act_infer_batch1", |b| {
+        b.iter(|| learner.online.infer(&x1).data()[0])
+    });
     group.finish();
 }
 
-criterion_group!(benches, layers, train_step, gemm_kernels, gather_kernels);
+/// Acting's sparse products against the dense batch-1 forward pass, for the three layers that
+/// read a ReLU's output, as `article_qnet` builds them, on inputs with 2% to 50% nonzero values
+/// (a trained network's are 1–5%, an initial one's about 40%). Above a fifth nonzero the
+/// convolutions' `infer` goes back to the dense product (after counting the nonzeros), which is
+/// where the two cross. Throughput counts the dense product's FLOPs.
+fn sparse_act(c: &mut Criterion) {
+    let mut group = c.benchmark_group("sparse_act");
+    group
+        .measurement_time(Duration::from_secs(2))
+        .warm_up_time(Duration::from_millis(500));
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut net = article_qnet::<f32>([88, 80, 4], 6, &VarianceScaling::HE, &mut rng);
+    net.forward(&random(&[1, 88, 80, 4], &mut rng));
+    let shapes: Vec<Vec<usize>> = net.layers()[..3]
+        .iter()
+        .map(|l| l.output().shape().to_vec())
+        .collect();
+    let mut layers = net.into_layers();
+    for (i, layer) in layers[1..4].iter_mut().enumerate() {
+        // Layer i + 1 reads layer i's output (conv1's, conv2's, conv3's shape).
+        let in_shape = &shapes[i];
+        let name = ["conv2", "conv3", "dense1"][i];
+        group.throughput(Throughput::Elements(2 * layer.macs() as u64));
+        for percent in [2u32, 10, 15, 20, 25, 50] {
+            let mut x = random(in_shape, &mut rng);
+            for v in x.data_mut() {
+                if rng.random_range(0..100) >= percent {
+                    *v = 0.0;
+                } else {
+                    *v = v.abs();
+                }
+            }
+            group.bench_function(format!("{name}/forward/{percent}%"), |b| {
+                b.iter(|| layer.forward(&x))
+            });
+            group.bench_function(format!("{name}/infer/{percent}%"), |b| {
+                b.iter(|| layer.infer(&x))
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(
+    benches,
+    layers,
+    train_step,
+    sparse_act,
+    gemm_kernels,
+    gather_kernels
+);
 
 /// criterion's `main`, run on a rayon pool worker as the `invaders` commands are
 /// (`cli::train::in_pool`): kernels called from outside the pool would each pay a hand-over to

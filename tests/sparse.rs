@@ -48,7 +48,7 @@ fn set_params<T: Float>(layer: &mut dyn Layer<T>, w: &Tensor<T>, b: &Tensor<T>) 
 
 /// A convolution with sparse inference: `infer` at batch 1 gives the reference convolution's
 /// output (ReLU, border) whether the input is sparse enough for the sparse product (up to a
-/// quarter nonzero) or not, after a larger batch left values where the border now is.
+/// fifth nonzero) or not, after a larger batch left values where the border now is.
 #[allow(clippy::too_many_arguments)]
 fn conv_case<T: Float>(
     k: usize,
@@ -199,11 +199,14 @@ proptest! {
 #[test]
 fn article_network_infers_as_it_forwards() {
     let mut r = rng(7);
-    for shift in [0.0f32, -0.3] {
+    for shift in [0.0f32, -1.0] {
         let mut net = article_qnet::<f32>([88, 80, 4], 6, &VarianceScaling::HE, &mut r);
         for p in net.params_mut() {
-            if p.name.starts_with("conv") && p.name.ends_with(".bias") {
-                p.value.data_mut().fill(shift);
+            // conv1 needs the larger shift: its input (the frame) has no zeros.
+            match p.name.as_str() {
+                "conv1.bias" => p.value.data_mut().fill(shift),
+                "conv2.bias" | "conv3.bias" => p.value.data_mut().fill(shift / 6.0),
+                _ => {}
             }
         }
         for _ in 0..3 {
@@ -217,7 +220,12 @@ fn article_network_infers_as_it_forwards() {
                 })
                 .collect();
             if shift < 0.0 {
-                assert!(zeros[1] > 0.75 && zeros[2] > 0.75, "zeros {zeros:?}");
+                // conv2 and conv3 read conv1's and conv2's outputs: under a fifth nonzero (and
+                // something reaches dense1).
+                assert!(
+                    zeros[0] > 0.8 && zeros[1] > 0.8 && zeros[2] < 0.99,
+                    "zeros {zeros:?}"
+                );
             }
             let got = net.infer(&x).data().to_vec();
             let scale = 1.0 + want.iter().fold(0.0f32, |m, v| m.max(v.abs()));

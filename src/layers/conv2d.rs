@@ -685,11 +685,12 @@ impl<T: Float> Conv2d<T> {
             &self.xpad
         };
         self.nz.collect(a, g.cin);
-        if self.nz.len() > a.len() / 4 {
-            // Measured at batch 1 on one thread (an untrained network on game frames at about
-            // 40% nonzero, a trained one at 1–5%): the sparse product loads a weight row from L2
-            // for every nonzero value and tap, where the dense one shares each load between
-            // several output pixels, and the two break even at about a quarter nonzero.
+        if self.nz.len() > a.len() / 5 {
+            // The sparse product loads a weight row from L2 for every nonzero value and tap,
+            // where the dense one shares each load between several output pixels: at batch 1 on
+            // one thread they cross at about 22% nonzero for conv2 and conv3 (`cargo bench
+            // --bench layers -- sparse_act`; an initial network on game frames is at about 40%,
+            // a trained one at 1–5%).
             return self.forward_as(x);
         }
         let (_, wp) = g.padded();
