@@ -826,9 +826,18 @@ fn gather_gemm_refuses_out_of_range_tables() {
         .contains("A index out of range"));
     far[2] = 36;
     assert!(run(&far, None).is_ok());
+    // A start near usize::MAX must not wrap around the check.
+    far[2] = usize::MAX - 1;
+    assert!(run(&far, None)
+        .unwrap_err()
+        .contains("A index out of range"));
     let apart = [0, 8, 16, 30, 40];
     assert!(run(&p, Some(&apart)).is_ok());
-    for bad in [[0, 8, 15, 30, 40], [0, 8, 16, 40, 30]] {
+    for bad in [
+        [0, 8, 15, 30, 40],
+        [0, 8, 16, 40, 30],
+        [0, 8, usize::MAX - 4, 30, 40],
+    ] {
         let err = run(&p, Some(&bad)).unwrap_err();
         assert!(err.contains("c_rows overlap or decrease"), "{err}");
     }

@@ -8,7 +8,9 @@ use common::{rng, uniform};
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
-use invaders::tensor::{conv2d_reference, Border, ConvGeom, Float, Nonzeros, Padding, Tensor};
+use invaders::tensor::{
+    conv2d_reference, pad_input, Border, ConvGeom, Float, Nonzeros, Padding, Tensor,
+};
 use proptest::prelude::*;
 use rand::Rng;
 
@@ -87,6 +89,11 @@ fn conv_case<T: Float>(
     set_params(&mut layer, &wt, &bt);
     layer.forward(&uniform::<T>(&[2, h, w, cin], &mut r));
     let x = sparse::<T>(&[1, h, w, cin], zeros, &mut r);
+    // The same image inside its SAME padding, as a replay batch is laid out: read in place.
+    let mut xpad = Vec::new();
+    pad_input(&g, 1, x.data(), &mut xpad);
+    let (hp, wp) = g.padded();
+    let xpad = Tensor::from_vec(&[1, hp, wp, cin], xpad);
     let mut z = vec![T::zero(); g.oh * g.ow * cout];
     conv2d_reference(&g, 1, x.data(), wt.data(), bt.data(), &mut z);
     let (hb, wb) = b.around(g.oh, g.ow);
@@ -101,6 +108,10 @@ fn conv_case<T: Float>(
     layer.infer(&x);
     prop_assert_eq!(layer.output().shape(), &[1, hb, wb, cout][..]);
     assert_close("infer", layer.output().data(), &y, tol)?;
+    if !g.reads_input_directly() {
+        layer.infer(&xpad);
+        assert_close("infer, padded input", layer.output().data(), &y, tol)?;
+    }
     layer.forward(&x);
     assert_close("forward", layer.output().data(), &y, tol)
 }
@@ -176,7 +187,8 @@ proptest! {
         cin in prop_oneof![1usize..20, Just(16), Just(32)],
         cout in prop_oneof![1usize..20, Just(16), Just(64), Just(144)],
         same in any::<bool>(), relu in any::<bool>(), border in 0usize..3,
-        zeros in prop_oneof![Just(1.0), Just(0.95), Just(0.8), Just(0.3)], seed in any::<u64>(),
+        zeros in prop_oneof![Just(1.0), Just(0.95), Just(0.9), Just(0.8), Just(0.3)],
+        seed in any::<u64>(),
     ) {
         conv_case::<f32>(k, s, h, w, cin, cout, same, relu, border, zeros, seed, 1e-5)?;
         conv_case::<f64>(k, s, h, w, cin, cout, same, relu, border, zeros, seed, 1e-12)?;
@@ -228,10 +240,36 @@ fn article_network_infers_as_it_forwards() {
                 );
             }
             let got = net.infer(&x).data().to_vec();
+            if f32::simd() {
+                // The same fused multiply-adds in the same order, the zero terms left out.
+                assert_eq!(got, want);
+            }
             let scale = 1.0 + want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
             for (a, b) in got.iter().zip(&want) {
                 assert!((a - b).abs() <= 1e-5 * scale, "{got:?} vs {want:?}");
             }
         }
     }
+}
+
+/// `infer` discards what a forward pass kept for backward: a backward pass after it is refused,
+/// not computed from a mix of the two.
+#[test]
+#[should_panic(expected = "backward without forward")]
+fn backward_after_infer_is_refused() {
+    let g = ConvGeom::new(6, 6, 16, 16, 3, 3, (1, 1), Padding::Same).unwrap();
+    let mut layer = Conv2d::<f32>::new("c", g)
+        .with_relu()
+        .with_sparse_inference(true);
+    let mut r = rng(1);
+    let (wt, bt) = (
+        uniform::<f32>(&[3, 3, 16, 16], &mut r),
+        uniform::<f32>(&[16], &mut r),
+    );
+    set_params(&mut layer, &wt, &bt);
+    let x = uniform::<f32>(&[2, 6, 6, 16], &mut r);
+    layer.forward(&x);
+    layer.infer(&sparse::<f32>(&[1, 6, 6, 16], 1.0, &mut r));
+    let dy = uniform::<f32>(&[2, 6, 6, 16], &mut r);
+    layer.backward(&x, &dy, true);
 }

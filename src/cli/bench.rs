@@ -30,7 +30,7 @@ pub struct BenchArgs {
     /// Train steps to time.
     #[arg(long, default_value_t = 30)]
     steps: usize,
-    /// Also time acting with this checkpoint's online network (a run directory or its
+    /// Also time acting with this checkpoint's acting network (a run directory or its
     /// `checkpoint.safetensors`), besides a newly initialised one. A trained network's
     /// activations are mostly zeros, which acting skips.
     #[arg(long, value_name = "PATH")]
@@ -103,11 +103,15 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let act_ms = time_acting(&mut learner.online, &config, &mut rng)?;
     let act_trained_ms = match &mut trained {
         None => None,
-        Some(ckpt) => Some(time_acting(
-            &mut ckpt.learner.online,
-            &ckpt.config,
-            &mut rng,
-        )?),
+        Some(ckpt) => {
+            // The network the run acts with (the lagged copy for the notebook's swap).
+            let net = if ckpt.config.act_with_target_network {
+                &mut ckpt.learner.target
+            } else {
+                &mut ckpt.learner.online
+            };
+            Some(time_acting(net, &ckpt.config, &mut rng)?)
+        }
     };
 
     // The emulator with the article's pipeline and input normalisation, random actions.

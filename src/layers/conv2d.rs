@@ -689,8 +689,9 @@ impl<T: Float> Conv2d<T> {
             // The sparse product loads a weight row from L2 for every nonzero value and tap,
             // where the dense one shares each load between several output pixels: at batch 1 on
             // one thread they cross at about 22% nonzero for conv2 and conv3 (`cargo bench
-            // --bench layers -- sparse_act`; an initial network on game frames is at about 40%,
-            // a trained one at 1–5%).
+            // --bench layers -- sparse_act`). The count includes the zero border the layer
+            // before wrote: an initial network's conv2 and conv3 inputs on game frames are 43%
+            // and 36% nonzero by it, a trained network's 5% and 1%.
             return self.forward_as(x);
         }
         let (_, wp) = g.padded();
@@ -717,6 +718,10 @@ impl<T: Float> Conv2d<T> {
         }
         .run();
         self.zero_border(1);
+        // What the last forward pass left for backward no longer matches `y`: a backward pass
+        // now fails its "backward without forward" check instead of mixing the two.
+        self.pixels.clear();
+        self.cols.clear();
     }
 
     /// [`Layer::backward`] with `self.geom` the input's geometry.
@@ -772,8 +777,9 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         self.geom = own;
     }
 
-    /// At batch 1 with [`Conv2d::with_sparse_inference`]: the sum over the input's nonzero
-    /// values only ([`SparseConv`]); otherwise [`Layer::forward`].
+    /// At batch 1 with [`Conv2d::with_sparse_inference`], if at most a fifth of the (padded)
+    /// input is nonzero: the sum over the nonzero values only ([`SparseConv`]). Otherwise
+    /// [`Layer::forward`].
     fn infer(&mut self, x: &Tensor<T>) {
         if !self.sparse || x.batch() != 1 {
             return self.forward(x);

@@ -32,7 +32,14 @@ pub struct Dense<T> {
 
 impl<T: Float> Dense<T> {
     /// A dense layer with zero weights and bias (initialise them with [`super::init`]).
+    ///
+    /// # Panics
+    /// If `n_in` or `n_out` is zero.
     pub fn new(name: &str, n_in: usize, n_out: usize) -> Self {
+        assert!(
+            n_in > 0 && n_out > 0,
+            "{name}: a dense layer needs inputs and outputs ({n_in} → {n_out})"
+        );
         Dense {
             name: name.to_string(),
             n_in,

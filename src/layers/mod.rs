@@ -59,8 +59,9 @@ pub trait Layer<T: Float>: Send {
     fn forward(&mut self, x: &Tensor<T>);
 
     /// A forward pass that no backward pass follows (acting): the same `y`, up to rounding,
-    /// by whatever kernel is fastest for it; what backward would need is not kept. The default
-    /// is [`Layer::forward`].
+    /// by whatever kernel is fastest for it. It may discard what the last [`Layer::forward`]
+    /// kept for backward, so a backward pass needs a forward pass after it. The default is
+    /// [`Layer::forward`].
     fn infer(&mut self, x: &Tensor<T>) {
         self.forward(x)
     }

@@ -55,8 +55,14 @@ pub struct GatherGemm<'a, T> {
     pub relu: bool,
 }
 
-/// Where row `r` of `C` starts in `c`: `c_rows[r]`, or `r·ldc` without a table.
-#[inline]
+/// Whether `start + plus < limit`, with `start` `None` when computing it overflowed: no sum in
+/// a bounds check may wrap around.
+fn within(start: Option<usize>, plus: usize, limit: usize) -> bool {
+    start
+        .and_then(|s| s.checked_add(plus))
+        .is_some_and(|end| end < limit)
+}
+
 /// The largest offset in a table (0 if empty).
 fn largest(v: &[usize]) -> usize {
     // Branch-free folds, so that compiled for AVX-512 (`wide`) they run 8 lanes wide: the checks
@@ -80,13 +86,14 @@ fn largest(v: &[usize]) -> usize {
     scan(v)
 }
 
-/// Whether each row start is at least `n` past the one before (rows increase, never overlap).
+/// Whether each row start is at least `n` past the one before (rows increase, never overlap),
+/// written without a sum that could wrap.
 fn rows_apart(starts: &[usize], n: usize) -> bool {
     #[inline(always)]
     fn scan(starts: &[usize], n: usize) -> bool {
-        starts
-            .windows(2)
-            .fold(true, |ok, w| ok & (w[1] >= w[0] + n))
+        starts.windows(2).fold(true, |ok, w| {
+            ok & (w[1] >= w[0]) & (w[1].wrapping_sub(w[0]) >= n)
+        })
     }
     #[cfg(target_arch = "x86_64")]
     {
@@ -102,6 +109,8 @@ fn rows_apart(starts: &[usize], n: usize) -> bool {
     scan(starts, n)
 }
 
+/// Where row `r` of `C` starts in `c`: `c_rows[r]`, or `r·ldc` without a table.
+#[inline]
 fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize {
     c_rows.map_or(r * ldc, |cr| cr[r])
 }
@@ -129,8 +138,13 @@ impl<T: Float> GatherGemm<'_, T> {
                 );
             }
         }
+        // Sums in checked arithmetic: a table entry near `usize::MAX` must not wrap past a check.
+        let last = match self.c_rows {
+            Some(cr) => Some(cr[rows - 1]),
+            None => (rows - 1).checked_mul(self.ldc),
+        };
         assert!(
-            self.c.len() >= self.row_start(rows - 1) + self.n,
+            within(last, self.n, self.c.len() + 1),
             "gather_gemm: C too short"
         );
         if let Init::Bias(bias) = self.init {
@@ -139,11 +153,11 @@ impl<T: Float> GatherGemm<'_, T> {
         if steps > 0 {
             assert!(self.n <= self.ldb, "gather_gemm: n > ldb");
             assert!(
-                self.b.len() >= (steps - 1) * self.ldb + self.n,
+                within((steps - 1).checked_mul(self.ldb), self.n, self.b.len() + 1),
                 "gather_gemm: B too short"
             );
             assert!(
-                largest(self.p) + largest(self.q) < self.a.len(),
+                within(Some(largest(self.p)), largest(self.q), self.a.len()),
                 "gather_gemm: A index out of range"
             );
         }
@@ -193,18 +207,18 @@ impl<T: Float> ScatterGemm<'_, T> {
         for (r, &o) in self.out_rows.iter().enumerate() {
             let g = r / grows;
             assert!(
-                o >= g * glen && o + cmax < (g + 1) * glen,
+                o >= g * glen && within(Some(o), cmax, (g + 1) * glen),
                 "scatter_gemm: row {r} leaves its group"
             );
         }
         if steps > 0 {
             assert!(self.n <= self.ldb, "scatter_gemm: n > ldb");
             assert!(
-                self.b.len() >= (steps - 1) * self.ldb + self.n,
+                within((steps - 1).checked_mul(self.ldb), self.n, self.b.len() + 1),
                 "scatter_gemm: B too short"
             );
             assert!(
-                largest(self.p) + largest(self.q) < self.a.len(),
+                within(Some(largest(self.p)), largest(self.q), self.a.len()),
                 "scatter_gemm: A index out of range"
             );
         }

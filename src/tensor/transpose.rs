@@ -23,7 +23,7 @@ pub fn transpose<T: Float>(src: &[T], rows: usize, cols: usize, dst: &mut [T]) {
     #[cfg(target_arch = "x86_64")]
     if T::simd() {
         // SAFETY: `simd` holds only where the CPU runs AVX-512F, and `T` is f32 there; every
-        // index the gathers form is below `rows · cols` (checked to fit an i32).
+        // load and store goes through a bounds-checked 16-value slice.
         return unsafe {
             avx512::transpose(
                 bytemuck::cast_slice(src),
