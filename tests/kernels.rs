@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{rng, uniform};
+use common::{assert_close, rng, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
@@ -11,23 +11,6 @@ use invaders::tensor::{
     Tensor, WinogradKind, WinogradScratch, WinogradShape,
 };
 use proptest::prelude::*;
-
-/// `max |a − b| ≤ tol · (1 + max |b|)`.
-fn assert_close(what: &str, a: &[f32], b: &[f32], tol: f32) -> Result<(), TestCaseError> {
-    prop_assert_eq!(a.len(), b.len());
-    let scale = 1.0 + b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-    for (i, (x, y)) in a.iter().zip(b).enumerate() {
-        prop_assert!(
-            (x - y).abs() <= tol * scale,
-            "{}[{}]: {} vs {}",
-            what,
-            i,
-            x,
-            y
-        );
-    }
-    Ok(())
-}
 
 /// Sets a layer's parameters (in its order: weight, bias) to the given values.
 fn set_params<T: Float>(layer: &mut dyn Layer<T>, values: &[&Tensor<T>]) {
@@ -257,17 +240,6 @@ fn winograd_case<T: Float>(
     let bt = uniform::<T>(&[co], &mut r);
     let x = uniform::<T>(&[n, h, w, ci], &mut r);
     let dy = uniform::<T>(&[n, g.oh, g.ow, co], &mut r);
-    let close = |what: &str, a: &[T], b: &[T]| -> Result<(), TestCaseError> {
-        prop_assert_eq!(a.len(), b.len());
-        let scale = 1.0
-            + b.iter()
-                .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
-        for (i, (x, y)) in a.iter().zip(b).enumerate() {
-            let d = (x.to_f64().unwrap() - y.to_f64().unwrap()).abs();
-            prop_assert!(d <= tol * scale, "{}[{}]: {} vs {}", what, i, x, y);
-        }
-        Ok(())
-    };
     let mut scratch = WinogradScratch::default();
     let mut u = Vec::new();
     let mut pixels = Vec::new();
@@ -304,7 +276,7 @@ fn winograd_case<T: Float>(
     if relu {
         want.iter_mut().for_each(|v| *v = v.max(T::zero()));
     }
-    close("y", &y, &want)?;
+    assert_close("y", &y, &want, tol)?;
     let forward = shape;
     // Adjoint: dX[iy, ix] = Σ dY[iy − ky + pad, ix − kx + pad]·wᵀ, dY read at padding 2 − pad.
     winograd_filters(wt.data(), ci, co, true, &mut u);
@@ -348,12 +320,12 @@ fn winograd_case<T: Float>(
         &mut dw,
         &mut db,
     );
-    close("dx", &dx, &want)?;
+    assert_close("dx", &dx, &want, tol)?;
     // Weight gradient (added to what `dw` holds: start from ones).
     let mut dww = vec![T::one(); dw.len()];
     winograd_wgrad(forward, x.data(), dy.data(), &mut dww, &mut scratch);
     dw.iter_mut().for_each(|v| *v += T::one());
-    close("dw", &dww, &dw)
+    assert_close("dw", &dww, &dw, tol)
 }
 
 /// [`winograd_conv`] and [`winograd_wgrad`] by F(2×2, 2×2) over `s × s` blocks (a `2s × 2s`
@@ -412,17 +384,7 @@ fn winograd_s2d_case<T: Float>(
     if relu {
         want.iter_mut().for_each(|v| *v = v.max(T::zero()));
     }
-    let close = |what: &str, a: &[T], b: &[T]| -> Result<(), TestCaseError> {
-        let scale = 1.0
-            + b.iter()
-                .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
-        for (i, (x, y)) in a.iter().zip(b).enumerate() {
-            let d = (x.to_f64().unwrap() - y.to_f64().unwrap()).abs();
-            prop_assert!(d <= tol * scale, "{}[{}]: {} vs {}", what, i, x, y);
-        }
-        Ok(())
-    };
-    close("y", &y, &want)?;
+    assert_close("y", &y, &want, tol)?;
     // Weight gradient (added to what `dw` holds: start from ones) against the reference's.
     let dy = uniform::<T>(&[n, g.oh, g.ow, co], &mut r);
     let (mut dx, mut dw, mut db) = (
@@ -443,7 +405,7 @@ fn winograd_s2d_case<T: Float>(
     let mut dww = vec![T::one(); dw.len()];
     winograd_wgrad(shape, x.data(), dy.data(), &mut dww, &mut scratch);
     dw.iter_mut().for_each(|v| *v += T::one());
-    close("dw", &dww, &dw)
+    assert_close("dw", &dww, &dw, tol)
 }
 
 proptest! {

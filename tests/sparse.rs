@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{rng, uniform};
+use common::{assert_close, rng, uniform};
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
@@ -13,19 +13,6 @@ use invaders::tensor::{
 };
 use proptest::prelude::*;
 use rand::Rng;
-
-/// `max |a − b| ≤ tol · (1 + max |b|)`.
-fn assert_close<T: Float>(what: &str, a: &[T], b: &[T], tol: f64) -> Result<(), TestCaseError> {
-    prop_assert_eq!(a.len(), b.len());
-    let scale = 1.0
-        + b.iter()
-            .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
-    for (i, (x, y)) in a.iter().zip(b).enumerate() {
-        let d = (x.to_f64().unwrap() - y.to_f64().unwrap()).abs();
-        prop_assert!(d <= tol * scale, "{}[{}]: {} vs {}", what, i, x, y);
-    }
-    Ok(())
-}
 
 /// Uniform values in [-1, 1) of which about `zeros` (a fraction) are exact zeros, some `-0.0`.
 fn sparse<T: Float>(shape: &[usize], zeros: f64, r: &mut impl Rng) -> Tensor<T> {

@@ -49,21 +49,21 @@ impl<T: Float> Sequential<T> {
 
     /// Runs every layer on `x` and returns the last output.
     pub fn forward(&mut self, x: &Tensor<T>) -> &Tensor<T> {
-        for i in 0..self.layers.len() {
-            let (before, rest) = self.layers.split_at_mut(i);
-            let input = before.last().map_or(x, |l| l.output());
-            rest[0].forward(input);
-        }
-        self.output()
+        self.chain(x, |layer, input| layer.forward(input))
     }
 
     /// [`Sequential::forward`] for acting: every layer's [`Layer::infer`] (a batch-1 pass
-    /// skips the zeros the ReLUs leave). No backward pass may follow it.
+    /// skips the zeros the ReLUs leave). A backward pass needs a forward pass after it.
     pub fn infer(&mut self, x: &Tensor<T>) -> &Tensor<T> {
+        self.chain(x, |layer, input| layer.infer(input))
+    }
+
+    /// Runs `pass` on each layer in turn, each reading the output of the one before.
+    fn chain(&mut self, x: &Tensor<T>, pass: impl Fn(&mut dyn Layer<T>, &Tensor<T>)) -> &Tensor<T> {
         for i in 0..self.layers.len() {
             let (before, rest) = self.layers.split_at_mut(i);
             let input = before.last().map_or(x, |l| l.output());
-            rest[0].infer(input);
+            pass(rest[0].as_mut(), input);
         }
         self.output()
     }

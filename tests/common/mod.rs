@@ -3,6 +3,7 @@
 
 use invaders::layers::Layer;
 use invaders::tensor::{Float, Tensor};
+use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -152,6 +153,19 @@ pub fn check_layer(
                 ));
             }
         }
+    }
+    Ok(())
+}
+
+/// `max |a − b| ≤ tol · (1 + max |b|)`, compared in f64, for proptest.
+pub fn assert_close<T: Float>(what: &str, a: &[T], b: &[T], tol: f64) -> Result<(), TestCaseError> {
+    prop_assert_eq!(a.len(), b.len());
+    let scale = 1.0
+        + b.iter()
+            .fold(0.0f64, |m, v| m.max(v.to_f64().unwrap().abs()));
+    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+        let d = (x.to_f64().unwrap() - y.to_f64().unwrap()).abs();
+        prop_assert!(d <= tol * scale, "{}[{}]: {} vs {}", what, i, x, y);
     }
     Ok(())
 }
