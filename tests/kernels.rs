@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{assert_close, rng, uniform};
+use common::{assert_close, rng, set_params, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
@@ -11,13 +11,6 @@ use invaders::tensor::{
     Tensor, WinogradKind, WinogradScratch, WinogradShape,
 };
 use proptest::prelude::*;
-
-/// Sets a layer's parameters (in its order: weight, bias) to the given values.
-fn set_params<T: Float>(layer: &mut dyn Layer<T>, values: &[&Tensor<T>]) {
-    for (p, v) in layer.params_mut().iter_mut().zip(values) {
-        p.value.data_mut().copy_from_slice(v.data());
-    }
-}
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]

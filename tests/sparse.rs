@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{assert_close, rng, uniform};
+use common::{assert_close, rng, set_params, uniform};
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
@@ -27,12 +27,6 @@ fn sparse<T: Float>(shape: &[usize], zeros: f64, r: &mut impl Rng) -> Tensor<T> 
         }
     }
     t
-}
-
-fn set_params<T: Float>(layer: &mut dyn Layer<T>, w: &Tensor<T>, b: &Tensor<T>) {
-    let p = layer.params_mut();
-    p[0].value.data_mut().copy_from_slice(w.data());
-    p[1].value.data_mut().copy_from_slice(b.data());
 }
 
 /// A convolution with sparse inference: `infer` at batch 1 gives the reference convolution's
@@ -73,7 +67,7 @@ fn conv_case<T: Float>(
         uniform::<T>(&[k, k, cin, cout], &mut r),
         uniform::<T>(&[cout], &mut r),
     );
-    set_params(&mut layer, &wt, &bt);
+    set_params(&mut layer, &[&wt, &bt]);
     layer.forward(&uniform::<T>(&[2, h, w, cin], &mut r));
     let x = sparse::<T>(&[1, h, w, cin], zeros, &mut r);
     // The same image inside its SAME padding, as a replay batch is laid out: read in place.
@@ -117,7 +111,7 @@ fn dense_case<T: Float>(
         uniform::<T>(&[n_in, n_out], &mut r),
         uniform::<T>(&[n_out], &mut r),
     );
-    set_params(&mut layer, &wt, &bt);
+    set_params(&mut layer, &[&wt, &bt]);
     layer.forward(&uniform::<T>(&[3, n_in], &mut r));
     let x = sparse::<T>(&[1, n_in], zeros, &mut r);
     let mut y = bt.data().to_vec();
@@ -253,7 +247,7 @@ fn backward_after_infer_is_refused() {
         uniform::<f32>(&[3, 3, 16, 16], &mut r),
         uniform::<f32>(&[16], &mut r),
     );
-    set_params(&mut layer, &wt, &bt);
+    set_params(&mut layer, &[&wt, &bt]);
     let x = uniform::<f32>(&[2, 6, 6, 16], &mut r);
     layer.forward(&x);
     layer.infer(&sparse::<f32>(&[1, 6, 6, 16], 1.0, &mut r));

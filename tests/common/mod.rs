@@ -169,3 +169,10 @@ pub fn assert_close<T: Float>(what: &str, a: &[T], b: &[T], tol: f64) -> Result<
     }
     Ok(())
 }
+
+/// Sets a layer's parameters (in its order: weight, bias) to the given values.
+pub fn set_params<T: Float>(layer: &mut dyn Layer<T>, values: &[&Tensor<T>]) {
+    for (p, v) in layer.params_mut().iter_mut().zip(values) {
+        p.value.data_mut().copy_from_slice(v.data());
+    }
+}
