@@ -43,6 +43,7 @@ fn conv_case<T: Float>(
     same: bool,
     relu: bool,
     border: usize,
+    n: usize,
     zeros: f64,
     seed: u64,
     tol: f64,
@@ -68,26 +69,26 @@ fn conv_case<T: Float>(
         uniform::<T>(&[cout], &mut r),
     );
     set_params(&mut layer, &[&wt, &bt]);
-    layer.forward(&uniform::<T>(&[2, h, w, cin], &mut r));
-    let x = sparse::<T>(&[1, h, w, cin], zeros, &mut r);
+    layer.forward(&uniform::<T>(&[n + 1, h, w, cin], &mut r));
+    let x = sparse::<T>(&[n, h, w, cin], zeros, &mut r);
     // The same image inside its SAME padding, as a replay batch is laid out: read in place.
     let mut xpad = Vec::new();
-    pad_input(&g, 1, x.data(), &mut xpad);
+    pad_input(&g, n, x.data(), &mut xpad);
     let (hp, wp) = g.padded();
-    let xpad = Tensor::from_vec(&[1, hp, wp, cin], xpad);
-    let mut z = vec![T::zero(); g.oh * g.ow * cout];
-    conv2d_reference(&g, 1, x.data(), wt.data(), bt.data(), &mut z);
+    let xpad = Tensor::from_vec(&[n, hp, wp, cin], xpad);
+    let mut z = vec![T::zero(); n * g.oh * g.ow * cout];
+    conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut z);
     let (hb, wb) = b.around(g.oh, g.ow);
     let mut at = Vec::new();
-    b.interior_offsets(1, g.oh, g.ow, cout, &mut at);
-    let mut y = vec![T::zero(); hb * wb * cout];
+    b.interior_offsets(n, g.oh, g.ow, cout, &mut at);
+    let mut y = vec![T::zero(); n * hb * wb * cout];
     for (zrow, &o) in z.chunks_exact(cout).zip(&at) {
         for (yv, &zv) in y[o..o + cout].iter_mut().zip(zrow) {
             *yv = if relu { zv.max(T::zero()) } else { zv };
         }
     }
     layer.infer(&x);
-    prop_assert_eq!(layer.output().shape(), &[1, hb, wb, cout][..]);
+    prop_assert_eq!(layer.output().shape(), &[n, hb, wb, cout][..]);
     assert_close("infer", layer.output().data(), &y, tol)?;
     if !g.reads_input_directly() {
         layer.infer(&xpad);
@@ -101,6 +102,7 @@ fn conv_case<T: Float>(
 fn dense_case<T: Float>(
     n_in: usize,
     n_out: usize,
+    n: usize,
     zeros: f64,
     seed: u64,
     tol: f64,
@@ -112,16 +114,20 @@ fn dense_case<T: Float>(
         uniform::<T>(&[n_out], &mut r),
     );
     set_params(&mut layer, &[&wt, &bt]);
-    layer.forward(&uniform::<T>(&[3, n_in], &mut r));
-    let x = sparse::<T>(&[1, n_in], zeros, &mut r);
-    let mut y = bt.data().to_vec();
-    for (i, &v) in x.data().iter().enumerate() {
-        for (j, yv) in y.iter_mut().enumerate() {
-            *yv += v * wt.data()[i * n_out + j];
+    layer.forward(&uniform::<T>(&[n + 2, n_in], &mut r));
+    let x = sparse::<T>(&[n, n_in], zeros, &mut r);
+    let mut y = Vec::new();
+    for sample in x.data().chunks_exact(n_in) {
+        let mut row = bt.data().to_vec();
+        for (i, &v) in sample.iter().enumerate() {
+            for (j, yv) in row.iter_mut().enumerate() {
+                *yv += v * wt.data()[i * n_out + j];
+            }
         }
+        y.extend(row);
     }
     layer.infer(&x);
-    prop_assert_eq!(layer.output().shape(), &[1, n_out][..]);
+    prop_assert_eq!(layer.output().shape(), &[n, n_out][..]);
     assert_close("infer", layer.output().data(), &y, tol)
 }
 
@@ -167,22 +173,22 @@ proptest! {
         k in 1usize..=4, s in 1usize..=3, h in 3usize..12, w in 3usize..12,
         cin in prop_oneof![1usize..20, Just(16), Just(32)],
         cout in prop_oneof![1usize..20, Just(16), Just(64), Just(144)],
-        same in any::<bool>(), relu in any::<bool>(), border in 0usize..3,
+        same in any::<bool>(), relu in any::<bool>(), border in 0usize..3, n in 1usize..4,
         zeros in prop_oneof![Just(1.0), Just(0.95), Just(0.9), Just(0.8), Just(0.3)],
         seed in any::<u64>(),
     ) {
-        conv_case::<f32>(k, s, h, w, cin, cout, same, relu, border, zeros, seed, 1e-5)?;
-        conv_case::<f64>(k, s, h, w, cin, cout, same, relu, border, zeros, seed, 1e-12)?;
+        conv_case::<f32>(k, s, h, w, cin, cout, same, relu, border, n, zeros, seed, 1e-5)?;
+        conv_case::<f64>(k, s, h, w, cin, cout, same, relu, border, n, zeros, seed, 1e-12)?;
     }
 
     #[test]
     fn dense_sparse_inference_matches_reference(
         n_in in prop_oneof![1usize..100, Just(7040)],
-        n_out in prop_oneof![1usize..40, Just(16), Just(128), Just(144)],
+        n_out in prop_oneof![1usize..40, Just(16), Just(128), Just(144)], n in 1usize..4,
         zeros in prop_oneof![Just(1.0), Just(0.95), Just(0.5), Just(0.0)], seed in any::<u64>(),
     ) {
-        dense_case::<f32>(n_in, n_out, zeros, seed, 1e-5)?;
-        dense_case::<f64>(n_in, n_out, zeros, seed, 1e-12)?;
+        dense_case::<f32>(n_in, n_out, n, zeros, seed, 1e-5)?;
+        dense_case::<f64>(n_in, n_out, n, zeros, seed, 1e-12)?;
     }
 }
 

@@ -171,7 +171,8 @@ impl Learner {
     /// One DQN update on `batch`:
     ///
     /// 1. TD target `y = r + γ·(1 − done)·max_a' Q_target(s', a')` (Double DQN:
-    ///    `Q_target(s', argmax_a' Q_online(s', a'))`); no gradient flows through `y`.
+    ///    `Q_target(s', argmax_a' Q_online(s', a'))`); no gradient flows through `y`, so these
+    ///    passes are [`Sequential::infer`] (sparse products where the activations allow).
     /// 2. Forward `Q_online(s, ·)`, keep `Q(s, a)` of the taken actions.
     /// 3. Loss `L = mean_b ℓ(Q(s_b, a_b) − y_b)` (MSE or Huber); `∂L/∂Q(s_b, a)` is non-zero only
     ///    at `a = a_b`, so the upstream gradient `dQ[B, A]` is zero except one entry per row.
@@ -183,8 +184,10 @@ impl Learner {
         self.y.resize(b, 0.0);
         self.dq_taken.resize(b, 0.0);
         self.next_greedy.resize(b, 0);
+        // The passes over s' are inference (no backward follows): `infer`, which skips the
+        // zeros the ReLUs leave where they are most of the activations (a trained network).
         if self.double {
-            let q_next = self.online.forward(&batch.next_states);
+            let q_next = self.online.infer(&batch.next_states);
             for (g, row) in self
                 .next_greedy
                 .iter_mut()
@@ -198,7 +201,7 @@ impl Learner {
         // finishes its share early takes work from the other pass instead of waiting).
         let (target, online) = (&mut self.target, &mut self.online);
         let (q_next, q) = rayon::join(
-            || target.forward(&batch.next_states),
+            || target.infer(&batch.next_states),
             || online.forward(&batch.states),
         );
         for (i, row) in q_next.data().chunks_exact(na).enumerate() {

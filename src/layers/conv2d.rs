@@ -666,46 +666,60 @@ impl<T: Float> Conv2d<T> {
         self.zero_border(n);
     }
 
-    /// [`Layer::infer`] of one image by [`SparseConv`], with `self.geom` the input's geometry:
-    /// output pixel `(oy, ox)`'s window starts at padded pixel `(oy·SH, ox·SW)` and tap
-    /// `(ky, kx)` is `ky·WP + kx` pixels further on.
+    /// [`Layer::infer`] by [`SparseConv`], with `self.geom` the input's geometry: output pixel
+    /// `(i, oy, ox)`'s window starts at padded pixel `(i, oy·SH, ox·SW)` and tap `(ky, kx)` is
+    /// `ky·WP + kx` pixels further on.
     fn infer_sparse(&mut self, x: &Tensor<T>) {
         let g = self.geom;
+        let n = x.batch();
         assert_eq!(
-            x.shape(),
-            [1, g.h, g.w, g.cin],
+            x.shape()[1..],
+            [g.h, g.w, g.cin],
             "{}: input shape",
             self.name
         );
-        self.y.set_shape(&self.out_shape(1));
+        self.y.set_shape(&self.out_shape(n));
         let a: &[T] = if g.reads_input_directly() {
             x.data()
         } else {
-            pad_input(&g, 1, x.data(), &mut self.xpad);
+            pad_input(&g, n, x.data(), &mut self.xpad);
             &self.xpad
         };
+        // A batch is first judged by its first image, so a dense one (an initial network's)
+        // costs one image's count, not the batch's.
+        let (hp, wp) = g.padded();
+        let image = hp * wp * g.cin;
+        if n > 1 {
+            self.nz.collect(&a[..image], g.cin);
+            if self.nz.len() > image / 10 {
+                return self.forward_as(x);
+            }
+        }
         self.nz.collect(a, g.cin);
-        if self.nz.len() > a.len() / 5 {
-            // The sparse product loads a weight row from L2 for every nonzero value and tap,
-            // where the dense one shares each load between several output pixels: at batch 1 on
-            // one thread they cross at about 22% nonzero for conv2 and conv3 (`cargo bench
-            // --bench layers -- sparse_act`). The count includes the zero border the layer
-            // before wrote: an initial network's conv2 and conv3 inputs on game frames are 43%
-            // and 36% nonzero by it, a trained network's 5% and 1%.
+        // The sparse product loads a weight row from L2 for every nonzero value and tap, where
+        // the dense one shares each load between several output pixels: at batch 1 on one
+        // thread they cross at about 22% nonzero for conv2 and conv3 (`cargo bench --bench
+        // layers -- sparse_act`). A batch's dense product is faster per image still (Winograd,
+        // both threads), so a batch takes the sparse one only under a tenth. The count includes
+        // the zero border the layer before wrote: an initial network's conv2 and conv3 inputs on
+        // game frames are 43% and 36% nonzero by it, a trained network's 5% and 1%.
+        let most = if n == 1 { a.len() / 5 } else { a.len() / 10 };
+        if self.nz.len() > most {
             return self.forward_as(x);
         }
-        let (_, wp) = g.padded();
         self.sp_windows.clear();
-        for oy in 0..g.oh {
-            self.sp_windows
-                .extend((0..g.ow).map(|ox| oy * g.sh * wp + ox * g.sw));
+        for i in 0..n {
+            for oy in 0..g.oh {
+                let row = (i * hp + oy * g.sh) * wp;
+                self.sp_windows.extend((0..g.ow).map(|ox| row + ox * g.sw));
+            }
         }
         self.sp_taps.clear();
         for ky in 0..g.kh {
             self.sp_taps.extend((0..g.kw).map(|kx| ky * wp + kx));
         }
         self.border
-            .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.out_rows);
+            .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
         SparseConv {
             x: &self.nz,
             windows: &self.sp_windows,
@@ -717,7 +731,7 @@ impl<T: Float> Conv2d<T> {
             rows: &self.out_rows,
         }
         .run();
-        self.zero_border(1);
+        self.zero_border(n);
         // What the last forward pass left for backward no longer matches `y`: a backward pass
         // now fails its "backward without forward" check instead of mixing the two.
         self.pixels.clear();
@@ -777,11 +791,11 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         self.geom = own;
     }
 
-    /// At batch 1 with [`Conv2d::with_sparse_inference`], if at most a fifth of the (padded)
-    /// input is nonzero: the sum over the nonzero values only ([`SparseConv`]). Otherwise
-    /// [`Layer::forward`].
+    /// With [`Conv2d::with_sparse_inference`], if at most a fifth of the (padded) input is
+    /// nonzero (a tenth for a batch): the sum over the nonzero values only ([`SparseConv`]).
+    /// Otherwise [`Layer::forward`].
     fn infer(&mut self, x: &Tensor<T>) {
-        if !self.sparse || x.batch() != 1 {
+        if !self.sparse {
             return self.forward(x);
         }
         let own = self.geom;

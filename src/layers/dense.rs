@@ -18,7 +18,8 @@ pub struct Dense<T> {
     pub params: [Param<T>; 2],
     y: Tensor<T>,
     dx: Tensor<T>,
-    /// Fast path ([`Float::simd`]) offset tables: `i·In` per sample, `0..In`, `0..Out`.
+    /// Fast path ([`Float::simd`]) offset tables: `i·In` per sample, `0..In`, `0..Out` (each
+    /// pass fills what it uses; [`Layer::infer`] borrows two for its sample and row tables).
     x_rows: Vec<usize>,
     iota_in: Vec<usize>,
     iota_out: Vec<usize>,
@@ -181,24 +182,40 @@ impl<T: Float> Layer<T> for Dense<T> {
         );
     }
 
-    /// At batch 1 with [`Dense::with_sparse_inference`]: the sum over nonzero inputs only;
-    /// otherwise [`Layer::forward`].
+    /// With [`Dense::with_sparse_inference`]: at batch 1, the sum over nonzero inputs only; for
+    /// a batch, the same sample by sample if at most a tenth of the inputs are nonzero (the
+    /// dense product reads each weight row once for the whole batch, the sparse one once per
+    /// sample that needs it). Otherwise [`Layer::forward`].
     fn infer(&mut self, x: &Tensor<T>) {
-        if !self.sparse || x.batch() != 1 {
+        let n = x.batch();
+        if !self.sparse {
             return self.forward(x);
         }
-        assert_eq!(x.len(), self.n_in, "{}: input shape", self.name);
+        assert_eq!(x.len(), n * self.n_in, "{}: input shape", self.name);
+        if n > 1 {
+            // Judged by the first sample first: a dense batch costs one sample's count.
+            self.nz.collect(&x.data()[..self.n_in], self.n_in);
+            if self.nz.len() > self.n_in / 10 {
+                return self.forward(x);
+            }
+        }
         self.nz.collect(x.data(), self.n_in);
-        self.y.set_shape(&[1, self.n_out]);
+        if n > 1 && self.nz.len() > x.len() / 10 {
+            return self.forward(x);
+        }
+        self.y.set_shape(&[n, self.n_out]);
+        // Sample i is "pixel" i with one tap; its row of y starts at i·Out.
+        fill_iota(&mut self.x_rows, n, 1);
+        fill_iota(&mut self.iota_out, n, self.n_out);
         SparseConv {
             x: &self.nz,
-            windows: &[0],
+            windows: &self.x_rows,
             taps: &[0],
             w: self.params[0].value.data(),
             bias: self.params[1].value.data(),
             relu: false,
             y: self.y.data_mut(),
-            rows: &[0],
+            rows: &self.iota_out,
         }
         .run();
     }
