@@ -685,17 +685,6 @@ impl<T: Float> Conv2d<T> {
             pad_input(&g, n, x.data(), &mut self.xpad);
             &self.xpad
         };
-        // A batch is first judged by its first image, so a dense one (an initial network's)
-        // costs one image's count, not the batch's.
-        let (hp, wp) = g.padded();
-        let image = hp * wp * g.cin;
-        if n > 1 {
-            self.nz.collect(&a[..image], g.cin);
-            if self.nz.len() > image / 10 {
-                return self.forward_as(x);
-            }
-        }
-        self.nz.collect(a, g.cin);
         // The sparse product loads a weight row from L2 for every nonzero value and tap, where
         // the dense one shares each load between several output pixels: at batch 1 on one
         // thread they cross at about 22% nonzero for conv2 and conv3 (`cargo bench --bench
@@ -703,8 +692,9 @@ impl<T: Float> Conv2d<T> {
         // both threads), so a batch takes the sparse one only under a tenth. The count includes
         // the zero border the layer before wrote: an initial network's conv2 and conv3 inputs on
         // game frames are 43% and 36% nonzero by it, a trained network's 5% and 1%.
-        let most = if n == 1 { a.len() / 5 } else { a.len() / 10 };
-        if self.nz.len() > most {
+        let (hp, wp) = g.padded();
+        let share = if n == 1 { 5 } else { 10 };
+        if !self.nz.collect_sparse(a, g.cin, hp * wp * g.cin, share) {
             return self.forward_as(x);
         }
         self.sp_windows.clear();

@@ -192,15 +192,12 @@ impl<T: Float> Layer<T> for Dense<T> {
             return self.forward(x);
         }
         assert_eq!(x.len(), n * self.n_in, "{}: input shape", self.name);
-        if n > 1 {
-            // Judged by the first sample first: a dense batch costs one sample's count.
-            self.nz.collect(&x.data()[..self.n_in], self.n_in);
-            if self.nz.len() > self.n_in / 10 {
-                return self.forward(x);
-            }
-        }
-        self.nz.collect(x.data(), self.n_in);
-        if n > 1 && self.nz.len() > x.len() / 10 {
+        // One sample always takes the sparse product; a batch only under a tenth nonzero.
+        let share = if n == 1 { 1 } else { 10 };
+        if !self
+            .nz
+            .collect_sparse(x.data(), self.n_in, self.n_in, share)
+        {
             return self.forward(x);
         }
         self.y.set_shape(&[n, self.n_out]);

@@ -68,6 +68,21 @@ impl<T: Float> Nonzeros<T> {
         self.start[pixels] = k;
     }
 
+    /// Collects the nonzero values of `x` (images of `image` values, pixels of `c`) if at most
+    /// `1/share` of them are nonzero, and says whether it did; otherwise the lists are not to
+    /// be used and the caller takes the dense product. A batch is judged by its first image
+    /// first, so a dense batch (an initial network's) costs one image's count.
+    pub fn collect_sparse(&mut self, x: &[T], c: usize, image: usize, share: usize) -> bool {
+        if x.len() > image {
+            self.collect(&x[..image], c);
+            if self.len() > image / share {
+                return false;
+            }
+        }
+        self.collect(x, c);
+        self.len() <= x.len() / share
+    }
+
     /// How many values are nonzero.
     pub fn len(&self) -> usize {
         self.start.last().copied().unwrap_or(0)
@@ -126,22 +141,24 @@ impl<T: Float> SparseConv<'_, T> {
                 return unsafe { avx512::run(self, cin, cout) };
             }
         }
-        let mut acc = vec![T::zero(); cout];
+        // Each row is summed in place in `y`: no scratch, nothing allocated per call.
         for (&p, &r) in self.windows.iter().zip(self.rows) {
-            acc.copy_from_slice(self.bias);
+            let out = &mut self.y[r..r + cout];
+            out.copy_from_slice(self.bias);
             for (t, &o) in self.taps.iter().enumerate() {
                 let wt = &self.w[t * cin * cout..][..cin * cout];
                 let (index, value) = self.x.pixel(p + o);
                 for (&ci, &v) in index.iter().zip(value) {
                     let row = &wt[ci as usize * cout..][..cout];
-                    for (a, &wv) in acc.iter_mut().zip(row) {
+                    for (a, &wv) in out.iter_mut().zip(row) {
                         *a += v * wv;
                     }
                 }
             }
-            let out = &mut self.y[r..r + cout];
-            for (o, &a) in out.iter_mut().zip(&acc) {
-                *o = if self.relu { a.max(T::zero()) } else { a };
+            if self.relu {
+                for o in out.iter_mut() {
+                    *o = o.max(T::zero());
+                }
             }
         }
     }
