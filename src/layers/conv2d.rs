@@ -52,6 +52,13 @@ pub struct Conv2d<T> {
     z: Vec<T>,
     y: Tensor<T>,
     dx: Tensor<T>,
+    /// How many leading images of `y`'s buffer have their border places zeroed. Every kernel
+    /// writes only the interior and the buffer never shrinks (it grows with zeros), so a border
+    /// zeroed once stays zero: the train step zeroes nothing after its first call.
+    y_clean: usize,
+    /// The same for `dX`'s input-border places, with the input size `(H, W)` they were zeroed
+    /// for (a pre-padded and a plain input lay `dX` out differently).
+    dx_clean: (usize, (usize, usize)),
     /// Fast path: the zero-padded input of the last forward pass, `[N, HP, WP, Cin]`.
     xpad: Vec<T>,
     /// Fast path: where each output pixel's window starts in `xpad`, and each patch element's
@@ -143,6 +150,8 @@ impl<T: Float> Conv2d<T> {
             z: Vec::new(),
             y: Tensor::empty(),
             dx: Tensor::empty(),
+            y_clean: 0,
+            dx_clean: (0, (0, 0)),
             xpad: Vec::new(),
             pixels: Vec::new(),
             patch: Vec::new(),
@@ -293,17 +302,32 @@ impl<T: Float> Conv2d<T> {
         true
     }
 
-    /// Zeroes the border places of `y` (the kernels write only the interior).
+    /// Zeroes the border places of `y` (the kernels write only the interior) in the images
+    /// not zeroed before (see the `y_clean` field).
     fn zero_border(&mut self, n: usize) {
         let g = self.geom;
-        self.border.zero(self.y.data_mut(), n, g.oh, g.ow, g.cout);
+        if n > self.y_clean {
+            let (hb, wb) = self.border.around(g.oh, g.ow);
+            let rest = &mut self.y.data_mut()[self.y_clean * hb * wb * g.cout..];
+            self.border.zero(rest, n - self.y_clean, g.oh, g.ow, g.cout);
+            self.y_clean = n;
+        }
     }
 
-    /// Zeroes the input border's places of `dX`.
-    fn zero_input_border(&mut self, n: usize) {
+    /// Zeroes the input border's places of `dX` in the images not zeroed before, or in all `n`
+    /// if `overwritten` (a path that wrote every place of `dX`).
+    fn zero_input_border(&mut self, n: usize, overwritten: bool) {
         let (g, b) = (self.geom, self.in_border);
         let (h, w) = (g.h - b.top - b.bottom, g.w - b.left - b.right);
-        b.zero(self.dx.data_mut(), n, h, w, g.cin);
+        if overwritten || self.dx_clean.1 != (g.h, g.w) {
+            self.dx_clean = (0, (g.h, g.w));
+        }
+        let clean = self.dx_clean.0;
+        if n > clean {
+            let rest = &mut self.dx.data_mut()[clean * g.h * g.w * g.cin..];
+            b.zero(rest, n - clean, h, w, g.cin);
+            self.dx_clean.0 = n;
+        }
     }
 
     /// `dX` for an input read directly, by phases: a gather GEMM per `(iy mod SH, ix mod SW)`.
@@ -394,7 +418,7 @@ impl<T: Float> Conv2d<T> {
                 });
             }
         }
-        self.zero_input_border(n);
+        self.zero_input_border(n, false);
     }
 
     /// The forward pass by a gather GEMM (see the type's documentation).
@@ -526,7 +550,7 @@ impl<T: Float> Conv2d<T> {
                 &self.wino_pix,
                 &mut self.wino,
             );
-            self.zero_input_border(n);
+            self.zero_input_border(n, false);
         } else if need_dx && direct {
             self.dx.set_shape(&[n, g.h, g.w, g.cin]);
             self.dx_by_phases(dz, n);
@@ -558,7 +582,7 @@ impl<T: Float> Conv2d<T> {
                 groups: n,
             });
             unpad_input(&g, n, &self.dxpad, self.dx.data_mut());
-            self.zero_input_border(n);
+            self.zero_input_border(n, true);
         }
     }
 
@@ -601,7 +625,7 @@ impl<T: Float> Conv2d<T> {
             );
             self.dx.set_shape(&[n, g.h, g.w, g.cin]);
             col2im(&g, n, &self.dcols, self.dx.data_mut());
-            self.zero_input_border(n);
+            self.zero_input_border(n, true);
         }
     }
 
