@@ -2,7 +2,8 @@
 //! `perf stat` when the machine is shared (CPU time and cycles are robust to preemption where
 //! criterion's wall time is not): `cargo run --release --example kbench -- conv1 fwd 50`;
 //! `-- step train 30` (and `step act 300`) for the whole train step with its minimum and median;
-//! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders).
+//! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders);
+//! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input).
 
 use invaders::dqn::{Batch, Learner};
 use invaders::layers::{Conv2d, Dense, Layer};
@@ -118,6 +119,22 @@ fn run() {
                 Box::new(Conv2d::new(what, g).with_relu()),
                 vec![batch, 92, 84, 4],
             )
+        }
+        "conv2p" => {
+            // conv2 as `article_qnet` builds it: VALID over conv1's bordered output, Winograd.
+            let g = ConvGeom::new(24, 22, 32, 64, 4, 4, (2, 2), Padding::Valid).unwrap();
+            let one = invaders::tensor::Border {
+                top: 1,
+                bottom: 1,
+                left: 1,
+                right: 1,
+            };
+            let conv = Conv2d::new(what, g)
+                .with_relu()
+                .with_winograd(true)
+                .with_input_border(one)
+                .with_border(one);
+            (Box::new(conv), vec![batch, 24, 22, 32])
         }
         "conv1" | "conv2" | "conv3" | "conv1w" | "conv2w" | "conv3w" => {
             // `convNw`: the same layer with Winograd on.

@@ -255,6 +255,7 @@ fn winograd_case<T: Float>(
         pad_left: g.pad_left,
         co,
         out_image: g.oh * g.ow * co,
+        out_pieces: 1,
         kind: WinogradKind::F2x3,
     };
     let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * co];
@@ -290,6 +291,7 @@ fn winograd_case<T: Float>(
         pad_left: 2 - g.pad_left,
         co: ci,
         out_image: h * w * ci,
+        out_pieces: 1,
         kind: WinogradKind::F2x3,
     };
     let mut dx = vec![T::of(f64::NAN); n * h * w * ci];
@@ -363,6 +365,7 @@ fn winograd_s2d_case<T: Float>(
         pad_left: 0,
         co,
         out_image: g.oh * g.ow * co,
+        out_pieces: 1,
         kind: WinogradKind::S2d(s),
     };
     let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * co];
@@ -444,21 +447,38 @@ proptest! {
     /// channels) as `Conv2d` layers with Winograd on, at a batch of 8 (where it runs, on the
     /// AVX-512 transforms), SAME: the output matches the reference convolution, with the ReLU and
     /// the border the network writes, and the gradients are the reference's for that output.
+    /// `bordered`: built as `article_qnet` builds conv2, a VALID convolution over an input that
+    /// carries its SAME padding as a border whose gradient is left out; its input gradient is
+    /// then the Winograd adjoint over blocks, the plain input's gradient inside zeros.
     #[test]
     fn conv2d_winograd_blocks_match_reference(
-        conv1 in any::<bool>(), h in 8usize..30, w in 8usize..30, seed in any::<u64>(),
+        conv1 in any::<bool>(), h in 8usize..30, w in 8usize..30, bordered in any::<bool>(),
+        seed in any::<u64>(),
     ) {
         let (cin, cout, k, s) = if conv1 { (4, 32, 8, 4) } else { (32, 64, 4, 2) };
         let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
         let border = Border { top: 1, bottom: 1, left: 1, right: 1 };
-        let mut layer = Conv2d::<f32>::new("c", g).with_border(border).with_relu().with_winograd(true);
+        let (valid, padding) = g.as_valid();
+        let built = if bordered {
+            Conv2d::<f32>::new("c", valid).with_input_border(padding)
+        } else {
+            Conv2d::<f32>::new("c", g)
+        };
+        let mut layer = built.with_border(border).with_relu().with_winograd(true);
         let mut r = rng(seed);
         let n = 8;
         let wt = uniform::<f32>(&[k, k, cin, cout], &mut r);
         let bt = uniform::<f32>(&[cout], &mut r);
         set_params(&mut layer, &[&wt, &bt]);
         let x = uniform::<f32>(&[n, h, w, cin], &mut r);
-        layer.forward(&x);
+        let xin = if bordered {
+            let mut xp = Vec::new();
+            pad_input(&g, n, x.data(), &mut xp);
+            Tensor::from_vec(&[n, valid.h, valid.w, cin], xp)
+        } else {
+            x.clone()
+        };
+        layer.forward(&xin);
         let mut z = vec![0.0; n * g.oh * g.ow * cout];
         conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut z);
         let (hb, wb) = border.around(g.oh, g.ow);
@@ -480,9 +500,14 @@ proptest! {
                 *dz = if yv > 0.0 { g } else { 0.0 };
             }
         }
-        layer.backward(&x, &dy, true);
+        layer.backward(&xin, &dy, true);
         let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
         conv2d_reference_backward(&g, n, x.data(), wt.data(), &dz, &mut dx, &mut dw, &mut db);
+        if bordered {
+            let mut dxp = Vec::new();
+            pad_input(&g, n, &dx, &mut dxp);
+            dx = dxp;
+        }
         assert_close("dx", layer.input_grad().data(), &dx, 1e-5)?;
         assert_close("dw", layer.params()[0].grad.data(), &dw, 1e-5)?;
         assert_close("db", layer.params()[1].grad.data(), &db, 1e-5)?;

@@ -4,8 +4,9 @@
 use super::{Layer, Param};
 use crate::tensor::{
     col2im, fill_iota, gemm, im2col, pad_input, unpad_input, winograd_conv, winograd_filters,
-    winograd_filters_s2d, winograd_wgrad, Border, ConvGeom, Float, GatherGemm, Init, Nonzeros, Op,
-    ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch, WinogradShape,
+    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Border, ConvGeom, Float,
+    GatherGemm, Init, Nonzeros, Op, ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch,
+    WinogradShape, SKIP_OUTPUT,
 };
 use rayon::prelude::*;
 
@@ -27,7 +28,8 @@ use rayon::prelude::*;
 /// (`Conv2d::dx_by_phases`); otherwise `dZ·Wᵀ` (with `Wᵀ` packed) is added tile by tile straight
 /// onto a padded input gradient ([`crate::tensor::ScatterGemm`], col2im fused), whose interior
 /// is then `dX`. [`Conv2d::with_winograd`] replaces these products by Winograd's minimal
-/// filtering where the shape allows it (conv2 and conv3 of the article's network).
+/// filtering where the shape allows it (conv2 and conv3 of the article's network, including their
+/// input gradients).
 ///
 /// The fused ReLU and the border are what a separate [`super::Relu`] layer and the next layer's
 /// padding would otherwise do, each a pass over the whole activation: at batch 48 that is about
@@ -88,6 +90,8 @@ pub struct Conv2d<T> {
     /// Winograd: the transformed filters (`[16, I, O]` or `[9, s²I, O]`), the output pixel
     /// offsets, the scratch.
     wino_u: Vec<T>,
+    /// The adjoint filter before its transform (`[2, 2, Cout, s²·Cin]`, strided filters).
+    wino_w: Vec<T>,
     wino_pix: Vec<usize>,
     wino: WinogradScratch<T>,
     /// [`Layer::infer`] at batch 1 by [`SparseConv`] (the input is a ReLU's output), with the
@@ -167,6 +171,7 @@ impl<T: Float> Conv2d<T> {
             ph_w: Vec::new(),
             winograd: None,
             wino_u: Vec::new(),
+            wino_w: Vec::new(),
             wino_pix: Vec::new(),
             wino: WinogradScratch::default(),
             sparse: false,
@@ -192,8 +197,11 @@ impl<T: Float> Conv2d<T> {
     ///   when the input is read in place (the adjoint is again a 3×3 stride-1 convolution) and
     ///   the weight gradient ([`crate::tensor::winograd_wgrad`]: the transforms' adjoints);
     /// - a `2s × 2s` filter of stride `s` (conv1: 8×8 stride 4; conv2: 4×4 stride 2) by F(2×2,
-    ///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds; also the weight gradient (the
-    ///   input gradient stays direct, by phases).
+    ///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds; also the weight gradient, and
+    ///   the input gradient when the input is read in place and its blocks tile it exactly (the
+    ///   adjoint is a 2×2 convolution over blocks,
+    ///   [`crate::tensor::winograd_filters_s2d_adjoint`]); otherwise that stays direct, by
+    ///   phases.
     ///
     /// Off by default;
     /// [`crate::dqn::article_qnet`] turns it on for conv2 and conv3. Batches under 8 keep the
@@ -202,7 +210,8 @@ impl<T: Float> Conv2d<T> {
     /// channels for conv3, 128 for conv2) and the transforms add passes over tiles 2.25× the
     /// input, so the saving is less than the multiply-adds: measured on the 1-thread train step,
     /// conv3's forward and input gradient about 2–5%, its weight gradient about 4% and conv2's
-    /// forward about 2%; conv2's weight gradient went from 4.7 to 3.6 ms. conv1's forward (4
+    /// forward about 2%; conv2's weight gradient went from 4.7 to 3.6 ms, its input gradient
+    /// from 5.1–7.2 to 3.9–4.4 ms (`kbench net`, one thread, 3 alternating rounds). conv1's forward (4
     /// input channels, so 9 products of only 64 × 32 per 8×8 pixels, and 5.9 MB of input read
     /// by a transform that cannot hide the memory behind arithmetic) cost 2% of the step, and
     /// its weight gradient measured level.
@@ -241,6 +250,7 @@ impl<T: Float> Conv2d<T> {
             pad_left: 0,
             co: g.cout,
             out_image: hb * wb * g.cout,
+            out_pieces: 1,
             kind,
         }
     }
@@ -494,6 +504,11 @@ impl<T: Float> Conv2d<T> {
         let direct = g.reads_input_directly();
         let a = if direct { x.data() } else { &self.xpad };
         let f2x3 = self.use_winograd(n) == Some(WinogradKind::F2x3);
+        // Blocks that tile the (padded) input exactly: the input gradient over them by Winograd.
+        let s2d = match self.use_winograd(n) {
+            Some(WinogradKind::S2d(s)) if g.h == s * (g.oh + 1) && g.w == s * (g.ow + 1) => Some(s),
+            _ => None,
+        };
         if let Some(kind) = self.use_winograd(n) {
             // dW by Winograd: the products' adjoints over the (padded) input's tiles.
             let shape = self.winograd_shape(n, kind);
@@ -537,7 +552,55 @@ impl<T: Float> Conv2d<T> {
                 pad_left: 2 - b.left,
                 co: g.cin,
                 out_image: g.in_len(),
+                out_pieces: 1,
                 kind: WinogradKind::F2x3,
+            };
+            let dx = self.dx.data_mut();
+            winograd_conv(
+                shape,
+                dz,
+                &self.wino_u,
+                None,
+                false,
+                dx,
+                &self.wino_pix,
+                &mut self.wino,
+            );
+            self.zero_input_border(n, false);
+        } else if let Some(s) = s2d.filter(|_| need_dx && direct) {
+            // dX over s × s blocks = the adjoint convolution of dZ, 2×2 over blocks, by F(2×2,
+            // 2×2) (see `winograd_filters_s2d_adjoint`): block (Y, X) collects dZ[Y − by,
+            // X − bx] for by, bx < 2, i.e. dZ read from one pixel above and to the left. Each
+            // block's s² pixels are stored as pieces, except the input border's.
+            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
+            let w = self.params[0].value.data();
+            winograd_filters_s2d_adjoint(w, s, g.cin, g.cout, &mut self.wino_w, &mut self.wino_u);
+            self.wino_pix.clear();
+            for by in 0..=g.oh {
+                for bx in 0..=g.ow {
+                    for (dy, dx) in (0..s).flat_map(|dy| (0..s).map(move |dx| (dy, dx))) {
+                        let (iy, ix) = (s * by + dy, s * bx + dx);
+                        self.wino_pix.push(if b.contains(g.h, g.w, iy, ix) {
+                            SKIP_OUTPUT
+                        } else {
+                            (iy * g.w + ix) * g.cin
+                        });
+                    }
+                }
+            }
+            let shape = WinogradShape {
+                n,
+                h: g.oh,
+                w: g.ow,
+                ci: g.cout,
+                oh: g.oh + 1,
+                ow: g.ow + 1,
+                pad_top: 1,
+                pad_left: 1,
+                co: s * s * g.cin,
+                out_image: g.in_len(),
+                out_pieces: s * s,
+                kind: WinogradKind::S2d(1),
             };
             let dx = self.dx.data_mut();
             winograd_conv(

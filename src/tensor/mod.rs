@@ -31,8 +31,8 @@ pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 pub use sparse::{Nonzeros, SparseConv};
 pub use transpose::transpose;
 pub use winograd::{
-    winograd_conv, winograd_filters, winograd_filters_s2d, winograd_wgrad, WinogradKind,
-    WinogradScratch, WinogradShape,
+    winograd_conv, winograd_filters, winograd_filters_s2d, winograd_filters_s2d_adjoint,
+    winograd_wgrad, WinogradKind, WinogradScratch, WinogradShape, SKIP_OUTPUT,
 };
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};

@@ -42,7 +42,10 @@
 //! 4 pixels × 4 frames, one vector), read in place by the input transform.
 //!
 //! The same routine serves a convolution's forward pass and its input gradient (the adjoint
-//! convolution: the filter rotated by 180° with its channel axes swapped, [`winograd_filters`]);
+//! convolution: the filter rotated by 180° with its channel axes swapped, [`winograd_filters`]).
+//! A strided filter's adjoint is a 2×2 stride-1 convolution over blocks, `O → s²I` channels:
+//! F(2×2, 2×2) with blocks of one pixel, each output "pixel" stored as its block's `s²` pixels
+//! ([`winograd_filters_s2d_adjoint`], [`WinogradShape::out_pieces`]).
 //! [`winograd_wgrad`] computes the weight gradient through the transforms' adjoints. Work goes in
 //! chunks of whole images, enough tiles for one GEMM to fill its register tiles, whose
 //! transformed inputs and products (480 KiB for two images of conv3) stay in L2; each rayon task
@@ -271,6 +274,59 @@ pub fn winograd_filters_s2d<T: Float>(w: &[T], s: usize, cin: usize, cout: usize
     }
 }
 
+/// The transformed filters of a strided convolution's input gradient over `s × s` blocks,
+/// `[9, Cout, s²·Cin]`, from HWIO weights `w: [2s, 2s, Cin, Cout]` (`wt` is scratch).
+///
+/// The gradient of block `(Y, X)` of the (padded) input, channel `c = (dy·s + dx)·Cin + i`
+/// (pixel `(s·Y + dy, s·X + dx)`, channel `i`), collects every output the block feeds:
+///
+/// ```text
+/// dXb[Y, X, c] = Σ_{by, bx < 2} Σ_o dZ[Y − by, X − bx, o] · w[s·by + dy, s·bx + dx, i, o]
+/// ```
+///
+/// with `dZ` zero outside its image: a 2×2 stride-1 convolution of `dZ` padded by one pixel above
+/// and to the left, with the filter `g'[ky, kx, o, c] = w[s·(1 − ky) + dy, s·(1 − kx) + dx, i, o]`
+/// (rotated by 180° over blocks, channel axes swapped). That is F(2×2, 2×2) over blocks of one
+/// pixel, [`WinogradKind::S2d`]`(1)`, whose `s²·Cin`-channel output "pixels" are stored as `s²`
+/// pixels of `Cin` channels ([`WinogradShape::out_pieces`]).
+pub fn winograd_filters_s2d_adjoint<T: Float>(
+    w: &[T],
+    s: usize,
+    cin: usize,
+    cout: usize,
+    wt: &mut Vec<T>,
+    u: &mut Vec<T>,
+) {
+    let k = 2 * s;
+    assert_eq!(w.len(), k * k * cin * cout, "winograd_filters_s2d_adjoint");
+    let ni = s * s * cin;
+    wt.clear();
+    wt.resize(4 * cout * ni, T::zero());
+    for ky in 0..2 {
+        for kx in 0..2 {
+            for dy in 0..s {
+                for dx in 0..s {
+                    for i in 0..cin {
+                        let src = (((s * (1 - ky) + dy) * k + s * (1 - kx) + dx) * cin + i) * cout;
+                        let dst = (ky * 2 + kx) * cout * ni + (dy * s + dx) * cin + i;
+                        for (o, &v) in w[src..src + cout].iter().enumerate() {
+                            wt[dst + o * ni] = v;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    winograd_filters_s2d(wt, 1, cout, ni, u);
+}
+
+/// An output offset of [`winograd_conv`] that is not stored.
+pub const SKIP_OUTPUT: usize = usize::MAX;
+
+/// The most pieces an output pixel may be stored in ([`WinogradShape::out_pieces`]): `s²` for
+/// blocks of up to 4 × 4 pixels.
+pub const MAX_PIECES: usize = 16;
+
 /// Which minimal filtering a [`WinogradShape`] runs (see the module documentation).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WinogradKind {
@@ -307,7 +363,11 @@ impl WinogradKind {
 ///
 /// for [`WinogradKind::F2x3`], and with `s·oy`, `s·ox` and `ky, kx < 2s` for
 /// [`WinogradKind::S2d`]`(s)`, with `x: [N, H, W, I]` read as zero outside the image, and output
-/// pixel `(oy, ox)` of image `n` written at `out[n·out_image + out_pixels[oy·OW + ox] ..][..O]`.
+/// pixel `(oy, ox)` of image `n` written at `out[n·out_image + out_pixels[oy·OW + ox] ..][..O]`,
+/// or, in `out_pieces` pieces of `O / out_pieces` channels, piece `j` at
+/// `out[n·out_image + out_pixels[(oy·OW + ox)·out_pieces + j] ..]`: an input gradient over
+/// `s × s` blocks is `s²` pixels per output "pixel" (see [`winograd_filters_s2d_adjoint`]).
+/// Pieces at [`SKIP_OUTPUT`] are not stored (a border whose gradient is left out).
 #[derive(Clone, Copy, Debug)]
 pub struct WinogradShape {
     pub n: usize,
@@ -323,6 +383,8 @@ pub struct WinogradShape {
     pub co: usize,
     /// Values per output image.
     pub out_image: usize,
+    /// Pieces each output pixel's `O` channels are stored in (1: together).
+    pub out_pieces: usize,
     pub kind: WinogradKind,
 }
 
@@ -404,13 +466,21 @@ pub fn winograd_conv<T: Float>(
         s.places() * s.channels() * s.co,
         "winograd_conv: filters"
     );
+    let pieces = s.out_pieces;
+    assert!(
+        (1..=MAX_PIECES).contains(&pieces) && s.co.is_multiple_of(pieces),
+        "winograd_conv: {} channels in {pieces} pieces",
+        s.co
+    );
     assert_eq!(
         out_pixels.len(),
-        s.oh * s.ow,
+        s.oh * s.ow * pieces,
         "winograd_conv: output pixels"
     );
     assert!(
-        out_pixels.iter().all(|&o| o + s.co <= s.out_image),
+        out_pixels
+            .iter()
+            .all(|&o| o == SKIP_OUTPUT || o + s.co / pieces <= s.out_image),
         "winograd_conv: output pixel outside its image"
     );
     assert!(out.len() >= s.n * s.out_image, "winograd_conv: output");
@@ -420,9 +490,10 @@ pub fn winograd_conv<T: Float>(
     if let WinogradKind::S2d(blk) = s.kind {
         // A block row is read whole or not at all, so every output's blocks must lie inside
         // the image across (rows are checked one by one: any top padding is fine). An input
-        // padded already, a VALID convolution over it, as `Conv2d` passes it, satisfies this.
+        // padded already, a VALID convolution over it, as `Conv2d` passes it, satisfies this;
+        // so does any input with blocks of one pixel.
         assert!(
-            blk > 0 && s.pad_left == 0 && blk * (s.ow + 1) <= s.w,
+            blk == 1 || (blk > 0 && s.pad_left == 0 && blk * (s.ow + 1) <= s.w),
             "winograd_conv: blocks of {blk} need no left padding and an input wide enough"
         );
     }
@@ -829,20 +900,27 @@ impl<T: Float> Chunk<'_, T> {
     fn output(&self, m: &[T], out: &mut [T]) {
         let s = self.s;
         let (ty, tx) = s.tiles();
-        let fast = fast_f32::<T>() && s.co.is_multiple_of(L);
-        let places = s.places();
+        let (pieces, places) = (s.out_pieces, s.places());
+        let len = s.co / pieces;
+        let fast = fast_f32::<T>() && len.is_multiple_of(L);
         let mut tiles = m.chunks_exact(s.m_stride());
         for img in out.chunks_exact_mut(s.out_image) {
             for a in 0..ty {
                 for b in 0..tx {
-                    let mut at = [None; 4];
-                    for (k, at) in at.iter_mut().enumerate() {
-                        let (oy, ox) = (2 * a + k / 2, 2 * b + k % 2);
+                    let mt = tiles.next().expect("one M block per tile");
+                    // Where piece `j` of each of the 2×2 outputs goes (channels `j·len ..+ len`).
+                    let mut at = [[None; 4]; MAX_PIECES];
+                    for (k, (oy, ox)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
+                        let (oy, ox) = (2 * a + oy, 2 * b + ox);
                         if oy < s.oh && ox < s.ow {
-                            *at = Some(self.out_pixels[oy * s.ow + ox]);
+                            let first = (oy * s.ow + ox) * pieces;
+                            for (j, &o) in self.out_pixels[first..first + pieces].iter().enumerate()
+                            {
+                                at[j][k] = (o != SKIP_OUTPUT).then_some(o);
+                            }
                         }
                     }
-                    let mt = tiles.next().expect("one M block per tile");
+                    let at = &at[..pieces];
                     #[cfg(target_arch = "x86_64")]
                     if fast {
                         let bias = self.bias.map(bytemuck::cast_slice::<T, f32>);
@@ -850,22 +928,22 @@ impl<T: Float> Chunk<'_, T> {
                             bytemuck::cast_slice::<T, f32>(mt),
                             bytemuck::cast_slice_mut::<T, f32>(img),
                         );
-                        // SAFETY: AVX-512F and T = f32 checked; `mt` holds places·co values,
-                        // the bias `co`, each destination `co` inside the image (checked on
-                        // entry), and `co` is a multiple of 16.
+                        // SAFETY: AVX-512F and T = f32 checked; `mt` holds places·co values, the
+                        // bias `co`, each destination `len` inside the image (checked on entry),
+                        // and `len` is a multiple of 16.
                         unsafe {
                             if places == 16 {
-                                avx512::output_tile(mt32, s.co, bias, self.relu, img32, at)
+                                avx512::output_tile(mt32, len, bias, self.relu, img32, at)
                             } else {
-                                avx512::output_tile9(mt32, s.co, bias, self.relu, img32, at)
+                                avx512::output_tile9(mt32, len, bias, self.relu, img32, at)
                             }
                         };
                         continue;
                     }
                     if places == 16 {
-                        output_tile(mt, s.co, self.bias, self.relu, img, at, output_transform);
+                        output_tile(mt, len, self.bias, self.relu, img, at, output_transform);
                     } else {
-                        output_tile(mt, s.co, self.bias, self.relu, img, at, output_transform9);
+                        output_tile(mt, len, self.bias, self.relu, img, at, output_transform9);
                     }
                 }
             }
@@ -940,19 +1018,24 @@ fn input_tile<T: Float, const P: usize>(
     }
 }
 
-/// One tile's output transform from `M[ξ, o]` (`P × co`): the 2×2 outputs (+ bias, ReLU),
-/// each stored at its offset in `img` if it is inside the output.
+/// One tile's output transform from `M[ξ, o]` (`P × co`, `co = at.len()·len`): the 2×2 outputs
+/// (+ bias, ReLU), channels `j·len ..+ len` of output `k` stored at `at[j][k]` in `img` if it is
+/// `Some` (inside the output, and not skipped).
 fn output_tile<T: Float, const P: usize>(
     m: &[T],
-    co: usize,
+    len: usize,
     bias: Option<&[T]>,
     relu: bool,
     img: &mut [T],
-    at: [Option<usize>; 4],
+    at: &[[Option<usize>; 4]],
     transform: fn(&[Lanes<T>; P]) -> [Lanes<T>; 4],
 ) {
-    for c0 in (0..co).step_by(L) {
-        let l = (co - c0).min(L);
+    let co = at.len() * len;
+    // Within each piece, `L` channels at a time (a short last group per piece).
+    for (j, c0) in
+        (0..at.len()).flat_map(|j| (j * len..(j + 1) * len).step_by(L).map(move |c| (j, c)))
+    {
+        let l = ((j + 1) * len - c0).min(L);
         let mut mt = [[T::zero(); L]; P];
         for (xi, mt) in mt.iter_mut().enumerate() {
             *mt = load(&m[xi * co + c0..], l);
@@ -969,9 +1052,9 @@ fn output_tile<T: Float, const P: usize>(
                 *yv = yv.max(T::zero());
             }
         }
-        for (yv, at) in y.iter().zip(at) {
+        for (yv, at) in y.iter().zip(at[j]) {
             if let Some(at) = at {
-                store(&mut img[at + c0..], yv, l);
+                store(&mut img[at + c0 - j * len..], yv, l);
             }
         }
     }
@@ -1184,7 +1267,8 @@ mod avx512 {
     /// at its destination (channels `c0 ..+ 16`) if it is inside the output.
     ///
     /// # Safety
-    /// AVX-512F; `bias` (if any) and `ip + a` readable and writable for channels `c0 ..+ 16`.
+    /// AVX-512F; `bias` (if any) readable for channels `c0 ..+ 16`, and `ip + a` writable for
+    /// channels `c ..+ 16`.
     #[target_feature(enable = "avx512f")]
     #[inline]
     unsafe fn finish(
@@ -1194,6 +1278,7 @@ mod avx512 {
         ip: *mut f32,
         at: [Option<usize>; 4],
         c0: usize,
+        c: usize,
     ) {
         if let Some(b) = bias {
             let bv = _mm512_loadu_ps(b.as_ptr().add(c0));
@@ -1208,7 +1293,7 @@ mod avx512 {
         }
         for k in 0..4 {
             if let Some(a) = at[k] {
-                _mm512_storeu_ps(ip.add(a + c0), y[k]);
+                _mm512_storeu_ps(ip.add(a + c), y[k]);
             }
         }
     }
@@ -1216,21 +1301,24 @@ mod avx512 {
     /// [`super::output_tile`] with [`super::output_transform`], for f32.
     ///
     /// # Safety
-    /// AVX-512F must be available; `m` must hold `16·co` values, `bias` (if any) `co`, and
-    /// `img[at..at + co]` be in bounds for each destination; `co` a multiple of 16.
+    /// AVX-512F must be available; `m` must hold `16·co` values (`co = at.len()·len`), `bias`
+    /// (if any) `co`, and `img[a..a + len]` be in bounds for each destination `a`; `len` a
+    /// multiple of 16.
     #[target_feature(enable = "avx512f")]
     pub unsafe fn output_tile(
         m: &[f32],
-        co: usize,
+        len: usize,
         bias: Option<&[f32]>,
         relu: bool,
         img: &mut [f32],
-        at: [Option<usize>; 4],
+        at: &[[Option<usize>; 4]],
     ) {
-        debug_assert!(co.is_multiple_of(16) && m.len() >= 16 * co);
-        debug_assert!(at.iter().flatten().all(|&a| a + co <= img.len()));
+        let co = at.len() * len;
+        debug_assert!(len.is_multiple_of(16) && m.len() >= 16 * co);
+        debug_assert!(at.iter().flatten().flatten().all(|&a| a + len <= img.len()));
         let (mp, ip) = (m.as_ptr(), img.as_mut_ptr());
         for c0 in (0..co).step_by(16) {
+            let j = c0 / len;
             let mut mt = [_mm512_setzero_ps(); 16];
             for (xi, mt) in mt.iter_mut().enumerate() {
                 *mt = _mm512_loadu_ps(mp.add(xi * co + c0));
@@ -1246,7 +1334,7 @@ mod avx512 {
                 y[2 * r] = _mm512_add_ps(_mm512_add_ps(q[0], q[1]), q[2]);
                 y[2 * r + 1] = _mm512_sub_ps(_mm512_sub_ps(q[1], q[2]), q[3]);
             }
-            finish(y, bias, relu, ip, at, c0);
+            finish(y, bias, relu, ip, at[j], c0, c0 - j * len);
         }
     }
 
@@ -1257,16 +1345,18 @@ mod avx512 {
     #[target_feature(enable = "avx512f")]
     pub unsafe fn output_tile9(
         m: &[f32],
-        co: usize,
+        len: usize,
         bias: Option<&[f32]>,
         relu: bool,
         img: &mut [f32],
-        at: [Option<usize>; 4],
+        at: &[[Option<usize>; 4]],
     ) {
-        debug_assert!(co.is_multiple_of(16) && m.len() >= 9 * co);
-        debug_assert!(at.iter().flatten().all(|&a| a + co <= img.len()));
+        let co = at.len() * len;
+        debug_assert!(len.is_multiple_of(16) && m.len() >= 9 * co);
+        debug_assert!(at.iter().flatten().flatten().all(|&a| a + len <= img.len()));
         let (mp, ip) = (m.as_ptr(), img.as_mut_ptr());
         for c0 in (0..co).step_by(16) {
+            let j = c0 / len;
             let mut mt = [_mm512_setzero_ps(); 9];
             for (xi, mt) in mt.iter_mut().enumerate() {
                 *mt = _mm512_loadu_ps(mp.add(xi * co + c0));
@@ -1281,7 +1371,7 @@ mod avx512 {
                 y[2 * r] = _mm512_add_ps(s[3 * r], s[3 * r + 1]);
                 y[2 * r + 1] = _mm512_add_ps(s[3 * r + 1], s[3 * r + 2]);
             }
-            finish(y, bias, relu, ip, at, c0);
+            finish(y, bias, relu, ip, at[j], c0, c0 - j * len);
         }
     }
 }
