@@ -7,8 +7,9 @@ use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
     gemm_matrixmultiply, gemm_reference, pad_input, transpose, winograd_conv, winograd_filters,
-    winograd_filters_s2d, winograd_wgrad, Border, ConvGeom, Float, GatherGemm, Init, Op, Padding,
-    Tensor, WinogradKind, WinogradScratch, WinogradShape,
+    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Border, ConvGeom, Float,
+    GatherGemm, Init, Op, Padding, Tensor, WinogradKind, WinogradScratch, WinogradShape,
+    SKIP_OUTPUT,
 };
 use proptest::prelude::*;
 
@@ -406,18 +407,73 @@ fn winograd_s2d_case<T: Float>(
     let mut dww = vec![T::one(); dw.len()];
     winograd_wgrad(shape, x.data(), dy.data(), &mut dww, &mut scratch);
     dw.iter_mut().for_each(|v| *v += T::one());
-    assert_close("dw", &dww, &dw, tol)
+    assert_close("dw", &dww, &dw, tol)?;
+    // Input gradient by the adjoint over blocks, F(2×2, 2×2) with blocks of one pixel: dY read
+    // from one pixel above and to the left, into the blocks that tile s(OH+1) × s(OW+1), each
+    // block's s² pixels a piece of `ci` channels. The first row and column are skipped (as a
+    // border would be); they and the places past the blocks keep what they held.
+    let (bh, bw) = (g.oh + 1, g.ow + 1);
+    let mut wt2 = Vec::new();
+    winograd_filters_s2d_adjoint(wt.data(), s, ci, co, &mut wt2, &mut u);
+    let mut pieces = Vec::new();
+    for by in 0..bh {
+        for bx in 0..bw {
+            for (dy, dx) in (0..s).flat_map(|dy| (0..s).map(move |dx| (dy, dx))) {
+                let (iy, ix) = (s * by + dy, s * bx + dx);
+                pieces.push(if iy == 0 || ix == 0 {
+                    SKIP_OUTPUT
+                } else {
+                    (iy * w + ix) * ci
+                });
+            }
+        }
+    }
+    let adjoint = WinogradShape {
+        n,
+        h: g.oh,
+        w: g.ow,
+        ci: co,
+        oh: bh,
+        ow: bw,
+        pad_top: 1,
+        pad_left: 1,
+        co: s * s * ci,
+        out_image: h * w * ci,
+        out_pieces: s * s,
+        kind: WinogradKind::S2d(1),
+    };
+    let held = T::of(7.0);
+    let mut dxw = vec![held; x.len()];
+    winograd_conv(
+        adjoint,
+        dy.data(),
+        &u,
+        None,
+        false,
+        &mut dxw,
+        &pieces,
+        &mut scratch,
+    );
+    for (p, v) in dx.chunks_exact_mut(ci).enumerate() {
+        let (iy, ix) = (p / w % h, p % w);
+        if iy == 0 || ix == 0 || iy >= s * bh || ix >= s * bw {
+            v.fill(held);
+        }
+    }
+    assert_close("dx", &dxw, &dx, tol)
 }
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
 
     /// Winograd F(2×2, 2×2) over blocks, f32 (AVX-512 transforms where `s·ci` and `co` are
-    /// multiples of 16) and f64 (portable), odd and even output sizes.
+    /// multiples of 16) and f64 (portable), odd and even output sizes: forward, weight gradient
+    /// and input gradient (in pieces of `ci` channels: AVX-512 output transforms for 16 and 32,
+    /// a full and a short lane group per piece for 20).
     #[test]
     fn winograd_s2d_matches_reference(
         s in 1usize..=4, extra_h in 0usize..12, extra_w in 0usize..12,
-        ci in prop_oneof![1usize..7, Just(4), Just(8), Just(16), Just(32)],
+        ci in prop_oneof![1usize..7, Just(4), Just(8), Just(16), Just(20), Just(32)],
         co in prop_oneof![1usize..20, Just(16), Just(32), Just(64)],
         n in 1usize..4, relu in any::<bool>(), seed in any::<u64>(),
     ) {
@@ -447,9 +503,11 @@ proptest! {
     /// channels) as `Conv2d` layers with Winograd on, at a batch of 8 (where it runs, on the
     /// AVX-512 transforms), SAME: the output matches the reference convolution, with the ReLU and
     /// the border the network writes, and the gradients are the reference's for that output.
-    /// `bordered`: built as `article_qnet` builds conv2, a VALID convolution over an input that
-    /// carries its SAME padding as a border whose gradient is left out; its input gradient is
-    /// then the Winograd adjoint over blocks, the plain input's gradient inside zeros.
+    /// `bordered`: built as `article_qnet` builds conv2 (and conv3), a VALID convolution over an
+    /// input that carries its SAME padding as a border whose gradient is left out; its input
+    /// gradient is then the Winograd adjoint over blocks (pieces of 32 channels for conv2, on the
+    /// AVX-512 output transform; of 4 for conv1, on the portable one), the plain input's
+    /// gradient inside zeros.
     #[test]
     fn conv2d_winograd_blocks_match_reference(
         conv1 in any::<bool>(), h in 8usize..30, w in 8usize..30, bordered in any::<bool>(),
@@ -743,15 +801,17 @@ fn results_do_not_depend_on_thread_count() {
             out.extend_from_slice(dense.input_grad().data());
             out.extend_from_slice(dense.params()[0].grad.data());
             // Winograd, F(2×2, 3×3) (forward and input gradient) and F(2×2, 2×2) over 2×2
-            // blocks (forward), over a batch of 9 (Winograd runs from 8), which splits unevenly.
-            for (cin, k, s) in [(32, 3, 1), (32, 4, 2)] {
-                let g = ConvGeom::new(13, 12, cin, 48, k, k, (s, s), Padding::Valid).unwrap();
+            // blocks (forward; the input gradient by phases for 13 rows, which the blocks do
+            // not tile, by the adjoint over blocks for 12), over a batch of 9 (Winograd runs
+            // from 8), which splits unevenly.
+            for (cin, k, s, h) in [(32, 3, 1, 13), (32, 4, 2, 13), (32, 4, 2, 12)] {
+                let g = ConvGeom::new(h, 12, cin, 48, k, k, (s, s), Padding::Valid).unwrap();
                 let mut conv = Conv2d::<f32>::new("w", g).with_winograd(true).with_relu();
                 for p in conv.params_mut() {
                     let t = uniform::<f32>(p.value.shape(), &mut r);
                     p.value.data_mut().copy_from_slice(t.data());
                 }
-                let x = uniform::<f32>(&[9, 13, 12, cin], &mut r);
+                let x = uniform::<f32>(&[9, h, 12, cin], &mut r);
                 let dy = uniform::<f32>(&[9, g.oh, g.ow, 48], &mut r);
                 conv.forward(&x);
                 conv.backward(&x, &dy, true);

@@ -6,7 +6,7 @@ use crate::tensor::{
     col2im, fill_iota, gemm, im2col, pad_input, unpad_input, winograd_conv, winograd_filters,
     winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Border, ConvGeom, Float,
     GatherGemm, Init, Nonzeros, Op, ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch,
-    WinogradShape, SKIP_OUTPUT,
+    WinogradShape, MAX_PIECES, SKIP_OUTPUT,
 };
 use rayon::prelude::*;
 
@@ -83,12 +83,13 @@ pub struct Conv2d<T> {
     ph_q: Vec<usize>,
     ph_w: Vec<T>,
     /// Fast path: run the forward product and the weight gradient by Winograd's minimal
-    /// filtering ([`crate::tensor::winograd_conv`], [`crate::tensor::winograd_wgrad`]), and for
-    /// F(2×2, 3×3) also the input gradient of an input read in place. `None`: the direct
-    /// gather GEMMs.
+    /// filtering ([`crate::tensor::winograd_conv`], [`crate::tensor::winograd_wgrad`]), and also
+    /// the input gradient of an input read in place (for blocks, one they tile exactly). `None`:
+    /// the direct gather GEMMs.
     winograd: Option<WinogradKind>,
-    /// Winograd: the transformed filters (`[16, I, O]` or `[9, s²I, O]`), the output pixel
-    /// offsets, the scratch.
+    /// Winograd: the transformed filters (`[16, I, O]`, `[9, s²I, O]`, or `[9, O, s²I]` for the
+    /// input gradient over blocks), the output pixel offsets (for that input gradient, one per
+    /// pixel of each block, [`SKIP_OUTPUT`] for the input border's), the scratch.
     wino_u: Vec<T>,
     /// The adjoint filter before its transform (`[2, 2, Cout, s²·Cin]`, strided filters).
     wino_w: Vec<T>,
@@ -266,6 +267,7 @@ impl<T: Float> Conv2d<T> {
     /// that arrives for border places is ignored: they are constants.
     pub fn with_border(mut self, border: Border) -> Self {
         self.border = border;
+        self.y_clean = 0;
         self
     }
 
@@ -278,6 +280,7 @@ impl<T: Float> Conv2d<T> {
             self.name
         );
         self.in_border = border;
+        self.dx_clean = (0, (0, 0));
         self
     }
 
@@ -504,9 +507,14 @@ impl<T: Float> Conv2d<T> {
         let direct = g.reads_input_directly();
         let a = if direct { x.data() } else { &self.xpad };
         let f2x3 = self.use_winograd(n) == Some(WinogradKind::F2x3);
-        // Blocks that tile the (padded) input exactly: the input gradient over them by Winograd.
+        // Blocks that tile the (padded) input exactly: the input gradient over them by Winograd
+        // (each block's s² pixels stored as pieces, at most MAX_PIECES).
         let s2d = match self.use_winograd(n) {
-            Some(WinogradKind::S2d(s)) if g.h == s * (g.oh + 1) && g.w == s * (g.ow + 1) => Some(s),
+            Some(WinogradKind::S2d(s))
+                if g.h == s * (g.oh + 1) && g.w == s * (g.ow + 1) && s * s <= MAX_PIECES =>
+            {
+                Some(s)
+            }
             _ => None,
         };
         if let Some(kind) = self.use_winograd(n) {
@@ -531,8 +539,7 @@ impl<T: Float> Conv2d<T> {
             });
         }
         let b = self.in_border;
-        let adjoint = f2x3;
-        if need_dx && direct && adjoint && b.top <= 2 && b.left <= 2 {
+        if need_dx && direct && f2x3 && b.top <= 2 && b.left <= 2 {
             // dX = the adjoint convolution of dZ (the rotated, transposed filter), by Winograd:
             // interior input pixel (iy, ix) = (oy + top, ox + left) collects
             // Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx], i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.

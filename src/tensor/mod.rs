@@ -32,7 +32,7 @@ pub use sparse::{Nonzeros, SparseConv};
 pub use transpose::transpose;
 pub use winograd::{
     winograd_conv, winograd_filters, winograd_filters_s2d, winograd_filters_s2d_adjoint,
-    winograd_wgrad, WinogradKind, WinogradScratch, WinogradShape, SKIP_OUTPUT,
+    winograd_wgrad, WinogradKind, WinogradScratch, WinogradShape, MAX_PIECES, SKIP_OUTPUT,
 };
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};

@@ -447,8 +447,10 @@ struct Part<T> {
 }
 
 /// The convolution of [`WinogradShape`] by its [`WinogradKind`]: `u` from [`winograd_filters`]
-/// (F(2×2, 3×3)) or [`winograd_filters_s2d`] (F(2×2, 2×2) over blocks), `bias`
-/// (`O` values) added if given, `max(·, 0)` stored if `relu`. Writes only the output pixels.
+/// (F(2×2, 3×3)), [`winograd_filters_s2d`] (F(2×2, 2×2) over blocks) or
+/// [`winograd_filters_s2d_adjoint`] (a strided filter's input gradient), `bias` (`O` values)
+/// added if given, `max(·, 0)` stored if `relu`. Writes only the output pixels (the pieces not
+/// at [`SKIP_OUTPUT`]).
 #[allow(clippy::too_many_arguments)]
 pub fn winograd_conv<T: Float>(
     s: WinogradShape,
@@ -478,9 +480,9 @@ pub fn winograd_conv<T: Float>(
         "winograd_conv: output pixels"
     );
     assert!(
-        out_pixels
-            .iter()
-            .all(|&o| o == SKIP_OUTPUT || o + s.co / pieces <= s.out_image),
+        out_pixels.iter().all(|&o| o == SKIP_OUTPUT
+            || o.checked_add(s.co / pieces)
+                .is_some_and(|e| e <= s.out_image)),
         "winograd_conv: output pixel outside its image"
     );
     assert!(out.len() >= s.n * s.out_image, "winograd_conv: output");
@@ -904,23 +906,25 @@ impl<T: Float> Chunk<'_, T> {
         let len = s.co / pieces;
         let fast = fast_f32::<T>() && len.is_multiple_of(L);
         let mut tiles = m.chunks_exact(s.m_stride());
+        // Where piece `j` of each of a tile's 2×2 outputs goes (channels `j·len ..+ len`).
+        let mut at = [[None; 4]; MAX_PIECES];
+        let at = &mut at[..pieces];
         for img in out.chunks_exact_mut(s.out_image) {
             for a in 0..ty {
                 for b in 0..tx {
                     let mt = tiles.next().expect("one M block per tile");
-                    // Where piece `j` of each of the 2×2 outputs goes (channels `j·len ..+ len`).
-                    let mut at = [[None; 4]; MAX_PIECES];
                     for (k, (oy, ox)) in [(0, 0), (0, 1), (1, 0), (1, 1)].into_iter().enumerate() {
                         let (oy, ox) = (2 * a + oy, 2 * b + ox);
-                        if oy < s.oh && ox < s.ow {
-                            let first = (oy * s.ow + ox) * pieces;
-                            for (j, &o) in self.out_pixels[first..first + pieces].iter().enumerate()
-                            {
-                                at[j][k] = (o != SKIP_OUTPUT).then_some(o);
-                            }
+                        let first = (oy * s.ow + ox) * pieces;
+                        for (j, at) in at.iter_mut().enumerate() {
+                            at[k] = if oy < s.oh && ox < s.ow {
+                                Some(self.out_pixels[first + j]).filter(|&o| o != SKIP_OUTPUT)
+                            } else {
+                                None
+                            };
                         }
                     }
-                    let at = &at[..pieces];
+                    let at = &at[..];
                     #[cfg(target_arch = "x86_64")]
                     if fast {
                         let bias = self.bias.map(bytemuck::cast_slice::<T, f32>);
@@ -1267,8 +1271,8 @@ mod avx512 {
     /// at its destination (channels `c0 ..+ 16`) if it is inside the output.
     ///
     /// # Safety
-    /// AVX-512F; `bias` (if any) readable for channels `c0 ..+ 16`, and `ip + a` writable for
-    /// channels `c ..+ 16`.
+    /// AVX-512F; `bias` (if any) readable for channels `c0 ..+ 16` (of all `co`), and `ip + a`
+    /// writable for channels `c ..+ 16` (of the destination's piece).
     #[target_feature(enable = "avx512f")]
     #[inline]
     unsafe fn finish(
