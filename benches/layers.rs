@@ -71,7 +71,8 @@ fn bench_layer(
 
 /// Each layer of the article's Q-network as `article_qnet` builds it: conv1 SAME with its ReLU
 /// and conv2's padding written around its output; conv2 and conv3 VALID over those bordered
-/// inputs (input gradient by phases); dense1 reading conv3's output in place.
+/// inputs (at batch 48 all their products by Winograd, input gradients included); dense1 reading
+/// conv3's output in place.
 fn layers(c: &mut Criterion) {
     let built = |i: usize| -> Box<dyn Layer<f32>> {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
@@ -88,8 +89,8 @@ fn layers(c: &mut Criterion) {
     }
     // conv2 and conv3 as built run by Winograd at batches of 8 or more (`Conv2d::with_winograd`),
     // conv1 does not. Here each the other way, to compare: conv1 by F(2×2, 2×2) over 4×4 blocks,
-    // conv2 and conv3 by the direct gather GEMM. All GFLOP/s count the direct convolution's
-    // multiply-adds.
+    // conv2 and conv3 by the direct gather GEMM (their input gradients by stride phase). All
+    // GFLOP/s count the direct convolution's multiply-adds.
     let other = |i: usize| -> Box<dyn Layer<f32>> {
         let (h, w, cin, cout, k, s) = [
             (88, 80, 4, 32, 8, 4),
