@@ -538,17 +538,20 @@ impl<T: Float> Conv2d<T> {
                 relu: false,
             });
         }
+        // dX by Winograd where the input is read in place: the filters of the adjoint
+        // convolution into `wino_u`, where each output goes into `wino_pix`, and its shape.
         let b = self.in_border;
-        if need_dx && direct && f2x3 && b.top <= 2 && b.left <= 2 {
-            // dX = the adjoint convolution of dZ (the rotated, transposed filter), by Winograd:
-            // interior input pixel (iy, ix) = (oy + top, ox + left) collects
-            // Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx], i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.
-            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
+        let w = self.params[0].value.data();
+        let adjoint = if !(need_dx && direct) {
+            None
+        } else if f2x3 && b.top <= 2 && b.left <= 2 {
+            // The adjoint convolution of dZ (the rotated, transposed filter): interior input
+            // pixel (iy, ix) = (oy + top, ox + left) collects Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx],
+            // i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.
             let (ih, iw) = (g.h - b.top - b.bottom, g.w - b.left - b.right);
-            let w = self.params[0].value.data();
             winograd_filters(w, g.cin, g.cout, true, &mut self.wino_u);
             b.interior_offsets(1, ih, iw, g.cin, &mut self.wino_pix);
-            let shape = WinogradShape {
+            Some(WinogradShape {
                 n,
                 h: g.oh,
                 w: g.ow,
@@ -561,26 +564,12 @@ impl<T: Float> Conv2d<T> {
                 out_image: g.in_len(),
                 out_pieces: 1,
                 kind: WinogradKind::F2x3,
-            };
-            let dx = self.dx.data_mut();
-            winograd_conv(
-                shape,
-                dz,
-                &self.wino_u,
-                None,
-                false,
-                dx,
-                &self.wino_pix,
-                &mut self.wino,
-            );
-            self.zero_input_border(n, false);
-        } else if let Some(s) = s2d.filter(|_| need_dx && direct) {
-            // dX over s × s blocks = the adjoint convolution of dZ, 2×2 over blocks, by F(2×2,
+            })
+        } else if let Some(s) = s2d {
+            // Over s × s blocks, the adjoint convolution of dZ is 2×2 over blocks, by F(2×2,
             // 2×2) (see `winograd_filters_s2d_adjoint`): block (Y, X) collects dZ[Y − by,
             // X − bx] for by, bx < 2, i.e. dZ read from one pixel above and to the left. Each
             // block's s² pixels are stored as pieces, except the input border's.
-            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
-            let w = self.params[0].value.data();
             winograd_filters_s2d_adjoint(w, s, g.cin, g.cout, &mut self.wino_w, &mut self.wino_u);
             self.wino_pix.clear();
             for by in 0..=g.oh {
@@ -595,7 +584,7 @@ impl<T: Float> Conv2d<T> {
                     }
                 }
             }
-            let shape = WinogradShape {
+            Some(WinogradShape {
                 n,
                 h: g.oh,
                 w: g.ow,
@@ -608,25 +597,21 @@ impl<T: Float> Conv2d<T> {
                 out_image: g.in_len(),
                 out_pieces: s * s,
                 kind: WinogradKind::S2d(1),
-            };
+            })
+        } else {
+            None
+        };
+        if let Some(shape) = adjoint {
+            self.dx.set_shape(&[n, g.h, g.w, g.cin]);
+            let (u, pix) = (&self.wino_u, &self.wino_pix);
             let dx = self.dx.data_mut();
-            winograd_conv(
-                shape,
-                dz,
-                &self.wino_u,
-                None,
-                false,
-                dx,
-                &self.wino_pix,
-                &mut self.wino,
-            );
+            winograd_conv(shape, dz, u, None, false, dx, pix, &mut self.wino);
             self.zero_input_border(n, false);
         } else if need_dx && direct {
             self.dx.set_shape(&[n, g.h, g.w, g.cin]);
             self.dx_by_phases(dz, n);
         } else if need_dx {
             // dcols[m, k] = Σ_co dZ[m, co] · Wᵀ[co, k]
-            let w = self.params[0].value.data();
             self.wt.resize(k * g.cout, T::zero());
             for (kk, wrow) in w.chunks_exact(g.cout).enumerate() {
                 for (co, &v) in wrow.iter().enumerate() {
