@@ -212,10 +212,10 @@ impl<T: Float> Conv2d<T> {
     /// input, so the saving is less than the multiply-adds: measured on the 1-thread train step,
     /// conv3's forward and input gradient about 2–5%, its weight gradient about 4% and conv2's
     /// forward about 2%; conv2's weight gradient went from 4.7 to 3.6 ms, its input gradient
-    /// from 5.1–7.2 to 3.9–4.4 ms (`kbench net`, one thread, 3 alternating rounds). conv1's forward (4
-    /// input channels, so 9 products of only 64 × 32 per 8×8 pixels, and 5.9 MB of input read
-    /// by a transform that cannot hide the memory behind arithmetic) cost 2% of the step, and
-    /// its weight gradient measured level.
+    /// from 5.1–7.2 to 3.9–4.4 ms (`kbench net`, one thread, 3 alternating rounds). conv1's
+    /// forward (4 input channels, so 9 products of only 64 × 32 per 8×8 pixels, and 5.9 MB of
+    /// input read by a transform that cannot hide the memory behind arithmetic) cost 2% of the
+    /// step, and its weight gradient measured level.
     pub fn with_winograd(mut self, on: bool) -> Self {
         let g = self.geom;
         self.winograd = match (g.kh, g.kw, g.sh, g.sw) {
@@ -506,10 +506,11 @@ impl<T: Float> Conv2d<T> {
         );
         let direct = g.reads_input_directly();
         let a = if direct { x.data() } else { &self.xpad };
-        let f2x3 = self.use_winograd(n) == Some(WinogradKind::F2x3);
+        let wino = self.use_winograd(n);
+        let f2x3 = wino == Some(WinogradKind::F2x3);
         // Blocks that tile the (padded) input exactly: the input gradient over them by Winograd
         // (each block's s² pixels stored as pieces, at most MAX_PIECES).
-        let s2d = match self.use_winograd(n) {
+        let s2d = match wino {
             Some(WinogradKind::S2d(s))
                 if g.h == s * (g.oh + 1) && g.w == s * (g.ow + 1) && s * s <= MAX_PIECES =>
             {
@@ -517,7 +518,7 @@ impl<T: Float> Conv2d<T> {
             }
             _ => None,
         };
-        if let Some(kind) = self.use_winograd(n) {
+        if let Some(kind) = wino {
             // dW by Winograd: the products' adjoints over the (padded) input's tiles.
             let shape = self.winograd_shape(n, kind);
             let dw = self.params[0].grad.data_mut();
