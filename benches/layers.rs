@@ -170,7 +170,10 @@ fn train_step(c: &mut Criterion) {
 /// read a ReLU's output, as `article_qnet` builds them, on inputs with 2% to 50% nonzero values
 /// (a trained network's are 1–5%, an initial one's about 40%). Above a fifth nonzero the
 /// convolutions' `infer` goes back to the dense product (after counting the nonzeros), which is
-/// where the two cross. Throughput counts the dense product's FLOPs.
+/// where the two cross. And conv1 on frames whose pixels differ from the background (−1, the
+/// first pixel's) in 2% to 25% of places (game frames: about 9%), split into background and
+/// difference (`Conv2d::with_background_inference`; dense above a fifth). Throughput counts the
+/// dense product's FLOPs.
 fn sparse_act(c: &mut Criterion) {
     let mut group = c.benchmark_group("sparse_act");
     group
@@ -184,6 +187,22 @@ fn sparse_act(c: &mut Criterion) {
         .map(|l| l.output().shape().to_vec())
         .collect();
     let mut layers = net.into_layers();
+    let conv1 = &mut layers[0];
+    group.throughput(Throughput::Elements(2 * conv1.macs() as u64));
+    for percent in [2u32, 10, 15, 20, 25] {
+        let mut x = random(&[1, 88, 80, 4], &mut rng);
+        for (p, px) in x.data_mut().chunks_exact_mut(4).enumerate() {
+            if p == 0 || rng.random_range(0..100) >= percent {
+                px.fill(-1.0);
+            }
+        }
+        group.bench_function(format!("conv1/forward/{percent}%"), |b| {
+            b.iter(|| conv1.forward(&x))
+        });
+        group.bench_function(format!("conv1/infer/{percent}%"), |b| {
+            b.iter(|| conv1.infer(&x))
+        });
+    }
     for (i, layer) in layers[1..4].iter_mut().enumerate() {
         // Layer i + 1 reads layer i's output (conv1's, conv2's, conv3's shape).
         let in_shape = &shapes[i];

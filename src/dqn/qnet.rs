@@ -75,11 +75,13 @@ pub fn article_qnet<T: Float>(
         // would take F(2×2, 2×2) over 4×4 blocks, but with 4 input channels its transforms
         // cost more than the products save: the train step measured 2% slower with it, and
         // its weight gradient alone level.
-        // conv2 and conv3 read a ReLU's output: acting skips its zeros.
+        // conv2 and conv3 read a ReLU's output: acting skips its zeros. conv1 reads frames:
+        // acting skips their background.
         net.push(
             conv.with_relu()
                 .with_winograd(i > 0)
-                .with_sparse_inference(i > 0),
+                .with_sparse_inference(i > 0)
+                .with_background_inference(i == 0),
         );
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.

@@ -4,9 +4,9 @@
 use super::{Layer, Param};
 use crate::tensor::{
     col2im, fill_iota, gemm, im2col, pad_input, unpad_input, winograd_conv, winograd_filters,
-    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Border, ConvGeom, Float,
-    GatherGemm, Init, Nonzeros, Op, ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch,
-    WinogradShape, MAX_PIECES, SKIP_OUTPUT,
+    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Background, Border,
+    ConvGeom, Float, GatherGemm, Init, Nonzeros, Op, ScatterGemm, SparseConv, Tensor, WinogradKind,
+    WinogradScratch, WinogradShape, MAX_PIECES, SKIP_OUTPUT,
 };
 use rayon::prelude::*;
 
@@ -101,6 +101,10 @@ pub struct Conv2d<T> {
     nz: Nonzeros<T>,
     sp_windows: Vec<usize>,
     sp_taps: Vec<usize>,
+    /// [`Layer::infer`] at batch 1 as a constant background plus a sparse difference
+    /// ([`Background`]): for a layer that reads frames.
+    background: bool,
+    bg: Background<T>,
 }
 
 /// `dZ` row by row for one image (see [`Conv2d::pre_activation_grad`]): row `m` of `z` is `dY`'s
@@ -179,6 +183,8 @@ impl<T: Float> Conv2d<T> {
             nz: Nonzeros::default(),
             sp_windows: Vec::new(),
             sp_taps: Vec::new(),
+            background: false,
+            bg: Background::default(),
         }
     }
 
@@ -188,6 +194,17 @@ impl<T: Float> Conv2d<T> {
     /// turns it on for conv2 and conv3.
     pub fn with_sparse_inference(mut self, on: bool) -> Self {
         self.sparse = on;
+        self
+    }
+
+    /// Acts ([`Layer::infer`] at batch 1) by splitting the input into a constant background
+    /// and its difference from it, which on game frames is mostly zeros
+    /// ([`crate::tensor::Background`]): the background's response costs no pass over the image
+    /// and the difference's is summed over its pixels that differ. For a layer that reads
+    /// frames; if more than a fifth of the pixels differ, the dense product. Off by default;
+    /// [`crate::dqn::article_qnet`] turns it on for conv1.
+    pub fn with_background_inference(mut self, on: bool) -> Self {
+        self.background = on;
         self
     }
 
@@ -808,6 +825,41 @@ impl<T: Float> Conv2d<T> {
         self.cols.clear();
     }
 
+    /// [`Layer::infer`] of one image by [`Background`], with `self.geom` the layer's own
+    /// geometry. `false` (nothing written) if more than a fifth of the pixels differ from the
+    /// background.
+    fn infer_background(&mut self, x: &Tensor<T>) -> bool {
+        let g = self.geom;
+        let (hp, wp) = g.padded();
+        let padded = !g.reads_input_directly() && x.shape()[1..] == [hp, wp, g.cin];
+        assert!(
+            padded || x.shape()[1..] == [g.h, g.w, g.cin],
+            "{}: input shape {:?}",
+            self.name,
+            x.shape()
+        );
+        if !self.bg.split(&g, x.data(), padded, g.h * g.w / 5) {
+            return false;
+        }
+        self.y.set_shape(&self.out_shape(1));
+        self.border
+            .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.out_rows);
+        let [w, b] = &self.params;
+        self.bg.conv(
+            &g,
+            w.value.data(),
+            b.value.data(),
+            self.relu,
+            self.y.data_mut(),
+            &self.out_rows,
+        );
+        self.zero_border(1);
+        // As in `infer_sparse`: a backward pass now fails its check.
+        self.pixels.clear();
+        self.cols.clear();
+        true
+    }
+
     /// [`Layer::backward`] with `self.geom` the input's geometry.
     fn backward_as(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         let g = self.geom;
@@ -861,10 +913,15 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         self.geom = own;
     }
 
+    /// With [`Conv2d::with_background_inference`], one image of which at most a fifth of the
+    /// pixels differ from the background: its response plus the difference's ([`Background`]).
     /// With [`Conv2d::with_sparse_inference`], if at most a fifth of the (padded) input is
     /// nonzero (a tenth for a batch): the sum over the nonzero values only ([`SparseConv`]).
     /// Otherwise [`Layer::forward`].
     fn infer(&mut self, x: &Tensor<T>) {
+        if self.background && x.batch() == 1 && self.infer_background(x) {
+            return;
+        }
         if !self.sparse {
             return self.forward(x);
         }

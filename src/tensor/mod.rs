@@ -11,6 +11,7 @@
 //! AVX-512 vectors never straddle two lines.
 
 mod align;
+mod background;
 mod conv;
 mod float;
 mod gather;
@@ -19,6 +20,7 @@ mod sparse;
 mod transpose;
 mod winograd;
 
+pub use background::Background;
 pub use conv::{
     col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, Border,
     ConvGeom, Padding,

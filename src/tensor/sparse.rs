@@ -17,9 +17,12 @@
 //! A dense layer is the case of one pixel, one tap and one row. The terms are summed from the
 //! bias in ascending tap and channel order, the order of the AVX-512 gather kernel's batch-1
 //! product, by the same fused multiply-adds; a skipped `fma(0, w, s)` is `s` exactly, so on
-//! AVX-512 acting gives the forward pass's bits (up to the sign of a zero). The portable loops
-//! (f64, other CPUs) agree with faer's blocked GEMM up to rounding. The one difference: a `0 · w`
-//! that would turn an infinite or NaN weight into NaN is skipped.
+//! AVX-512 these layers act with the forward pass's bits (up to the sign of a zero). The portable
+//! loops (f64, other CPUs) agree with faer's blocked GEMM up to rounding. The one difference: a
+//! `0 · w` that would turn an infinite or NaN weight into NaN is skipped.
+//!
+//! conv1 reads frames, which have no zeros but a constant background: acting splits that off
+//! instead ([`super::Background`]), and agrees with the forward pass up to rounding.
 
 use super::Float;
 
