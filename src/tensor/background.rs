@@ -158,18 +158,32 @@ impl<T: Float> Background<T> {
             "Background: bias"
         );
         assert_eq!(rows.len(), g.oh * g.ow, "Background: output rows");
-        self.response(g, w, bias);
         #[cfg(target_arch = "x86_64")]
         if T::simd() && cout.is_multiple_of(16) && cout <= 128 {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
-            unsafe { avx512::scatter(self, g, w) };
-        } else {
-            self.scatter(g, w, add_products);
+            return unsafe { avx512::conv(self, g, w, bias, relu, y, rows) };
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        self.scatter(g, w, add_products);
-        for (a, &r) in self.acc.chunks_exact(cout).zip(rows) {
-            for (y, &a) in y[r..r + cout].iter_mut().zip(a) {
+        self.run(g, w, bias, relu, y, rows, add_products);
+    }
+
+    /// [`Background::conv`]'s body, with `add` the kernel that adds a pixel's terms into an
+    /// output ([`Background::scatter`]).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn run(
+        &mut self,
+        g: &ConvGeom,
+        w: &[T],
+        bias: &[T],
+        relu: bool,
+        y: &mut [T],
+        rows: &[usize],
+        add: impl Fn(&mut [T], &[T], &[T]),
+    ) {
+        self.response(g, w, bias);
+        self.scatter(g, w, add);
+        for (a, &r) in self.acc.chunks_exact(g.cout).zip(rows) {
+            for (y, &a) in y[r..r + g.cout].iter_mut().zip(a) {
                 *y = if relu { a.max(T::zero()) } else { a };
             }
         }
@@ -351,28 +365,45 @@ mod avx512 {
         })
     }
 
-    /// [`Background::scatter`] with [`super::add_products`] in `Cout / 16` registers, each
+    /// [`Background::conv`] with [`super::add_products`] in `Cout / 16` registers, each
     /// pixel's sum by fused multiply-adds.
     ///
     /// # Safety
     /// The CPU must run AVX-512F, `T` must be `f32`, and `Cout` a multiple of 16 up to 128.
-    pub unsafe fn scatter<T: Float>(bg: &mut Background<T>, g: &ConvGeom, w: &[T]) {
-        match g.cout / 16 {
-            1 => scatter_nv::<T, 1>(bg, g, w),
-            2 => scatter_nv::<T, 2>(bg, g, w),
-            3 => scatter_nv::<T, 3>(bg, g, w),
-            4 => scatter_nv::<T, 4>(bg, g, w),
-            5 => scatter_nv::<T, 5>(bg, g, w),
-            6 => scatter_nv::<T, 6>(bg, g, w),
-            7 => scatter_nv::<T, 7>(bg, g, w),
-            8 => scatter_nv::<T, 8>(bg, g, w),
+    pub unsafe fn conv<T: Float>(
+        bg: &mut Background<T>,
+        g: &ConvGeom,
+        w: &[T],
+        bias: &[T],
+        relu: bool,
+        y: &mut [T],
+        rows: &[usize],
+    ) {
+        let run = match g.cout / 16 {
+            1 => conv_nv::<T, 1>,
+            2 => conv_nv::<T, 2>,
+            3 => conv_nv::<T, 3>,
+            4 => conv_nv::<T, 4>,
+            5 => conv_nv::<T, 5>,
+            6 => conv_nv::<T, 6>,
+            7 => conv_nv::<T, 7>,
+            8 => conv_nv::<T, 8>,
             _ => unreachable!("Background: {} output channels on the AVX-512 path", g.cout),
-        }
+        };
+        run(bg, g, w, bias, relu, y, rows)
     }
 
     #[target_feature(enable = "avx512f")]
-    unsafe fn scatter_nv<T: Float, const NV: usize>(bg: &mut Background<T>, g: &ConvGeom, w: &[T]) {
-        bg.scatter(g, w, |a, d, w| {
+    unsafe fn conv_nv<T: Float, const NV: usize>(
+        bg: &mut Background<T>,
+        g: &ConvGeom,
+        w: &[T],
+        bias: &[T],
+        relu: bool,
+        y: &mut [T],
+        rows: &[usize],
+    ) {
+        bg.run(g, w, bias, relu, y, rows, |a, d, w| {
             let a: &mut [f32] = bytemuck::cast_slice_mut(a);
             let (d, w) = (cast(d), cast(w));
             let mut p = [_mm512_setzero_ps(); NV];
