@@ -24,8 +24,8 @@
 //! `β` is the image's first pixel (top left), background on Atari frames. Any choice is exact;
 //! a poor one only leaves many pixels differing, and the caller then takes the dense product.
 //! The result agrees with the dense product up to rounding, not bit for bit: the terms are
-//! grouped differently. Each value gets the same operations in the same order with or without
-//! AVX-512 (no fused multiply-adds), so acting is deterministic across CPUs.
+//! grouped differently. (On AVX-512 each pixel's sum is taken by fused multiply-adds, and the
+//! portable loops round each product, so the two also differ by rounding; each is deterministic.)
 
 use super::{ConvGeom, Float};
 use std::ops::Range;
