@@ -10,7 +10,8 @@
 //! worker of that pool.
 
 use criterion::{criterion_group, BenchmarkId, Criterion, Throughput};
-use invaders::dqn::{article_qnet, Batch, Learner};
+use invaders::dqn::{article_qnet, Batch, Config, Learner, Preset};
+use invaders::env::{Observer, SpaceInvaders};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
@@ -170,10 +171,12 @@ fn train_step(c: &mut Criterion) {
 /// read a ReLU's output, as `article_qnet` builds them, on inputs with 2% to 50% nonzero values
 /// (a trained network's are 1–5%, an initial one's about 40%). Above a fifth nonzero the
 /// convolutions' `infer` goes back to the dense product (after counting the nonzeros), which is
-/// where the two cross. And conv1 on frames whose pixels differ from the background (−1, the
-/// first pixel's) in 2% to 25% of places (game frames: about 9%), split into background and
-/// difference (`Conv2d::with_background_inference`; dense above a fifth). Throughput counts the
-/// dense product's FLOPs.
+/// where the two cross. And conv1 split into background and difference
+/// (`Conv2d::with_background_inference`) on 64 game frames (random play through the `article`
+/// pipeline; 5–13% of their pixels differ from the background, 9% typically), cycled as
+/// `invaders bench` does, and on frames whose differing pixels are scattered at random over 2% to
+/// 25% of places, the worst case for it (dense above an eighth). Throughput counts the dense
+/// product's FLOPs.
 fn sparse_act(c: &mut Criterion) {
     let mut group = c.benchmark_group("sparse_act");
     group
@@ -189,6 +192,20 @@ fn sparse_act(c: &mut Criterion) {
     let mut layers = net.into_layers();
     let conv1 = &mut layers[0];
     group.throughput(Throughput::Elements(2 * conv1.macs() as u64));
+    let frames = game_frames(64);
+    for (pass, name) in [(0, "forward"), (1, "infer")] {
+        let mut k = 0;
+        group.bench_function(format!("conv1/{name}/frames"), |b| {
+            b.iter(|| {
+                k = (k + 1) % frames.len();
+                if pass == 0 {
+                    conv1.forward(&frames[k])
+                } else {
+                    conv1.infer(&frames[k])
+                }
+            })
+        });
+    }
     for percent in [2u32, 10, 15, 20, 25] {
         let mut x = random(&[1, 88, 80, 4], &mut rng);
         for (p, px) in x.data_mut().chunks_exact_mut(4).enumerate() {
@@ -226,6 +243,34 @@ fn sparse_act(c: &mut Criterion) {
         }
     }
     group.finish();
+}
+
+/// `n` inputs of the `article` preset's network (`[1, 88, 80, 4]`), every 10th step of a game
+/// played with random actions (seeded).
+fn game_frames(n: usize) -> Vec<Tensor<f32>> {
+    let config = Config::preset(Preset::Article);
+    let mut env = SpaceInvaders::new(&config.env, 1).expect("Space Invaders");
+    let mut observer = Observer::new(config.pipeline);
+    let table = config.normalization.table();
+    let [h, w, c] = config.input_shape();
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    env.reset();
+    observer.reset(&env);
+    let mut frames = Vec::with_capacity(n);
+    for step in 0..10 * n {
+        let r = env.step(rng.random_range(0..env.n_actions()));
+        observer.step(&env);
+        if step % 10 == 9 {
+            let mut x = Tensor::from_vec(&[1, h, w, c], vec![0.0; h * w * c]);
+            observer.write_input(&table, x.data_mut());
+            frames.push(x);
+        }
+        if r.terminal || r.truncated {
+            env.reset();
+            observer.reset(&env);
+        }
+    }
+    frames
 }
 
 criterion_group!(

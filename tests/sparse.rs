@@ -47,7 +47,7 @@ fn frame<T: Float>(shape: &[usize], share: f64, r: &mut impl Rng) -> Tensor<T> {
 /// output (ReLU, border) whether the input is sparse enough for the sparse product (up to a
 /// fifth nonzero) or not, after a larger batch left values where the border now is. With
 /// `background`, the input is a [`frame`] (`zeros` its background share) and the layer acts
-/// by [`Conv2d::with_background_inference`] (up to a fifth of the pixels differing).
+/// by [`Conv2d::with_background_inference`] (up to an eighth of the pixels differing).
 #[allow(clippy::too_many_arguments)]
 fn conv_case<T: Float>(
     k: usize,
