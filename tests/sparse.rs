@@ -9,7 +9,7 @@ use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::tensor::{
-    conv2d_reference, pad_input, Border, ConvGeom, Float, Nonzeros, Padding, Tensor,
+    conv2d_reference, pad_input, Background, Border, ConvGeom, Float, Nonzeros, Padding, Tensor,
 };
 use proptest::prelude::*;
 use rand::Rng;
@@ -30,7 +30,8 @@ fn sparse<T: Float>(shape: &[usize], zeros: f64, r: &mut impl Rng) -> Tensor<T> 
 }
 
 /// Like a game frame: each pixel is the background `β` (a random colour, the first pixel's)
-/// with probability `share`, otherwise uniform values.
+/// with probability `share`; otherwise it differs in every channel or, half the time, in one
+/// (stacked frames often differ in one).
 fn frame<T: Float>(shape: &[usize], share: f64, r: &mut impl Rng) -> Tensor<T> {
     let c = *shape.last().unwrap();
     let mut t = uniform::<T>(shape, r);
@@ -38,6 +39,10 @@ fn frame<T: Float>(shape: &[usize], share: f64, r: &mut impl Rng) -> Tensor<T> {
     for px in t.data_mut().chunks_exact_mut(c) {
         if r.random_bool(share) {
             px.copy_from_slice(&beta);
+        } else if r.random_bool(0.5) {
+            let keep = px[r.random_range(0..c)];
+            px.copy_from_slice(&beta);
+            px[r.random_range(0..c)] = keep;
         }
     }
     t
@@ -66,7 +71,8 @@ fn conv_case<T: Float>(
     tol: f64,
 ) -> Result<(), TestCaseError> {
     let pad = if same { Padding::Same } else { Padding::Valid };
-    let (h, w) = (h.max(k), w.max(k));
+    // SAME takes any size, kernels larger than the input included; VALID needs the kernel to fit.
+    let (h, w) = if same { (h, w) } else { (h.max(k), w.max(k)) };
     let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
     let b = Border {
         top: border,
@@ -204,9 +210,21 @@ proptest! {
     }
 
     #[test]
+    fn background_split_matches_reference(
+        k in 1usize..=8, s in 1usize..=4, h in 1usize..24, w in 1usize..24,
+        cin in prop_oneof![1usize..6, Just(4), Just(16), Just(20), Just(33)],
+        cout in prop_oneof![1usize..20, Just(16), Just(32), Just(64), Just(144)],
+        same in any::<bool>(), share in prop_oneof![Just(1.0), Just(0.9), Just(0.5), Just(0.0)],
+        seed in any::<u64>(),
+    ) {
+        background_case::<f32>(k, s, h, w, cin, cout, same, share, seed, 1e-5)?;
+        background_case::<f64>(k, s, h, w, cin, cout, same, share, seed, 1e-12)?;
+    }
+
+    #[test]
     fn conv2d_background_inference_matches_reference(
         k in 1usize..=8, s in 1usize..=4, h in 3usize..24, w in 3usize..24,
-        cin in prop_oneof![1usize..6, Just(4), Just(16)],
+        cin in prop_oneof![1usize..6, Just(4), Just(16), Just(20), Just(33)],
         cout in prop_oneof![1usize..20, Just(16), Just(32), Just(64), Just(144)],
         same in any::<bool>(), relu in any::<bool>(), border in 0usize..3, n in 1usize..3,
         share in prop_oneof![Just(1.0), Just(0.95), Just(0.9), Just(0.5)],
@@ -225,6 +243,63 @@ proptest! {
         dense_case::<f32>(n_in, n_out, n, zeros, seed, 1e-5)?;
         dense_case::<f64>(n_in, n_out, n, zeros, seed, 1e-12)?;
     }
+}
+
+/// [`Background`] on its own: the split lists every differing pixel (it must not give up, so the
+/// sum below runs on the split path) and `b + conv(B) + conv(x − B)` is the reference
+/// convolution, for either input layout; a limit under the count gives up.
+#[allow(clippy::too_many_arguments)]
+fn background_case<T: Float>(
+    k: usize,
+    s: usize,
+    h: usize,
+    w: usize,
+    cin: usize,
+    cout: usize,
+    same: bool,
+    share: f64,
+    seed: u64,
+    tol: f64,
+) -> Result<(), TestCaseError> {
+    let pad = if same { Padding::Same } else { Padding::Valid };
+    let (h, w) = if same { (h, w) } else { (h.max(k), w.max(k)) };
+    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
+    let mut r = rng(seed);
+    let (wt, bt) = (
+        uniform::<T>(&[k, k, cin, cout], &mut r),
+        uniform::<T>(&[cout], &mut r),
+    );
+    let x = frame::<T>(&[1, h, w, cin], share, &mut r);
+    let mut want = vec![T::zero(); g.oh * g.ow * cout];
+    conv2d_reference(&g, 1, x.data(), wt.data(), bt.data(), &mut want);
+    let mut xpad = Vec::new();
+    pad_input(&g, 1, x.data(), &mut xpad);
+    let differing = x
+        .data()
+        .chunks_exact(cin)
+        .filter(|px| px != &&x.data()[..cin])
+        .count();
+    let rows: Vec<usize> = (0..g.oh * g.ow).map(|r| r * cout).collect();
+    let mut bg = Background::default();
+    for (input, padded) in [(x.data(), false), (&xpad[..], true)] {
+        if differing > 0 {
+            prop_assert!(!bg.split(&g, input, padded, differing - 1));
+        }
+        prop_assert!(bg.split(&g, input, padded, differing));
+        let mut got = vec![T::zero(); g.oh * g.ow * cout];
+        bg.conv(&g, wt.data(), bt.data(), false, &mut got, &rows);
+        assert_close("Background::conv", &got, &want, tol)?;
+    }
+    Ok(())
+}
+
+/// An infinite background is not split: `conv(B) + conv(x − B)` would be `∞ − ∞`.
+#[test]
+fn background_with_an_infinite_colour_is_not_split() {
+    let g = ConvGeom::new(4, 4, 2, 16, 3, 3, (1, 1), Padding::Same).unwrap();
+    let mut x = vec![0.5f32; 4 * 4 * 2];
+    x[0] = f32::NEG_INFINITY;
+    assert!(!Background::default().split(&g, &x, false, usize::MAX));
 }
 
 /// The article's network acts (`infer`, sparse products where the activations allow) as its
@@ -279,6 +354,28 @@ fn article_network_infers_as_it_forwards() {
             }
         }
     }
+}
+
+/// `infer` by the background split also discards what a forward pass kept for backward (see
+/// `backward_after_infer_is_refused` for the sparse product).
+#[test]
+#[should_panic(expected = "backward without forward")]
+fn backward_after_background_infer_is_refused() {
+    let g = ConvGeom::new(8, 8, 4, 16, 4, 4, (2, 2), Padding::Same).unwrap();
+    let mut layer = Conv2d::<f32>::new("c", g)
+        .with_relu()
+        .with_background_inference(true);
+    let mut r = rng(1);
+    let (wt, bt) = (
+        uniform::<f32>(&[4, 4, 4, 16], &mut r),
+        uniform::<f32>(&[16], &mut r),
+    );
+    set_params(&mut layer, &[&wt, &bt]);
+    let x = uniform::<f32>(&[2, 8, 8, 4], &mut r);
+    layer.forward(&x);
+    layer.infer(&frame::<f32>(&[1, 8, 8, 4], 1.0, &mut r));
+    let dy = uniform::<f32>(&[2, 4, 4, 16], &mut r);
+    layer.backward(&x, &dy, true);
 }
 
 /// `infer` discards what a forward pass kept for backward: a backward pass after it is refused,

@@ -839,8 +839,9 @@ impl<T: Float> Conv2d<T> {
             x.shape()
         );
         // Game frames have 5–13% of their pixels differing (9% typically). With differing
-        // pixels scattered at random, the split's per-pixel work costs as much as the dense
-        // product at about a tenth (`cargo bench --bench layers -- sparse_act/conv1`).
+        // pixels scattered at random, the split's per-pixel work made it 14% faster than the
+        // dense product at a tenth and 1.6–1.8× slower at a fifth (`cargo bench --bench layers
+        // -- sparse_act/conv1`).
         if !self.bg.split(&g, x.data(), padded, g.h * g.w / 8) {
             return false;
         }

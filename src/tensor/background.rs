@@ -48,6 +48,8 @@ pub struct Background<T> {
     col_ranges: Vec<(usize, usize)>,
     row_of: Vec<usize>,
     col_of: Vec<usize>,
+    /// Whether the last split listed every differing pixel (it did not give up).
+    complete: bool,
     /// `b + conv(B)` for each pair of ranges, `[|R|, |C|, Cout]`.
     rect: Vec<T>,
     /// `[OH·OW, Cout]`: `b + conv(B)`, then the difference's terms added.
@@ -61,7 +63,8 @@ impl<T: Float> Background<T> {
     /// Reads `β` from one image `x` (`[H, W, Cin]` of the geometry `g`, or `[HP, WP, Cin]`
     /// already inside its padding if `padded`) and lists its pixels that differ from `β`.
     /// Returns `false`, giving up at the end of the row where the count passes `limit` (the
-    /// caller then takes the dense product, having paid for a part of the scan only).
+    /// caller then takes the dense product, having paid for a part of the scan only), or at
+    /// once if `β` is not finite. [`Background::conv`] needs a split that returned `true`.
     pub fn split(&mut self, g: &ConvGeom, x: &[T], padded: bool, limit: usize) -> bool {
         let (hp, wp) = g.padded();
         let c = g.cin;
@@ -75,6 +78,11 @@ impl<T: Float> Background<T> {
         };
         self.beta.clear();
         self.beta.extend_from_slice(&x[first..first + c]);
+        self.complete = false;
+        if !self.beta.iter().all(|b| b.is_finite()) {
+            // conv(B) + conv(x − B) would turn an infinite background into ∞ − ∞ = NaN.
+            return false;
+        }
         // β once per pixel of a row, to compare a row with it 16 values at a time.
         self.tiled.clear();
         for _ in 0..g.w {
@@ -86,14 +94,16 @@ impl<T: Float> Background<T> {
         #[cfg(target_arch = "x86_64")]
         if T::simd() {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
-            return unsafe { avx512::split(self, g, rows, limit) };
+            self.complete = unsafe { avx512::split(self, g, rows, limit) };
+            return self.complete;
         }
-        self.differing(g, rows, limit, |block, tiled| {
+        self.complete = self.differing(g, rows, limit, |block, tiled| {
             block
                 .iter()
                 .zip(tiled)
                 .fold(false, |any, (&v, &b)| any | (v != b))
-        })
+        });
+        self.complete
     }
 
     /// [`Background::split`]'s scan over the image's `rows`. Most 16-value blocks of a row
@@ -158,6 +168,7 @@ impl<T: Float> Background<T> {
             "Background: bias"
         );
         assert_eq!(rows.len(), g.oh * g.ow, "Background: output rows");
+        assert!(self.complete, "Background: conv after a split that gave up");
         #[cfg(target_arch = "x86_64")]
         if T::simd() && cout.is_multiple_of(16) && cout <= 128 {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
@@ -351,6 +362,7 @@ mod avx512 {
         rows: impl Iterator<Item = &'x [T]>,
         limit: usize,
     ) -> bool {
+        debug_assert_eq!(std::mem::size_of::<T>(), 4, "Background: f32 on AVX-512");
         bg.differing(g, rows, limit, |block, tiled| {
             let (block, tiled) = (cast(block), cast(tiled));
             // A short block (a row's last) loads only its values.
@@ -379,6 +391,7 @@ mod avx512 {
         y: &mut [T],
         rows: &[usize],
     ) {
+        debug_assert_eq!(std::mem::size_of::<T>(), 4, "Background: f32 on AVX-512");
         let run = match g.cout / 16 {
             1 => conv_nv::<T, 1>,
             2 => conv_nv::<T, 2>,
