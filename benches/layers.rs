@@ -10,8 +10,7 @@
 //! worker of that pool.
 
 use criterion::{criterion_group, BenchmarkId, Criterion, Throughput};
-use invaders::dqn::{article_qnet, Batch, Config, Learner, Preset};
-use invaders::env::{Observer, SpaceInvaders};
+use invaders::dqn::{article_qnet, random_play_inputs, Batch, Config, Learner, Preset};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
@@ -192,7 +191,13 @@ fn sparse_act(c: &mut Criterion) {
     let mut layers = net.into_layers();
     let conv1 = &mut layers[0];
     group.throughput(Throughput::Elements(2 * conv1.macs() as u64));
-    let frames = game_frames(64);
+    let frames = random_play_inputs(
+        &Config::preset(Preset::Article),
+        64,
+        10,
+        &mut ChaCha8Rng::seed_from_u64(1),
+    )
+    .expect("Space Invaders");
     for (pass, name) in [(0, "forward"), (1, "infer")] {
         let mut k = 0;
         group.bench_function(format!("conv1/{name}/frames"), |b| {
@@ -243,34 +248,6 @@ fn sparse_act(c: &mut Criterion) {
         }
     }
     group.finish();
-}
-
-/// `n` inputs of the `article` preset's network (`[1, 88, 80, 4]`), every 10th step of a game
-/// played with random actions (seeded).
-fn game_frames(n: usize) -> Vec<Tensor<f32>> {
-    let config = Config::preset(Preset::Article);
-    let mut env = SpaceInvaders::new(&config.env, 1).expect("Space Invaders");
-    let mut observer = Observer::new(config.pipeline);
-    let table = config.normalization.table();
-    let [h, w, c] = config.input_shape();
-    let mut rng = ChaCha8Rng::seed_from_u64(1);
-    env.reset();
-    observer.reset(&env);
-    let mut frames = Vec::with_capacity(n);
-    for step in 0..10 * n {
-        let r = env.step(rng.random_range(0..env.n_actions()));
-        observer.step(&env);
-        if step % 10 == 9 {
-            let mut x = Tensor::from_vec(&[1, h, w, c], vec![0.0; h * w * c]);
-            observer.write_input(&table, x.data_mut());
-            frames.push(x);
-        }
-        if r.terminal || r.truncated {
-            env.reset();
-            observer.reset(&env);
-        }
-    }
-    frames
 }
 
 criterion_group!(

@@ -356,46 +356,40 @@ fn article_network_infers_as_it_forwards() {
     }
 }
 
-/// `infer` by the background split also discards what a forward pass kept for backward (see
-/// `backward_after_infer_is_refused` for the sparse product).
-#[test]
-#[should_panic(expected = "backward without forward")]
-fn backward_after_background_infer_is_refused() {
-    let g = ConvGeom::new(8, 8, 4, 16, 4, 4, (2, 2), Padding::Same).unwrap();
-    let mut layer = Conv2d::<f32>::new("c", g)
-        .with_relu()
-        .with_background_inference(true);
+/// `infer` discards what a forward pass kept for backward: a backward pass after it is refused,
+/// not computed from a mix of the two. `layer` (with a ReLU) runs forward on two images, then
+/// `infer` on an image of zeros: all zeros for the sparse product, all background for the split.
+fn backward_after_infer(layer: Conv2d<f32>) {
+    let mut layer = layer.with_relu();
+    let g = layer.geom;
     let mut r = rng(1);
     let (wt, bt) = (
-        uniform::<f32>(&[4, 4, 4, 16], &mut r),
-        uniform::<f32>(&[16], &mut r),
+        uniform::<f32>(&[g.kh, g.kw, g.cin, g.cout], &mut r),
+        uniform::<f32>(&[g.cout], &mut r),
     );
     set_params(&mut layer, &[&wt, &bt]);
-    let x = uniform::<f32>(&[2, 8, 8, 4], &mut r);
+    let x = uniform::<f32>(&[2, g.h, g.w, g.cin], &mut r);
     layer.forward(&x);
-    layer.infer(&frame::<f32>(&[1, 8, 8, 4], 1.0, &mut r));
-    let dy = uniform::<f32>(&[2, 4, 4, 16], &mut r);
+    layer.infer(&Tensor::from_vec(
+        &[1, g.h, g.w, g.cin],
+        vec![0.0; g.h * g.w * g.cin],
+    ));
+    let dy = uniform::<f32>(&[2, g.oh, g.ow, g.cout], &mut r);
     layer.backward(&x, &dy, true);
 }
 
-/// `infer` discards what a forward pass kept for backward: a backward pass after it is refused,
-/// not computed from a mix of the two.
+/// After the sparse product.
 #[test]
 #[should_panic(expected = "backward without forward")]
 fn backward_after_infer_is_refused() {
     let g = ConvGeom::new(6, 6, 16, 16, 3, 3, (1, 1), Padding::Same).unwrap();
-    let mut layer = Conv2d::<f32>::new("c", g)
-        .with_relu()
-        .with_sparse_inference(true);
-    let mut r = rng(1);
-    let (wt, bt) = (
-        uniform::<f32>(&[3, 3, 16, 16], &mut r),
-        uniform::<f32>(&[16], &mut r),
-    );
-    set_params(&mut layer, &[&wt, &bt]);
-    let x = uniform::<f32>(&[2, 6, 6, 16], &mut r);
-    layer.forward(&x);
-    layer.infer(&sparse::<f32>(&[1, 6, 6, 16], 1.0, &mut r));
-    let dy = uniform::<f32>(&[2, 6, 6, 16], &mut r);
-    layer.backward(&x, &dy, true);
+    backward_after_infer(Conv2d::new("c", g).with_sparse_inference(true));
+}
+
+/// After conv1's background split.
+#[test]
+#[should_panic(expected = "backward without forward")]
+fn backward_after_background_infer_is_refused() {
+    let g = ConvGeom::new(8, 8, 4, 16, 4, 4, (2, 2), Padding::Same).unwrap();
+    backward_after_infer(Conv2d::new("c", g).with_background_inference(true));
 }

@@ -14,10 +14,9 @@ use clap::Args;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use invaders::dqn::{checkpoint, Agent, Batch, Config, Learner, Preset};
+use invaders::dqn::{checkpoint, random_play_inputs, Agent, Batch, Config, Learner, Preset};
 use invaders::env::{Observer, SpaceInvaders};
 use invaders::layers::Sequential;
-use invaders::tensor::Tensor;
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {
@@ -190,26 +189,7 @@ fn time_acting(
     config: &Config,
     rng: &mut ChaCha8Rng,
 ) -> anyhow::Result<f64> {
-    let mut env = SpaceInvaders::new(&config.env, 1).context("cannot start Space Invaders")?;
-    let mut observer = Observer::new(config.pipeline);
-    let table = config.normalization.table();
-    let [h, w, c] = config.input_shape();
-    env.reset();
-    observer.reset(&env);
-    let mut frames = Vec::with_capacity(64);
-    for step in 0..64 * 10 {
-        let r = env.step(rng.random_range(0..env.n_actions()));
-        observer.step(&env);
-        if step % 10 == 9 {
-            let mut x = Tensor::from_vec(&[1, h, w, c], vec![0.0; h * w * c]);
-            observer.write_input(&table, x.data_mut());
-            frames.push(x);
-        }
-        if r.terminal || r.truncated {
-            env.reset();
-            observer.reset(&env);
-        }
-    }
+    let frames = random_play_inputs(config, 64, 10, rng)?;
     for x in &frames {
         net.infer(x);
     }

@@ -82,6 +82,39 @@ pub fn greedy(
     argmax(net.infer(input).data())
 }
 
+/// `n` inputs of `config`'s network (`[1, H, W, k]`, as the agent writes them), every `every`th
+/// step of Space Invaders played with random actions drawn from `rng` (emulator seed 1), the
+/// game reset when it ends: the acting benchmarks' workload.
+pub fn random_play_inputs(
+    config: &Config,
+    n: usize,
+    every: usize,
+    rng: &mut impl Rng,
+) -> anyhow::Result<Vec<Tensor<f32>>> {
+    let mut env =
+        crate::env::SpaceInvaders::new(&config.env, 1).context("cannot start Space Invaders")?;
+    let mut observer = Observer::new(config.pipeline);
+    let table = config.normalization.table();
+    let [h, w, c] = config.input_shape();
+    env.reset();
+    observer.reset(&env);
+    let mut inputs = Vec::with_capacity(n);
+    for step in 0..n * every {
+        let r = env.step(rng.random_range(0..env.n_actions()));
+        observer.step(&env);
+        if step % every == every - 1 {
+            let mut x = Tensor::from_vec(&[1, h, w, c], vec![0.0; h * w * c]);
+            observer.write_input(&table, x.data_mut());
+            inputs.push(x);
+        }
+        if r.terminal || r.truncated {
+            env.reset();
+            observer.reset(&env);
+        }
+    }
+    Ok(inputs)
+}
+
 /// Plays one episode with an ε-greedy policy and no learning (evaluation); `on_step` sees the
 /// game after every step (to record it). Returns the score and the number of steps.
 #[allow(clippy::too_many_arguments)]

@@ -7,7 +7,7 @@ mod learner;
 mod qnet;
 mod replay;
 
-pub use agent::{greedy, play_evaluation_episode, Agent, EpisodeRow};
+pub use agent::{greedy, play_evaluation_episode, random_play_inputs, Agent, EpisodeRow};
 pub use config::{Config, Preset, NO_EPISODE_LIMIT};
 pub use learner::{argmax, Batch, Learner, StepStats};
 pub use qnet::{article_qnet, input_border};
