@@ -48,6 +48,25 @@ fn frame<T: Float>(shape: &[usize], share: f64, r: &mut impl Rng) -> Tensor<T> {
     t
 }
 
+/// A `k × k` convolution of stride `s`, SAME or VALID. SAME takes any size, kernels larger than
+/// the input included; VALID gets the input grown to fit the kernel.
+fn square_geom(
+    k: usize,
+    s: usize,
+    h: usize,
+    w: usize,
+    cin: usize,
+    cout: usize,
+    same: bool,
+) -> ConvGeom {
+    let (pad, h, w) = if same {
+        (Padding::Same, h, w)
+    } else {
+        (Padding::Valid, h.max(k), w.max(k))
+    };
+    ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap()
+}
+
 /// A convolution with sparse inference: `infer` at batch 1 gives the reference convolution's
 /// output (ReLU, border) whether the input is sparse enough for the sparse product (up to a
 /// fifth nonzero) or not, after a larger batch left values where the border now is. With
@@ -70,10 +89,8 @@ fn conv_case<T: Float>(
     seed: u64,
     tol: f64,
 ) -> Result<(), TestCaseError> {
-    let pad = if same { Padding::Same } else { Padding::Valid };
-    // SAME takes any size, kernels larger than the input included; VALID needs the kernel to fit.
-    let (h, w) = if same { (h, w) } else { (h.max(k), w.max(k)) };
-    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
+    let g = square_geom(k, s, h, w, cin, cout, same);
+    let (h, w) = (g.h, g.w);
     let b = Border {
         top: border,
         bottom: 1,
@@ -261,9 +278,8 @@ fn background_case<T: Float>(
     seed: u64,
     tol: f64,
 ) -> Result<(), TestCaseError> {
-    let pad = if same { Padding::Same } else { Padding::Valid };
-    let (h, w) = if same { (h, w) } else { (h.max(k), w.max(k)) };
-    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap();
+    let g = square_geom(k, s, h, w, cin, cout, same);
+    let (h, w) = (g.h, g.w);
     let mut r = rng(seed);
     let (wt, bt) = (
         uniform::<T>(&[k, k, cin, cout], &mut r),
