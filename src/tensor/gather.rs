@@ -290,8 +290,9 @@ pub fn fill_iota(v: &mut Vec<usize>, len: usize, step: usize) {
 #[cfg(target_arch = "x86_64")]
 pub(crate) mod avx512 {
     //! The AVX-512 kernel: an `MR × 16·NV` block of `C` lives in `MR·NV ≤ 24` zmm registers for
-    //! a block of 128 reduction steps; each step loads `NV` vectors of the `b` row and broadcasts
-    //! `MR` gathered `a` values, i.e. `MR + NV` loads per `MR·NV` FMAs. Shapes: up to 32 columns
+    //! a block of 128 reduction steps (256 for conv1's forward: [`block_len`]); each step loads
+    //! `NV` vectors of the `b` row and broadcasts `MR` gathered `a` values, i.e. `MR + NV` loads
+    //! per `MR·NV` FMAs. Shapes: up to 32 columns
     //! (conv1's 32 channels) run 10 × 2 (12 × 2 spilled), 48 run 8 × 3, 64 (conv2, conv3) 6 × 4;
     //! wider `C` goes in panels of 64 columns with the column tail under a mask, except a lone
     //! row (a GEMV) which takes 128-column panels. Leftover rows get one tile of their height.
@@ -311,9 +312,27 @@ pub(crate) mod avx512 {
     }
 
     /// Reduction steps per block: the block's `b` rows (128 × 64 floats, 32 KiB) stay in L1
-    /// while every row tile of a task runs over them. (256 steps for conv1's 32 columns, which
-    /// would read its input once instead of twice, measured no faster.)
+    /// while every row tile of a task runs over them.
     const TB: usize = 128;
+
+    /// The longest block: see [`block_len`].
+    const TB_MAX: usize = 2 * TB;
+
+    /// Reduction steps per block of an `n`-column product over `steps` steps: [`TB`], or the
+    /// whole reduction up to [`TB_MAX`] steps when `C` is at most 32 columns wide. That is
+    /// conv1's forward pass (256 steps × 32 columns of `b`, 32 KiB, which fit L1 as well): each
+    /// row tile then keeps its sums in registers from start to end, and the task reads the
+    /// batch once instead of twice. Paired steps in one process (the switch flipped every step,
+    /// 3 × 60 pairs) measured the one-thread train step 0.3–0.7 ms faster, two threads level.
+    /// (A weight gradient's long reduction keeps 128-step blocks: 256-pixel blocks measured
+    /// slower.)
+    fn block_len(n: usize, steps: usize) -> usize {
+        if n <= 32 && steps <= TB_MAX {
+            TB_MAX
+        } else {
+            TB
+        }
+    }
 
     /// Values of `A` (256 KiB) a task's block must read before its rows count as streamed
     /// from memory and get prefetched.
@@ -321,7 +340,7 @@ pub(crate) mod avx512 {
 
     /// Splits a block of reduction offsets into runs of consecutive values, `(first, length)`,
     /// so the tile walks each run with pointer increments instead of reading `q` per step.
-    fn runs(q: &[usize], out: &mut [(usize, usize); TB]) -> usize {
+    fn runs(q: &[usize], out: &mut [(usize, usize); TB_MAX]) -> usize {
         let mut k = 0;
         for &v in q {
             if k > 0 && out[k - 1].0 + out[k - 1].1 == v {
@@ -343,7 +362,7 @@ pub(crate) mod avx512 {
     }
 
     impl<'a> Steps<'a> {
-        fn new(table: &'a [usize], buf: &'a mut [(usize, usize); TB]) -> Self {
+        fn new(table: &'a [usize], buf: &'a mut [(usize, usize); TB_MAX]) -> Self {
             let n = runs(table, buf);
             let runs = (4 * n <= table.len()).then_some(&buf[..n]);
             Steps { table, runs }
@@ -598,11 +617,12 @@ pub(crate) mod avx512 {
     ) {
         let nr = p.len();
         let steps = q.len();
-        let nblocks = steps.div_ceil(TB).max(1);
+        let tb = block_len(n, steps);
+        let nblocks = steps.div_ceil(tb).max(1);
         for blk in 0..nblocks {
-            let t0 = blk * TB;
-            let qb = &q[t0.min(steps)..(t0 + TB).min(steps)];
-            let mut rbuf = [(0, 0); TB];
+            let t0 = blk * tb;
+            let qb = &q[t0.min(steps)..(t0 + tb).min(steps)];
+            let mut rbuf = [(0, 0); TB_MAX];
             let qr = Steps::new(qb, &mut rbuf);
             // A block that reads each row's values as one run, rows not overlapping (judged by
             // the task's first two rows), over more than L2 holds comfortably (a plain `A·B`
