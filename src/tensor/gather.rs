@@ -292,10 +292,10 @@ pub(crate) mod avx512 {
     //! The AVX-512 kernel: an `MR × 16·NV` block of `C` lives in `MR·NV ≤ 24` zmm registers for
     //! a block of 128 reduction steps (256 for conv1's forward: [`block_len`]); each step loads
     //! `NV` vectors of the `b` row and broadcasts `MR` gathered `a` values, i.e. `MR + NV` loads
-    //! per `MR·NV` FMAs. Shapes: up to 32 columns
-    //! (conv1's 32 channels) run 10 × 2 (12 × 2 spilled), 48 run 8 × 3, 64 (conv2, conv3) 6 × 4;
-    //! wider `C` goes in panels of 64 columns with the column tail under a mask, except a lone
-    //! row (a GEMV) which takes 128-column panels. Leftover rows get one tile of their height.
+    //! per `MR·NV` FMAs. Shapes: up to 32 columns (conv1's 32 channels) run 10 × 2 (12 × 2
+    //! spilled), 48 run 8 × 3, 64 (conv2, conv3) 6 × 4; wider `C` goes in panels of 64 columns
+    //! with the column tail under a mask, except a lone row (a GEMV) which takes 128-column
+    //! panels. Leftover rows get one tile of their height.
     use super::{row_start, GatherGemm, Init};
     use rayon::prelude::*;
     use std::arch::x86_64::*;
