@@ -200,6 +200,79 @@ fn replay_rebuilds_stacks_within_episodes() {
     }
 }
 
+/// n-step returns (n = 3, γ = 0.5, so every sum is exact) against sums worked out by hand: they
+/// stop at a terminal step (a game over, or a lost life marked done while the episode goes on),
+/// at an episode cut by its time limit, and at the newest step; `s'` is the state `m` entries on,
+/// its stack running across a lost life but never into another episode.
+#[test]
+fn replay_sums_n_step_returns_within_episodes() {
+    let mut replay = Replay::new(64, 4).with_returns(3, 0.5);
+    // Episode A: 10 → 14, rewards 1, 2, 4, 8, game over on the last step.
+    replay.push_start(&frame(10));
+    for (i, r) in [1.0, 2.0, 4.0, 8.0].into_iter().enumerate() {
+        replay.push_step(i, r, i == 3, &frame(11 + i as u8));
+    }
+    // Episode B: 20 → 24, reward 1 each step, a life lost (done) on the step to 23, cut at 24.
+    replay.push_start(&frame(20));
+    for i in 0..4u8 {
+        replay.push_step(i as usize, 1.0, i == 2, &frame(21 + i));
+    }
+    // Episode C, still running: 30 → 32, reward 2 each step.
+    replay.push_start(&frame(30));
+    replay.push_step(4, 2.0, false, &frame(31));
+    replay.push_step(5, 2.0, false, &frame(32));
+    // newest frame of s → (R, m, done, newest frame of s', first frame of the episode)
+    let expected = |f: u8| -> (f32, u32, bool, u8, u8) {
+        match f {
+            10 => (1.0 + 0.5 * 2.0 + 0.25 * 4.0, 3, false, 13, 10),
+            11 => (2.0 + 0.5 * 4.0 + 0.25 * 8.0, 3, true, 14, 10),
+            12 => (4.0 + 0.5 * 8.0, 2, true, 14, 10),
+            13 => (8.0, 1, true, 14, 10),
+            20 => (1.0 + 0.5 + 0.25, 3, true, 23, 20),
+            21 => (1.0 + 0.5, 2, true, 23, 20),
+            22 => (1.0, 1, true, 23, 20),
+            23 => (1.0, 1, false, 24, 20),
+            30 => (2.0 + 0.5 * 2.0, 2, false, 32, 30),
+            31 => (2.0, 1, false, 32, 30),
+            f => panic!("entry {f} has no successor and must not be sampled"),
+        }
+    };
+    let mut table = [0.0f32; 256];
+    for (i, t) in table.iter_mut().enumerate() {
+        *t = i as f32;
+    }
+    let mut batch = Batch::new(8, [88, 80, 4]);
+    let mut rng = common::rng(2);
+    let px =
+        |t: &Tensor<f32>, b: usize| -> Vec<f32> { t.data()[b * FRAME_LEN * 4..][..4].to_vec() };
+    let stack = |newest: u8, first: u8| -> Vec<f32> {
+        (0..4)
+            .map(|i| newest.saturating_sub(3 - i).max(first) as f32)
+            .collect()
+    };
+    let mut seen = std::collections::BTreeSet::new();
+    for _ in 0..100 {
+        replay.sample(&mut rng, &table, &mut batch);
+        for b in 0..8 {
+            let f = px(&batch.states, b)[3] as u8;
+            let (ret, m, done, next, first) = expected(f);
+            assert_eq!(px(&batch.states, b), stack(f, first), "state ending at {f}");
+            assert_eq!(
+                (batch.rewards[b], batch.steps[b], batch.dones[b]),
+                (ret, m, done),
+                "return from {f}"
+            );
+            assert_eq!(
+                px(&batch.next_states, b),
+                stack(next, first),
+                "s' of the return from {f}"
+            );
+            seen.insert(f);
+        }
+    }
+    assert_eq!(seen.len(), 10, "every sampleable entry drawn: {seen:?}");
+}
+
 /// The agent's batches are written inside conv1's padding (a zero border), which conv1 reads in
 /// place: the states are the plain batch's inside zeros, and a train step on them is
 /// bit-identical to one on the plain batch.

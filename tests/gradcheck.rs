@@ -7,10 +7,10 @@
 mod common;
 
 use common::*;
-use invaders::dqn::article_qnet;
+use invaders::dqn::qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::loss::{huber, mse};
-use invaders::layers::{Conv2d, Dense, Flatten, Layer, Relu};
+use invaders::layers::{Conv2d, Dense, Dueling, Flatten, Layer, Relu};
 use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
 use proptest::prelude::*;
 
@@ -86,6 +86,16 @@ proptest! {
         check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
     }
 
+    /// The dueling head: `x = [V, A_1..A_A]`, `Q_a = V + A_a − mean A`.
+    #[test]
+    fn dueling_gradients(actions in 1usize..10, n in 1usize..=4, seed in any::<u64>()) {
+        let mut layer = Dueling::<f64>::new("dueling", actions);
+        let mut r = rng(seed);
+        let x = uniform(&[n, 1 + actions], &mut r);
+        let dy = uniform(&[n, actions], &mut r);
+        check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
     #[test]
     fn flatten_gradients(h in 1usize..6, w in 1usize..6, c in 1usize..4, n in 1usize..=3, seed in any::<u64>()) {
         let mut layer = Flatten::<f64>::new("flatten", &[h, w, c]);
@@ -139,8 +149,18 @@ fn losses_known_values() {
 /// at a reduced input size, end to end through `Sequential`, including the input gradient.
 #[test]
 fn article_qnet_gradients() {
+    qnet_gradients(false);
+}
+
+/// The same with the dueling head (dense 1 + 6, then `Q = V + A − mean A`).
+#[test]
+fn dueling_qnet_gradients() {
+    qnet_gradients(true);
+}
+
+fn qnet_gradients(dueling: bool) {
     let mut r = rng(7);
-    let mut net = article_qnet::<f64>([21, 19, 2], 6, &VarianceScaling::HE, &mut r);
+    let mut net = qnet::<f64>([21, 19, 2], 6, dueling, &VarianceScaling::HE, &mut r);
     // Non-zero biases, so bias indexing is exercised too.
     for p in net.params_mut() {
         if p.name.ends_with(".bias") {

@@ -194,7 +194,8 @@ impl<G: Game> Agent<G> {
         let input = config.input_shape();
         Agent {
             observer: Observer::new(config.pipeline),
-            replay: Replay::new(config.replay_capacity, config.pipeline.channels()),
+            replay: Replay::new(config.replay_capacity, config.pipeline.channels())
+                .with_returns(config.n_step as usize, config.gamma as f32),
             table: config.normalization.table(),
             input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
             batch: Batch::padded(config.batch_size, input),
@@ -293,12 +294,13 @@ impl<G: Game> Agent<G> {
         let c = &self.config;
         let (train_every, learning_starts, target_update) =
             (c.train_every, c.learning_starts, c.target_update);
-        let clip = c.clip_rewards;
+        let (clip, life_loss_terminal) = (c.clip_rewards, c.life_loss_terminal);
         self.game.reset();
         let first = self.observer.reset(&self.game);
         self.replay.push_start(first);
         let (mut score, mut length, mut loss_sum, mut q_sum, mut n_train) =
             (0.0f64, 0u64, 0.0f64, 0.0f64, 0u32);
+        let mut lives: Option<i32> = None;
         let last_action = loop {
             let eps = self.epsilon();
             let action = if self.explore_rng.random::<f32>() < eps {
@@ -313,7 +315,11 @@ impl<G: Game> Agent<G> {
             } else {
                 r.reward
             };
-            self.replay.push_step(action, reward, r.terminal, frame);
+            // The end of bootstrapping: the game is over, or (if so configured) a life was lost.
+            let life_lost = lives.is_some_and(|l| r.lives < l);
+            lives = Some(r.lives);
+            let done = r.terminal || (life_loss_terminal && life_lost);
+            self.replay.push_step(action, reward, done, frame);
             score += r.reward as f64;
             length += 1;
             self.counters.agent_steps += 1;

@@ -556,7 +556,8 @@ pub fn replay_from_bytes(bytes: &[u8], ckpt: &Checkpoint) -> anyhow::Result<Repl
         );
     }
     let rewards: Vec<f32> = bytemuck::pod_collect_to_vec(rewards.data());
-    let mut replay = Replay::new(config.replay_capacity, k);
+    let mut replay = Replay::new(config.replay_capacity, k)
+        .with_returns(config.n_step as usize, config.gamma as f32);
     replay
         .restore(
             written,

@@ -27,6 +27,11 @@ pub enum Preset {
     /// The notebook's behaviour on purpose: running-max composition, inputs in [-2, 0), actions
     /// picked by the lagged (target) network, a fake terminal transition stored per episode.
     ArticleAsWritten,
+    /// Beyond the article, chosen by measurement to play well within an afternoon on a 2-core
+    /// machine: the `v5` game, Double DQN with a dueling head, 3-step returns, life loss ending
+    /// bootstrapping, clipped rewards, Huber loss, a 400 000-transition memory, a slower target
+    /// and a faster ε schedule (`docs/strong.md`).
+    Strong,
 }
 
 impl Preset {
@@ -36,8 +41,26 @@ impl Preset {
             Preset::Article => "article",
             Preset::ArticleVanilla => "article-vanilla",
             Preset::ArticleAsWritten => "article-as-written",
+            Preset::Strong => "strong",
         }
     }
+}
+
+/// Adam's ε unless a config says otherwise (TensorFlow 1's default).
+pub const ADAM_EPSILON: f64 = 1e-8;
+
+/// The `strong` preset's budget in emulator frames.
+pub const STRONG_FRAMES: u64 = 4_000_000;
+
+/// The longest return a configuration may ask for (`n_step`).
+pub const MAX_N_STEP: u32 = 100;
+
+fn one() -> u32 {
+    1
+}
+
+fn adam_epsilon_default() -> f64 {
+    ADAM_EPSILON
 }
 
 /// `episodes` of a run bounded by frames only: as many as TOML's integers hold (they are i64,
@@ -87,6 +110,22 @@ pub struct Config {
     pub loss: LossKind,
     /// Double DQN targets.
     pub double_dqn: bool,
+    /// A dueling head: Q = V + A − mean A ([`crate::layers::Dueling`]).
+    #[serde(default)]
+    pub dueling: bool,
+    /// Steps `n` of the returns the TD target bootstraps after:
+    /// `y = r_t + γ r_{t+1} + … + γ^{n−1} r_{t+n−1} + γ^n max Q(s_{t+n})`, cut short at an episode's
+    /// end (the article: 1).
+    #[serde(default = "one")]
+    pub n_step: u32,
+    /// A lost life ends bootstrapping during training (the target sees it as terminal; the game
+    /// goes on). The article: no.
+    #[serde(default)]
+    pub life_loss_terminal: bool,
+    /// Adam's ε (TensorFlow's default 1e-8; Rainbow and its data-efficient variants use 1.5e-4,
+    /// which damps the steps of parameters with rare gradients).
+    #[serde(default = "adam_epsilon_default")]
+    pub adam_epsilon: f64,
     /// Clip gradients to this global norm (0: no clipping).
     pub clip_grad_norm: f64,
     /// Clip rewards to [-1, 1] (the Nature DQN; the article does not).
@@ -130,6 +169,10 @@ impl Config {
             epsilon_decay_steps: 500_000,
             loss: LossKind::Mse,
             double_dqn: false,
+            dueling: false,
+            n_step: 1,
+            life_loss_terminal: false,
+            adam_epsilon: ADAM_EPSILON,
             clip_grad_norm: 0.0,
             clip_rewards: false,
             act_with_target_network: false,
@@ -150,6 +193,32 @@ impl Config {
                 normalization: Normalization::ArticleCode,
                 act_with_target_network: true,
                 fake_terminal_transition: true,
+                ..article
+            },
+            Preset::Strong => Config {
+                episodes: NO_EPISODE_LIMIT,
+                max_frames: STRONG_FRAMES,
+                replay_capacity: 400_000,
+                batch_size: 32,
+                learning_rate: 1e-4,
+                adam_epsilon: 1.5e-4,
+                gamma: 0.99,
+                train_every: 4,
+                learning_starts: 20_000,
+                target_update: 2_000,
+                epsilon_start: 1.0,
+                epsilon_end: 0.01,
+                epsilon_decay_steps: 100_000,
+                loss: LossKind::Huber,
+                double_dqn: true,
+                dueling: true,
+                n_step: 3,
+                life_loss_terminal: true,
+                clip_grad_norm: 10.0,
+                clip_rewards: true,
+                checkpoint_every: 50,
+                plot_every: 25,
+                env: EnvConfig::from_mode(EnvMode::V5),
                 ..article
             },
         }
@@ -222,6 +291,12 @@ impl Config {
             if !(0.0..=1.0).contains(&e) {
                 bail!("{name} must be in [0, 1], got {e}");
             }
+        }
+        if !(1..=MAX_N_STEP).contains(&c.n_step) {
+            bail!("n_step must be in 1..={MAX_N_STEP}, got {}", c.n_step);
+        }
+        if !(c.adam_epsilon > 0.0 && c.adam_epsilon <= 1.0) {
+            bail!("adam_epsilon must be in (0, 1], got {}", c.adam_epsilon);
         }
         if !(c.clip_grad_norm >= 0.0 && c.clip_grad_norm.is_finite()) {
             bail!("clip_grad_norm must be >= 0, got {}", c.clip_grad_norm);

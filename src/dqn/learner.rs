@@ -1,6 +1,6 @@
 //! The learning half of DQN: one gradient step on a minibatch of transitions.
 
-use super::{article_qnet, input_border};
+use super::{input_border, qnet};
 use crate::layers::init::VarianceScaling;
 use crate::layers::loss::LossKind;
 use crate::layers::Sequential;
@@ -14,8 +14,10 @@ pub struct Batch {
     pub states: Tensor<f32>,
     /// `[B]`, indices into the action set.
     pub actions: Vec<usize>,
-    /// `[B]`.
+    /// `[B]`: the (n-step, discounted) returns `R` up to `s'`.
     pub rewards: Vec<f32>,
+    /// `[B]`: the steps `m` from `s` to `s'` (1 for the one-step target); `s'` is discounted by `γ^m`.
+    pub steps: Vec<u32>,
     /// `[B, H, W, C]`, likewise.
     pub next_states: Tensor<f32>,
     /// `[B]`, whether `s'` is terminal (then there is no future to bootstrap from).
@@ -47,6 +49,7 @@ impl Batch {
             states: Tensor::zeros(&shape),
             actions: vec![0; batch],
             rewards: vec![0.0; batch],
+            steps: vec![1; batch],
             next_states: Tensor::zeros(&shape),
             dones: vec![false; batch],
             border,
@@ -103,7 +106,8 @@ pub struct Learner {
 }
 
 impl Learner {
-    /// A learner for inputs of shape `[H, W, C]`; the target starts as a copy of the online net.
+    /// A learner of the article's network for inputs of shape `[H, W, C]`; the target starts as a
+    /// copy of the online net.
     pub fn new(
         input: [usize; 3],
         n_actions: usize,
@@ -111,8 +115,20 @@ impl Learner {
         gamma: f32,
         rng: &mut impl Rng,
     ) -> Self {
-        let online = article_qnet(input, n_actions, &VarianceScaling::HE, rng);
-        let mut target = article_qnet(input, n_actions, &VarianceScaling::HE, rng);
+        Learner::with_head(input, n_actions, false, lr, gamma, rng)
+    }
+
+    /// [`Learner::new`], with a dueling head if `dueling` ([`qnet`]).
+    pub fn with_head(
+        input: [usize; 3],
+        n_actions: usize,
+        dueling: bool,
+        lr: f32,
+        gamma: f32,
+        rng: &mut impl Rng,
+    ) -> Self {
+        let online = qnet(input, n_actions, dueling, &VarianceScaling::HE, rng);
+        let mut target = qnet(input, n_actions, dueling, &VarianceScaling::HE, rng);
         target.copy_params_from(&online);
         Learner {
             online,
@@ -133,13 +149,15 @@ impl Learner {
 
     /// A learner with every setting taken from a run's configuration.
     pub fn from_config(config: &super::Config, n_actions: usize, rng: &mut impl Rng) -> Self {
-        let mut l = Learner::new(
+        let mut l = Learner::with_head(
             config.input_shape(),
             n_actions,
+            config.dueling,
             config.learning_rate as f32,
             config.gamma as f32,
             rng,
         );
+        l.adam.eps = config.adam_epsilon as f32;
         l.loss = config.loss;
         l.double = config.double_dqn;
         l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm as f32);
@@ -170,7 +188,8 @@ impl Learner {
 
     /// One DQN update on `batch`:
     ///
-    /// 1. TD target `y = r + γ·(1 − done)·max_a' Q_target(s', a')` (Double DQN:
+    /// 1. TD target `y = R + γ^m·(1 − done)·max_a' Q_target(s', a')`, with `R` the return of the
+    ///    `m` steps from `s` to `s'` (`m = 1`, `R = r`: the one-step target) (Double DQN:
     ///    `Q_target(s', argmax_a' Q_online(s', a'))`); no gradient flows through `y`, so these
     ///    passes are [`Sequential::infer`] (sparse products where the activations allow).
     /// 2. Forward `Q_online(s, ·)`, keep `Q(s, a)` of the taken actions.
@@ -211,7 +230,8 @@ impl Learner {
                 row[argmax(row)]
             };
             let cont = if batch.dones[i] { 0.0 } else { 1.0 };
-            self.y[i] = batch.rewards[i] + self.gamma * cont * future;
+            let discount = self.gamma.powi(batch.steps[i] as i32);
+            self.y[i] = batch.rewards[i] + discount * cont * future;
         }
         let mut max_q_sum = 0.0;
         for (i, row) in q.data().chunks_exact(na).enumerate() {

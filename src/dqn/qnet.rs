@@ -1,7 +1,7 @@
 //! The article's Q-network.
 
 use crate::layers::init::VarianceScaling;
-use crate::layers::{Conv2d, Dense, Relu, Sequential};
+use crate::layers::{Conv2d, Dense, Dueling, Relu, Sequential};
 use crate::tensor::{Border, ConvGeom, Float, Padding};
 use rand::Rng;
 
@@ -35,6 +35,19 @@ const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 pub fn article_qnet<T: Float>(
     input: [usize; 3],
     n_actions: usize,
+    init: &VarianceScaling,
+    rng: &mut impl Rng,
+) -> Sequential<T> {
+    qnet(input, n_actions, false, init, rng)
+}
+
+/// The article's Q-network ([`article_qnet`]), with a dueling head if `dueling`: dense2 then has
+/// `1 + n_actions` outputs, the state value and one advantage per action, which [`Dueling`]
+/// combines into `n_actions` Q-values (`Q = V + A − mean A`).
+pub fn qnet<T: Float>(
+    input: [usize; 3],
+    n_actions: usize,
+    dueling: bool,
     init: &VarianceScaling,
     rng: &mut impl Rng,
 ) -> Sequential<T> {
@@ -88,7 +101,12 @@ pub fn article_qnet<T: Float>(
     let flat = shape.iter().product();
     net.push(Dense::new("dense1", flat, 128).with_sparse_inference(true));
     net.push(Relu::new("relu4", &[128]));
-    net.push(Dense::new("dense2", 128, n_actions));
+    if dueling {
+        net.push(Dense::new("dense2", 128, 1 + n_actions));
+        net.push(Dueling::new("dueling", n_actions));
+    } else {
+        net.push(Dense::new("dense2", 128, n_actions));
+    }
     for p in net.params_mut() {
         if p.name.ends_with(".weight") {
             init.fill(&mut p.value, rng);

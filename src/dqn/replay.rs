@@ -41,6 +41,10 @@ pub struct Replay {
     starts: Vec<bool>,
     /// Whether the agent acted on this entry (so entry `g + 1` is its `s'`).
     acted: Vec<bool>,
+    /// Steps of the sampled returns (1: the one-step TD target).
+    n_step: usize,
+    /// The discount the n-step returns are summed with.
+    gamma: f32,
     /// Entries written so far.
     written: u64,
     /// Scratch: the sampled entries.
@@ -63,9 +67,19 @@ impl Replay {
             dones: vec![false; capacity],
             starts: vec![false; capacity],
             acted: vec![false; capacity],
+            n_step: 1,
+            gamma: 1.0,
             written: 0,
             picks: Vec::new(),
         }
+    }
+
+    /// The same memory sampling `n`-step returns discounted by `gamma` ([`Replay::sample`]).
+    pub fn with_returns(mut self, n: usize, gamma: f32) -> Self {
+        assert!(n >= 1, "returns of at least one step");
+        self.n_step = n;
+        self.gamma = gamma;
+        self
     }
 
     /// The number of entries held (at most `capacity`).
@@ -225,8 +239,31 @@ impl Replay {
         Ok(())
     }
 
+    /// The `n`-step return from entry `g` (valid): `(R, m, done)` with
+    /// `R = r_g + γ r_{g+1} + … + γ^{m−1} r_{g+m−1}` over the `m ≤ n` steps taken before the episode
+    /// ended (`done`: for good, so nothing is bootstrapped), the episode was cut, or the memory's
+    /// newest step was reached; the target then bootstraps from the state at entry `g + m`.
+    fn n_step_return(&self, g: u64) -> (f32, u32, bool) {
+        let (mut ret, mut discount, mut j) = (0.0f32, 1.0f32, g);
+        for m in 1..=self.n_step as u32 {
+            let s = self.slot(j);
+            ret += discount * self.rewards[s];
+            if self.dones[s] {
+                return (ret, m, true);
+            }
+            // Entry j + 1 has no action when the episode was cut there, or it is the newest.
+            if m as usize == self.n_step || !self.valid(j + 1) {
+                return (ret, m, false);
+            }
+            discount *= self.gamma;
+            j += 1;
+        }
+        unreachable!("n_step >= 1")
+    }
+
     /// Fills `batch` with transitions drawn uniformly (with replacement) from those held,
-    /// normalising frames with `table`.
+    /// normalising frames with `table`. Each is `(s_g, a_g, R, s_{g+m}, done)` with the `n`-step
+    /// return `R` over `m` steps ([`Replay::with_returns`]; `m = 1`, `R = r_g` by default).
     pub fn sample(&mut self, rng: &mut impl Rng, table: &[f32; 256], batch: &mut Batch) {
         assert!(self.k <= 4, "states of at most 4 frames");
         assert!(
@@ -245,10 +282,11 @@ impl Replay {
         let per = batch.states.len() / batch.len();
         let border = batch.border;
         for (i, &g) in picks.iter().enumerate() {
-            let s = self.slot(g);
-            batch.actions[i] = self.actions[s] as usize;
-            batch.rewards[i] = self.rewards[s];
-            batch.dones[i] = self.dones[s];
+            let (ret, m, done) = self.n_step_return(g);
+            batch.actions[i] = self.actions[self.slot(g)] as usize;
+            batch.rewards[i] = ret;
+            batch.steps[i] = m;
+            batch.dones[i] = done;
             let state = self.state_frames(g).expect("checked");
             write_stacked_input_bordered(
                 &state[..self.k],
@@ -257,8 +295,8 @@ impl Replay {
                 &mut batch.states.data_mut()[i * per..][..per],
             );
             let next = self
-                .state_frames(g + 1)
-                .expect("successor of a valid entry");
+                .state_frames(g + m as u64)
+                .expect("a later entry of the same episode is held");
             write_stacked_input_bordered(
                 &next[..self.k],
                 table,

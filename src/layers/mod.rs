@@ -11,6 +11,7 @@
 
 mod conv2d;
 mod dense;
+mod dueling;
 mod flatten;
 pub mod init;
 pub mod loss;
@@ -19,6 +20,7 @@ mod sequential;
 
 pub use conv2d::Conv2d;
 pub use dense::Dense;
+pub use dueling::Dueling;
 pub use flatten::Flatten;
 pub use relu::Relu;
 pub use sequential::Sequential;
