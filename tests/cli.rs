@@ -310,3 +310,107 @@ fn bad_inputs_give_clear_errors() {
     }
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// The `strong` preset's switches (dueling head, 3-step returns, life loss ending bootstrapping)
+/// train end to end; `export` writes a weights-only model that `eval` plays (bit-identically to
+/// the checkpoint) and `--resume` refuses; `eval --protocol` holds to its rules.
+#[test]
+fn strong_preset_export_and_protocol() {
+    let root = tmp("strong");
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = root.join("quick.toml");
+    std::fs::write(&cfg, format!("preset = \"strong\"\n{QUICK}")).unwrap();
+    let run = root.join("run");
+    let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
+    ok(&invaders(&[
+        "train",
+        "--config",
+        cfg_s,
+        "--episodes",
+        "2",
+        "--seed",
+        "3",
+        "--threads",
+        "1",
+        "--out",
+        run_s,
+    ]));
+    let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
+    for line in ["dueling = true", "n_step = 3", "life_loss_terminal = true"] {
+        assert!(saved.contains(line), "{line} in {saved}");
+    }
+    let model = root.join("model.safetensors");
+    let model_s = model.to_str().unwrap();
+    ok(&invaders(&[
+        "export",
+        "--checkpoint",
+        run_s,
+        "--out",
+        model_s,
+    ]));
+    let size = std::fs::metadata(&model).unwrap().len();
+    let full = std::fs::metadata(run.join("checkpoint.safetensors"))
+        .unwrap()
+        .len();
+    assert!(
+        size < full / 2,
+        "the model ({size} B) holds one network of the checkpoint's ({full} B)"
+    );
+    fails_with(
+        &invaders(&["export", "--checkpoint", run_s, "--out", model_s]),
+        "exists",
+    );
+    // The same games from the model file and from the checkpoint.
+    let play = |what: &str| {
+        let text = ok(&invaders(&[
+            "eval",
+            "--checkpoint",
+            what,
+            "--episodes",
+            "1",
+            "--seed",
+            "9",
+            "--threads",
+            "1",
+        ]));
+        text.lines()
+            .find(|l| l.starts_with("episode"))
+            .unwrap()
+            .to_string()
+    };
+    assert_eq!(play(model_s), play(run_s));
+    // A model file cannot continue a run.
+    let resumed = root.join("resumed");
+    std::fs::create_dir_all(&resumed).unwrap();
+    std::fs::copy(&model, resumed.join("checkpoint.safetensors")).unwrap();
+    fails_with(
+        &invaders(&["train", "--resume", resumed.to_str().unwrap()]),
+        "weights-only",
+    );
+    // The protocol: at least 100 episodes, never on the training seed, fixed ε and mode.
+    fails_with(
+        &invaders(&[
+            "eval",
+            "--checkpoint",
+            model_s,
+            "--protocol",
+            "--episodes",
+            "10",
+        ]),
+        "at least 100",
+    );
+    fails_with(
+        &invaders(&["eval", "--checkpoint", model_s, "--protocol", "--seed", "3"]),
+        "training seed",
+    );
+    let out = invaders(&[
+        "eval",
+        "--checkpoint",
+        model_s,
+        "--protocol",
+        "--epsilon",
+        "0.1",
+    ]);
+    assert!(!out.status.success(), "--protocol fixes epsilon");
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -136,6 +136,62 @@ fn dqn_learns_a_toy_corridor() {
     }
 }
 
+/// Six steps, three lives: one lost on step 2, one on step 4, the game over on step 6.
+struct ThreeLives {
+    steps: u32,
+    frame: Vec<u8>,
+}
+
+impl Game for ThreeLives {
+    fn n_actions(&self) -> usize {
+        2
+    }
+    fn reset(&mut self) {
+        self.steps = 0;
+    }
+    fn step(&mut self, _action: usize) -> StepResult {
+        self.steps += 1;
+        StepResult {
+            reward: 1.0,
+            terminal: self.steps == 6,
+            truncated: false,
+            lives: 3
+                - (self.steps >= 2) as i32
+                - (self.steps >= 4) as i32
+                - (self.steps >= 6) as i32,
+            frames: 1,
+        }
+    }
+    fn last_two_frames(&self) -> (&[u8], &[u8]) {
+        (&self.frame, &self.frame)
+    }
+    fn observation(&self) -> &[u8] {
+        &self.frame
+    }
+}
+
+/// `life_loss_terminal` marks the steps that lose a life as terminal in the replay memory (the
+/// TD target stops there) while the episode plays on; without it only the game over is.
+#[test]
+fn a_lost_life_ends_bootstrapping_only_when_asked() {
+    for (switch, expect_done) in [(false, vec![5]), (true, vec![1, 3, 5])] {
+        let mut c = toy_config();
+        c.life_loss_terminal = switch;
+        let game = ThreeLives {
+            steps: 0,
+            frame: vec![0; FRAME_LEN],
+        };
+        let mut agent = Agent::new(c, game);
+        let row = agent.play_episode().unwrap();
+        assert_eq!(row.length, 6, "the episode goes on after a lost life");
+        let (_, _, _, flags) = agent.replay.parts();
+        let done: Vec<usize> = (0..flags.len())
+            .filter(|&i| flags[i] & invaders::dqn::FLAG_DONE != 0)
+            .collect();
+        assert_eq!(done, expect_done, "life_loss_terminal = {switch}");
+    }
+}
+
 fn frame(v: u8) -> Vec<u8> {
     vec![v; FRAME_LEN]
 }

@@ -29,21 +29,28 @@ pub struct EvalArgs {
     /// `article-vanilla`).
     #[arg(long, value_enum, requires = "checkpoint")]
     preset: Option<Preset>,
-    /// Exploration rate while evaluating a checkpoint.
-    #[arg(long, default_value_t = 0.05)]
-    epsilon: f32,
+    /// The evaluation protocol the `strong` preset is judged by (README, "Evaluation"): the `v5`
+    /// game (4 frames per step, sticky actions 0.25, 27 000-step cap), ε = 0.01, 100 episodes
+    /// (or more with --episodes), and an evaluation seed (default 1000000) that must differ from
+    /// the training seed.
+    #[arg(long, conflicts_with_all = ["mode", "epsilon"])]
+    protocol: bool,
+    /// Exploration rate while evaluating a checkpoint [default: 0.05].
+    #[arg(long)]
+    epsilon: Option<f32>,
     /// Record the first episode as an animated GIF at the emulator's full 210x160 colour.
     #[arg(long, value_name = "FILE")]
     gif: Option<PathBuf>,
     /// Worker threads for the kernels (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
-    /// Number of episodes.
-    #[arg(long, default_value_t = 30)]
-    episodes: u32,
-    /// Seed of the environment (the agent's random choices use a stream derived from it).
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
+    /// Number of episodes [default: 30; 100 with --protocol].
+    #[arg(long)]
+    episodes: Option<u32>,
+    /// Seed of the environment (the agent's random choices use a stream derived from it)
+    /// [default: 0; 1000000 with --protocol].
+    #[arg(long)]
+    seed: Option<u64>,
     /// Environment mode (default: v0 for --random, the run's own for --checkpoint).
     #[arg(long, value_enum)]
     mode: Option<EnvMode>,
@@ -52,19 +59,56 @@ pub struct EvalArgs {
     rom: Option<PathBuf>,
 }
 
+/// The evaluation protocol's exploration rate, episodes and default seed.
+const PROTOCOL_EPSILON: f32 = 0.01;
+const PROTOCOL_EPISODES: u32 = 100;
+const PROTOCOL_SEED: u64 = 1_000_000;
+
+/// What to play: the arguments with the protocol's or the defaults' values filled in.
+struct Plan {
+    epsilon: f32,
+    episodes: u32,
+    seed: u64,
+    mode: Option<EnvMode>,
+}
+
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
     super::train::in_pool(args.threads, || eval(args))
 }
 
-fn eval(args: &EvalArgs) -> anyhow::Result<()> {
-    if args.episodes == 0 {
+fn plan(args: &EvalArgs) -> anyhow::Result<Plan> {
+    let plan = if args.protocol {
+        let episodes = args.episodes.unwrap_or(PROTOCOL_EPISODES);
+        if episodes < PROTOCOL_EPISODES {
+            bail!("the evaluation protocol plays at least {PROTOCOL_EPISODES} episodes");
+        }
+        Plan {
+            epsilon: PROTOCOL_EPSILON,
+            episodes,
+            seed: args.seed.unwrap_or(PROTOCOL_SEED),
+            mode: Some(EnvMode::V5),
+        }
+    } else {
+        Plan {
+            epsilon: args.epsilon.unwrap_or(0.05),
+            episodes: args.episodes.unwrap_or(30),
+            seed: args.seed.unwrap_or(0),
+            mode: args.mode,
+        }
+    };
+    if plan.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
-    if !(0.0..=1.0).contains(&args.epsilon) {
-        bail!("--epsilon must be in [0, 1], got {}", args.epsilon);
+    if !(0.0..=1.0).contains(&plan.epsilon) {
+        bail!("--epsilon must be in [0, 1], got {}", plan.epsilon);
     }
+    Ok(plan)
+}
+
+fn eval(args: &EvalArgs) -> anyhow::Result<()> {
+    let plan = plan(args)?;
     if let Some(path) = &args.checkpoint {
-        return run_checkpoint(args, path);
+        return run_checkpoint(args, &plan, path);
     }
     if !args.random {
         bail!("eval needs --checkpoint PATH or --random");
@@ -72,17 +116,17 @@ fn eval(args: &EvalArgs) -> anyhow::Result<()> {
     if args.gif.is_some() {
         bail!("--gif records a checkpoint's play; use it with --checkpoint");
     }
-    let mode = args.mode.unwrap_or(EnvMode::V0);
+    let mode = plan.mode.unwrap_or(EnvMode::V0);
     let config = EnvConfig {
         rom: args.rom.clone(),
         ..EnvConfig::from_mode(mode)
     };
-    let mut env = SpaceInvaders::new(&config, args.seed).context("cannot start Space Invaders")?;
-    let mut agent = ChaCha8Rng::seed_from_u64(args.seed);
+    let mut env = SpaceInvaders::new(&config, plan.seed).context("cannot start Space Invaders")?;
+    let mut agent = ChaCha8Rng::seed_from_u64(plan.seed);
     agent.set_stream(1); // independent of the environment's stream 0
     let n = env.n_actions();
-    let mut scores = Vec::with_capacity(args.episodes as usize);
-    for episode in 0..args.episodes {
+    let mut scores = Vec::with_capacity(plan.episodes as usize);
+    for episode in 0..plan.episodes {
         if episode > 0 {
             env.reset();
         }
@@ -114,26 +158,38 @@ fn eval(args: &EvalArgs) -> anyhow::Result<()> {
             .expect("modes are named")
             .get_name(),
         s.n,
-        args.seed,
+        plan.seed,
     );
     Ok(())
 }
 
-/// Plays `args.episodes` episodes with a checkpoint's online network, ε-greedy.
-fn run_checkpoint(args: &EvalArgs, path: &Path) -> anyhow::Result<()> {
+/// Plays the planned episodes with the online network of a checkpoint or model file, ε-greedy.
+fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<()> {
     let file = if path.is_dir() {
-        path.join("checkpoint.safetensors")
+        path.join(checkpoint::CHECKPOINT_FILE)
     } else {
         path.to_path_buf()
     };
-    let ckpt = checkpoint::load(&file)?;
+    let model = checkpoint::load_model(&file)?;
     if let Some(p) = args.preset {
-        ckpt.expect_preset(p)
-            .with_context(|| format!("{} does not fit --preset", file.display()))?;
+        if model.config.preset != p {
+            bail!(
+                "{} was trained with preset `{}`, not `{}`",
+                file.display(),
+                model.config.preset.name(),
+                p.name()
+            );
+        }
     }
-    let config = ckpt.config;
+    if args.protocol && plan.seed == model.config.seed {
+        bail!(
+            "the evaluation protocol needs a seed other than the training seed ({}); pass another --seed",
+            plan.seed
+        );
+    }
+    let config = model.config;
     let mut env_config = config.env.clone();
-    if let Some(mode) = args.mode {
+    if let Some(mode) = plan.mode {
         env_config = EnvConfig {
             rom: env_config.rom,
             ..EnvConfig::from_mode(mode)
@@ -143,27 +199,27 @@ fn run_checkpoint(args: &EvalArgs, path: &Path) -> anyhow::Result<()> {
         env_config.rom = args.rom.clone();
     }
     let mut env =
-        SpaceInvaders::new(&env_config, args.seed).context("cannot start Space Invaders")?;
-    if env.n_actions() != ckpt.learner.n_actions() {
+        SpaceInvaders::new(&env_config, plan.seed).context("cannot start Space Invaders")?;
+    if env.n_actions() != model.n_actions {
         bail!(
             "the checkpoint has {} actions but the game has {}",
-            ckpt.learner.n_actions(),
+            model.n_actions,
             env.n_actions()
         );
     }
-    let mut net = ckpt.learner.online;
+    let mut net = model.online;
     let mut observer = Observer::new(config.pipeline);
     let table = config.normalization.table();
     let [h, w, c] = config.input_shape();
     let mut input = Tensor::zeros(&[1, h, w, c]);
-    let mut rng = ChaCha8Rng::seed_from_u64(args.seed);
+    let mut rng = ChaCha8Rng::seed_from_u64(plan.seed);
     rng.set_stream(1);
     let mut gif = match &args.gif {
         Some(p) => Some(GifRecorder::create(p)?),
         None => None,
     };
-    let mut scores = Vec::with_capacity(args.episodes as usize);
-    for episode in 0..args.episodes {
+    let mut scores = Vec::with_capacity(plan.episodes as usize);
+    for episode in 0..plan.episodes {
         let mut recorder = if episode == 0 { gif.as_mut() } else { None };
         let mut record_error = None;
         let (score, steps) = play_evaluation_episode(
@@ -172,7 +228,7 @@ fn run_checkpoint(args: &EvalArgs, path: &Path) -> anyhow::Result<()> {
             &mut observer,
             &table,
             &mut input,
-            args.epsilon,
+            plan.epsilon,
             &mut rng,
             |g| {
                 if let (Some(r), None) = (recorder.as_deref_mut(), &record_error) {
@@ -197,13 +253,16 @@ fn run_checkpoint(args: &EvalArgs, path: &Path) -> anyhow::Result<()> {
     }
     let s = Summary::of(&scores);
     println!(
-        "checkpoint {} (preset {}, {} episodes trained), epsilon {}, {} episodes, seed {}: {s}",
+        "checkpoint {} (preset {}, {} episodes, {} frames trained), mode {}{}, epsilon {}, {} episodes, seed {}: {s}",
         file.display(),
         config.preset.name(),
-        ckpt.counters.episodes,
-        args.epsilon,
+        model.counters.episodes,
+        model.counters.frames,
+        env_config.mode.to_possible_value().expect("modes are named").get_name(),
+        if args.protocol { " (the evaluation protocol)" } else { "" },
+        plan.epsilon,
         s.n,
-        args.seed,
+        plan.seed,
     );
     Ok(())
 }

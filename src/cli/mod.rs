@@ -6,6 +6,7 @@ use clap::{Parser, Subcommand};
 mod bench;
 mod eval;
 mod experiment;
+mod export;
 mod plot;
 mod show;
 mod train;
@@ -25,6 +26,8 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Play episodes and print score statistics (mean, std, min, max).
     Eval(eval::EvalArgs),
+    /// Write a run's trained network as a small weights-only model file, for `eval`.
+    Export(export::ExportArgs),
     /// Draw the reward curves of one or more runs on one figure.
     Plot(plot::PlotArgs),
     /// Time the train step, acting, the emulator and end-to-end training.
@@ -41,6 +44,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Train(args) => train::run(&args),
         Command::Eval(args) => eval::run(&args),
+        Command::Export(args) => export::run(&args),
         Command::Plot(args) => plot::run(&args),
         Command::Bench(args) => bench::run(&args),
         Command::ShowPreprocessing(args) => show::run(&args),

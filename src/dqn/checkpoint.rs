@@ -63,6 +63,13 @@
 //! from the uninterrupted run's. Counters, ε, random generators, the emulator and the networks
 //! are still restored exactly.
 //!
+//! # A model file (format `invaders-model-1`)
+//!
+//! What `invaders export` writes for sharing a trained player: the `online.*` tensors only (a few
+//! MB), with the metadata `format`, `config` and `counters` (with `adam_steps`). [`load_model`]
+//! reads it, or the online network of a checkpoint, for `eval`; it has no target network,
+//! optimizer state, random generators or game, so [`load`] refuses it for `--resume`.
+//!
 //! # Loading
 //!
 //! [`from_bytes`] checks everything before returning a network: the format tag, the config
@@ -88,6 +95,8 @@ use std::path::Path;
 pub const FORMAT: &str = "invaders-checkpoint-2";
 /// The format tag stored in every replay file.
 pub const REPLAY_FORMAT: &str = "invaders-replay-1";
+/// The format tag of a weights-only model file ([`model_to_bytes`]).
+pub const MODEL_FORMAT: &str = "invaders-model-1";
 /// The checkpoint's file name in a run directory.
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
 
@@ -345,17 +354,16 @@ fn is_replay_name(name: &str) -> bool {
         .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
 }
 
-/// Parses checkpoint bytes into a fresh learner; nothing is returned unless every check passes.
-pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
-    let (st, meta) = parse(bytes)?;
-    let format = meta_get(&meta, "format")?;
-    if format != FORMAT {
-        bail!("unknown checkpoint format `{format}` (expected `{FORMAT}`)");
-    }
-    let config: Config = toml::from_str(meta_get(&meta, "config")?).context("checkpoint config")?;
+/// The configuration, counters, Adam's step count and action count recorded in a checkpoint's or
+/// model file's metadata, checked.
+fn header(
+    st: &SafeTensors<'_>,
+    meta: &HashMap<String, String>,
+) -> anyhow::Result<(Config, Counters, u64, usize)> {
+    let config: Config = toml::from_str(meta_get(meta, "config")?).context("checkpoint config")?;
     config.validate().context("checkpoint config")?;
     let mut json: serde_json::Value =
-        serde_json::from_str(meta_get(&meta, "counters")?).context("checkpoint counters")?;
+        serde_json::from_str(meta_get(meta, "counters")?).context("checkpoint counters")?;
     let adam_steps = json
         .get("adam_steps")
         .and_then(|v| v.as_u64())
@@ -364,6 +372,36 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         o.remove("adam_steps");
     }
     let counters: Counters = serde_json::from_value(json).context("checkpoint counters")?;
+    // The action count is the last layer's bias length, less the value row of a dueling head.
+    let bias = st
+        .tensor("online.dense2.bias")
+        .map_err(|_| anyhow!("no tensor `online.dense2.bias`"))?
+        .shape()
+        .first()
+        .copied()
+        .unwrap_or(0);
+    let n_actions = bias.saturating_sub(config.dueling as usize);
+    if n_actions == 0 || n_actions > 18 {
+        bail!("checkpoint has {n_actions} actions");
+    }
+    Ok((config, counters, adam_steps, n_actions))
+}
+
+/// Parses checkpoint bytes into a fresh learner; nothing is returned unless every check passes.
+pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
+    let (st, meta) = parse(bytes)?;
+    let format = meta_get(&meta, "format")?;
+    if format == MODEL_FORMAT {
+        bail!(
+            "this is a weights-only model file (`invaders export`): it holds the online network \
+             for `eval`, but no target network, optimizer state or random generators, so a run \
+             cannot be resumed from it"
+        );
+    }
+    if format != FORMAT {
+        bail!("unknown checkpoint format `{format}` (expected `{FORMAT}`)");
+    }
+    let (config, counters, adam_steps, n_actions) = header(&st, &meta)?;
     let rngs: Rngs =
         serde_json::from_str(meta_get(&meta, "rngs")?).context("checkpoint random generators")?;
     let replay_file = match meta_get(&meta, "replay")? {
@@ -371,16 +409,6 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         name if is_replay_name(name) => Some(name.to_string()),
         name => bail!("checkpoint names a bad replay file `{name}`"),
     };
-    let n_actions = st
-        .tensor("online.dense2.bias")
-        .map_err(|_| anyhow!("no tensor `online.dense2.bias`"))?
-        .shape()
-        .first()
-        .copied()
-        .unwrap_or(0);
-    if n_actions == 0 || n_actions > 18 {
-        bail!("checkpoint has {n_actions} actions");
-    }
     // The initial weights are overwritten below; any generator will do.
     let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
     let mut learner = Learner::from_config(&config, n_actions, &mut rng);
@@ -462,6 +490,81 @@ pub fn load(path: &Path) -> anyhow::Result<Checkpoint> {
     let bytes = std::fs::read(path)
         .with_context(|| format!("cannot read checkpoint {}", path.display()))?;
     from_bytes(&bytes).with_context(|| format!("{} is not a valid checkpoint", path.display()))
+}
+
+/// A trained network for playing: from a checkpoint or a weights-only model file.
+pub struct Model {
+    /// The configuration it was trained with (input pipeline, normalisation, game).
+    pub config: Config,
+    /// The training progress it was saved at.
+    pub counters: Counters,
+    /// The online network.
+    pub online: Sequential<f32>,
+    /// The number of actions.
+    pub n_actions: usize,
+}
+
+/// Serialises the online network of a learner with its configuration and counters: a
+/// weights-only model file (format [`MODEL_FORMAT`]).
+pub fn model_to_bytes(
+    config: &Config,
+    counters: &Counters,
+    learner: &Learner,
+) -> anyhow::Result<Vec<u8>> {
+    let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
+    for p in learner.online.params() {
+        tensors.push((format!("online.{}", p.name), view(&p.value)?));
+    }
+    let mut counters_json = serde_json::to_value(counters)?;
+    counters_json["adam_steps"] = learner.adam.t.into();
+    let meta = HashMap::from([
+        ("format".to_string(), MODEL_FORMAT.to_string()),
+        ("config".to_string(), config.to_toml()),
+        ("counters".to_string(), counters_json.to_string()),
+    ]);
+    Ok(safetensors::serialize(tensors, &Some(meta))?)
+}
+
+/// Parses a model file, or takes the online network of a checkpoint, checking everything.
+pub fn model_from_bytes(bytes: &[u8]) -> anyhow::Result<Model> {
+    let (st, meta) = parse(bytes)?;
+    if meta_get(&meta, "format")? != MODEL_FORMAT {
+        let c = from_bytes(bytes)?;
+        let n_actions = c.learner.n_actions();
+        return Ok(Model {
+            config: c.config,
+            counters: c.counters,
+            online: c.learner.online,
+            n_actions,
+        });
+    }
+    let (config, counters, _, n_actions) = header(&st, &meta)?;
+    let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
+    let mut online = super::qnet(
+        config.input_shape(),
+        n_actions,
+        config.dueling,
+        &crate::layers::init::VarianceScaling::HE,
+        &mut rng,
+    );
+    load_net(&st, "online", &mut online)?;
+    let expected = online.params().count();
+    if st.len() != expected {
+        bail!("model file has {} tensors, expected {expected}", st.len());
+    }
+    Ok(Model {
+        config,
+        counters,
+        online,
+        n_actions,
+    })
+}
+
+/// Loads a network to play with: a model file or a checkpoint.
+pub fn load_model(path: &Path) -> anyhow::Result<Model> {
+    let bytes =
+        std::fs::read(path).with_context(|| format!("cannot read model {}", path.display()))?;
+    model_from_bytes(&bytes).with_context(|| format!("{} is not a valid model", path.display()))
 }
 
 /// The replay file name for a checkpoint at `counters`.
