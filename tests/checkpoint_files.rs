@@ -57,7 +57,24 @@ impl Owned {
         }
     }
 
+    /// The file, its checksum made anew for the damaged contents (so the loader's other checks
+    /// are what refuse it).
     fn bytes(&self) -> Vec<u8> {
+        let mut signed = Owned {
+            tensors: self.tensors.clone(),
+            meta: self.meta.clone(),
+        };
+        if signed.meta.contains_key("checksum") {
+            let sum = checkpoint::tensors_checksum(
+                self.tensors.iter().map(|t| (t.0.as_str(), t.3.as_slice())),
+            );
+            signed.meta.insert("checksum".into(), format!("{sum:08x}"));
+        }
+        signed.unsigned_bytes()
+    }
+
+    /// The file as it is, checksum and all.
+    fn unsigned_bytes(&self) -> Vec<u8> {
         let views: Vec<_> = self
             .tensors
             .iter()
@@ -223,6 +240,15 @@ fn every_kind_of_damage_is_refused_clearly() {
         "bad replay file `../../etc/passwd`",
     ));
     cases.push((
+        "a flipped bit in a weight",
+        {
+            let mut o = Owned::parse(&files().0);
+            o.get("online.conv2.bias").3[1] ^= 0x40;
+            o.unsigned_bytes()
+        },
+        "its contents are damaged",
+    ));
+    cases.push((
         "too many actions",
         damaged(&|o| {
             let t = o.get("online.dense2.bias");
@@ -304,7 +330,25 @@ fn damaged_replay_files_are_refused() {
             "capacity",
         ),
     ];
+    let (_, original) = files();
+    let mut flipped = original.clone();
+    let n = flipped.len();
+    flipped[n - 7] ^= 1;
+    let e = format!(
+        "{:#}",
+        checkpoint::replay_from_bytes(&flipped, &c)
+            .err()
+            .expect("refused")
+    );
+    assert!(e.contains("its contents are damaged"), "{e}");
     for (what, bytes, needle) in &cases {
+        // The checkpoint names the damaged file's checksum, so the other checks must refuse it.
+        let mut c = good();
+        if let Ok((_, h)) = SafeTensors::read_metadata(bytes) {
+            if let Some(sum) = h.metadata().as_ref().and_then(|m| m.get("checksum")) {
+                c.replay_checksum = u32::from_str_radix(sum, 16).ok();
+            }
+        }
         let e = match checkpoint::replay_from_bytes(bytes, &c) {
             Ok(_) => panic!("{what}: accepted"),
             Err(e) => format!("{e:#}"),

@@ -4,7 +4,7 @@
 //! `checkpoint_replay = false`, one `replay-E.safetensors` (E: the episodes finished) that the
 //! checkpoint names in its metadata.
 //!
-//! # `checkpoint.safetensors` (format `invaders-checkpoint-2`)
+//! # `checkpoint.safetensors` (format `invaders-checkpoint-3`)
 //!
 //! Tensors (little-endian; shapes as in the layers, so NumPy and PyTorch read them with
 //! `safetensors.numpy.load_file` / `safetensors.torch.load_file`):
@@ -23,13 +23,14 @@
 //! | `observer.stack` | U8 | `[C, 88, 80]`: the frame stack, oldest first |
 //! | `game.state` | U8 | `[n]`: the emulator's saved state (`SpaceInvaders::save_state`); absent for games that cannot be saved |
 //!
-//! Metadata (strings): `format` (`invaders-checkpoint-2`), `config` (the run's resolved TOML),
+//! Metadata (strings): `format` (`invaders-checkpoint-3`), `checksum` (below), `config` (the run's resolved TOML),
 //! `counters` (JSON: episodes, agent steps, emulator frames, train steps, Adam's step count, wall
 //! seconds), `rngs` (JSON: the agent's exploration and minibatch-sampling ChaCha8 generators as
-//! `{seed, stream, word_pos}`; ε is derived from the agent-step counter), and `replay` (the
-//! replay file's name in the same directory, or empty).
+//! `{seed, stream, word_pos}`; ε is derived from the agent-step counter), `replay` (the
+//! replay file's name in the same directory, or empty) and `replay_checksum` (that file's
+//! `checksum`, or empty).
 //!
-//! # `replay-E.safetensors` (format `invaders-replay-1`)
+//! # `replay-E.safetensors` (format `invaders-replay-2`)
 //!
 //! The replay memory's `len = min(written, capacity)` held entries in *slot order*: row `s` holds
 //! entry `g` with `g % capacity = s` (oldest first until the ring wraps), so the file is the
@@ -42,8 +43,17 @@
 //! | `replay.rewards` | F32 | `[len]` (after clipping, as stored) |
 //! | `replay.flags` | U8 | `[len]`: bit 0 done, bit 1 episode start, bit 2 acted on |
 //!
-//! Metadata: `format`, `written` (the entry counter), `capacity`, `frames_per_state`, and the
-//! `episodes` and `agent_steps` of the checkpoint it belongs to (checked on loading).
+//! Metadata: `format`, `checksum`, `written` (the entry counter), `capacity`, `frames_per_state`,
+//! and the `episodes` and `agent_steps` of the checkpoint it belongs to (checked on loading).
+//!
+//! # Checksums
+//!
+//! Every file's `checksum` is the CRC-32 of its tensors, each name followed by its data bytes, in
+//! name order ([`tensors_checksum`]), as 8 hex digits. The loaders recompute it, so a flipped byte
+//! anywhere in the data is refused, and a checkpoint accepts only the replay file whose checksum
+//! it names, so a replay file copied in from another run (even at the same counters) is refused.
+//! Files of the previous formats (`invaders-checkpoint-2`, `invaders-replay-1`), written before
+//! checksums, still load.
 //!
 //! # Crash safety
 //!
@@ -92,9 +102,13 @@ use std::io::Write;
 use std::path::Path;
 
 /// The format tag stored in every checkpoint.
-pub const FORMAT: &str = "invaders-checkpoint-2";
+pub const FORMAT: &str = "invaders-checkpoint-3";
+/// The checkpoint format before checksums, still read.
+pub const FORMAT_V2: &str = "invaders-checkpoint-2";
 /// The format tag stored in every replay file.
-pub const REPLAY_FORMAT: &str = "invaders-replay-1";
+pub const REPLAY_FORMAT: &str = "invaders-replay-2";
+/// The replay format before checksums, still read.
+pub const REPLAY_FORMAT_V1: &str = "invaders-replay-1";
 /// The format tag of a weights-only model file ([`model_to_bytes`]).
 pub const MODEL_FORMAT: &str = "invaders-model-1";
 /// The checkpoint's file name in a run directory.
@@ -150,6 +164,8 @@ pub struct Checkpoint {
     pub agent: AgentState,
     /// The name of the replay file saved with it (in the same directory), if any.
     pub replay_file: Option<String>,
+    /// That replay file's checksum (none in checkpoints written before checksums).
+    pub replay_checksum: Option<u32>,
 }
 
 impl Checkpoint {
@@ -232,14 +248,43 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     })
 }
 
-/// Serialises a checkpoint to safetensors bytes; `replay_file` names the replay file saved with
-/// it, if any.
+/// The CRC-32 of tensors: each name, then its data bytes, in name order.
+pub fn tensors_checksum<'a>(tensors: impl IntoIterator<Item = (&'a str, &'a [u8])>) -> u32 {
+    let mut sorted: Vec<(&str, &[u8])> = tensors.into_iter().collect();
+    sorted.sort_by_key(|t| t.0);
+    let mut h = crc32fast::Hasher::new();
+    for (name, data) in sorted {
+        h.update(name.as_bytes());
+        h.update(data);
+    }
+    h.finalize()
+}
+
+/// Checks a loaded file's `checksum` metadata against its tensors.
+fn verify_checksum(st: &SafeTensors<'_>, meta: &HashMap<String, String>) -> anyhow::Result<u32> {
+    let stored = parse_checksum(meta_get(meta, "checksum")?)?;
+    let tensors = st.tensors();
+    let actual = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
+    if actual != stored {
+        bail!(
+            "its contents are damaged: checksum {actual:08x}, but the file was written with {stored:08x}"
+        );
+    }
+    Ok(stored)
+}
+
+fn parse_checksum(text: &str) -> anyhow::Result<u32> {
+    u32::from_str_radix(text, 16).map_err(|_| anyhow!("bad checksum `{text}`"))
+}
+
+/// Serialises a checkpoint to safetensors bytes; `replay` names the replay file saved with it,
+/// and that file's checksum, if any.
 pub fn to_bytes(
     config: &Config,
     counters: &Counters,
     learner: &Learner,
     agent: &AgentState,
-    replay_file: Option<&str>,
+    replay: Option<(&str, u32)>,
 ) -> anyhow::Result<Vec<u8>> {
     let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
     for (prefix, net) in [("online", &learner.online), ("target", &learner.target)] {
@@ -274,14 +319,20 @@ pub fn to_bytes(
         explore: agent.explore_rng.clone(),
         sample: agent.sample_rng.clone(),
     };
+    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
     let meta = HashMap::from([
         ("format".to_string(), FORMAT.to_string()),
+        ("checksum".to_string(), format!("{checksum:08x}")),
         ("config".to_string(), config.to_toml()),
         ("counters".to_string(), counters_json.to_string()),
         ("rngs".to_string(), serde_json::to_string(&rngs)?),
         (
             "replay".to_string(),
-            replay_file.unwrap_or_default().to_string(),
+            replay.map(|r| r.0).unwrap_or_default().to_string(),
+        ),
+        (
+            "replay_checksum".to_string(),
+            replay.map(|r| format!("{:08x}", r.1)).unwrap_or_default(),
         ),
     ]);
     Ok(safetensors::serialize(tensors, &Some(meta))?)
@@ -398,7 +449,9 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
              cannot be resumed from it"
         );
     }
-    if format != FORMAT {
+    if format == FORMAT {
+        verify_checksum(&st, &meta)?;
+    } else if format != FORMAT_V2 {
         bail!("unknown checkpoint format `{format}` (expected `{FORMAT}`)");
     }
     let (config, counters, adam_steps, n_actions) = header(&st, &meta)?;
@@ -408,6 +461,10 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         "" => None,
         name if is_replay_name(name) => Some(name.to_string()),
         name => bail!("checkpoint names a bad replay file `{name}`"),
+    };
+    let replay_checksum = match (format == FORMAT, &replay_file) {
+        (true, Some(_)) => Some(parse_checksum(meta_get(&meta, "replay_checksum")?)?),
+        _ => None,
     };
     // The initial weights are overwritten below; any generator will do.
     let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
@@ -482,6 +539,7 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
             game,
         },
         replay_file,
+        replay_checksum,
     })
 }
 
@@ -517,8 +575,10 @@ pub fn model_to_bytes(
     }
     let mut counters_json = serde_json::to_value(counters)?;
     counters_json["adam_steps"] = learner.adam.t.into();
+    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
     let meta = HashMap::from([
         ("format".to_string(), MODEL_FORMAT.to_string()),
+        ("checksum".to_string(), format!("{checksum:08x}")),
         ("config".to_string(), config.to_toml()),
         ("counters".to_string(), counters_json.to_string()),
     ]);
@@ -538,6 +598,7 @@ pub fn model_from_bytes(bytes: &[u8]) -> anyhow::Result<Model> {
             n_actions,
         });
     }
+    verify_checksum(&st, &meta)?;
     let (config, counters, _, n_actions) = header(&st, &meta)?;
     let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
     let mut online = super::qnet(
@@ -564,7 +625,8 @@ pub fn model_from_bytes(bytes: &[u8]) -> anyhow::Result<Model> {
 pub fn load_model(path: &Path) -> anyhow::Result<Model> {
     let bytes =
         std::fs::read(path).with_context(|| format!("cannot read model {}", path.display()))?;
-    model_from_bytes(&bytes).with_context(|| format!("{} is not a valid model", path.display()))
+    model_from_bytes(&bytes)
+        .with_context(|| format!("{} is not a valid checkpoint or model", path.display()))
 }
 
 /// The replay file name for a checkpoint at `counters`.
@@ -572,9 +634,9 @@ pub fn replay_file_name(counters: &Counters) -> String {
     format!("replay-{}.safetensors", counters.episodes)
 }
 
-/// Writes `replay` atomically to `path`, tagged with the checkpoint's counters. The frames are
-/// streamed from the memory itself (no copy).
-pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow::Result<()> {
+/// Writes `replay` atomically to `path`, tagged with the checkpoint's counters, and returns its
+/// checksum. The frames are streamed from the memory itself (no copy).
+pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow::Result<u32> {
     let (frames, actions, rewards, flags) = replay.parts();
     let len = actions.len();
     let tensors = vec![
@@ -595,8 +657,10 @@ pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow:
             TensorView::new(Dtype::U8, vec![len], &flags)?,
         ),
     ];
+    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (*n, v.data())));
     let meta = HashMap::from([
         ("format".to_string(), REPLAY_FORMAT.to_string()),
+        ("checksum".to_string(), format!("{checksum:08x}")),
         ("written".to_string(), replay.written().to_string()),
         ("capacity".to_string(), replay.capacity().to_string()),
         (
@@ -609,15 +673,28 @@ pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow:
     write_atomic_with(path, |tmp| {
         safetensors::serialize_to_file(tensors, &Some(meta), tmp)?;
         Ok(())
-    })
+    })?;
+    Ok(checksum)
 }
 
 /// Parses a replay file saved with the checkpoint `ckpt`, checking that it belongs to it.
 pub fn replay_from_bytes(bytes: &[u8], ckpt: &Checkpoint) -> anyhow::Result<Replay> {
     let (st, meta) = parse(bytes)?;
     let format = meta_get(&meta, "format")?;
-    if format != REPLAY_FORMAT {
-        bail!("unknown replay format `{format}` (expected `{REPLAY_FORMAT}`)");
+    match (format, ckpt.replay_checksum) {
+        (REPLAY_FORMAT, Some(named)) => {
+            let actual = verify_checksum(&st, &meta)?;
+            if actual != named {
+                bail!(
+                    "it is not the replay memory saved with this checkpoint (checksum {actual:08x}, the checkpoint names {named:08x}): was it copied from another run?"
+                );
+            }
+        }
+        (REPLAY_FORMAT_V1, None) => {} // both written before checksums
+        (REPLAY_FORMAT | REPLAY_FORMAT_V1, _) => {
+            bail!("it is not the replay memory saved with this checkpoint (their formats differ)")
+        }
+        _ => bail!("unknown replay format `{format}` (expected `{REPLAY_FORMAT}`)"),
     }
     let num = |k: &str| -> anyhow::Result<u64> {
         meta_get(&meta, k)?
@@ -681,15 +758,19 @@ pub fn save_run<G: Game>(dir: &Path, agent: &Agent<G>) -> anyhow::Result<()> {
         .config
         .checkpoint_replay
         .then(|| replay_file_name(&agent.counters));
-    if let Some(name) = &replay_name {
-        save_replay(&dir.join(name), &agent.replay, &agent.counters)?;
-    }
+    let replay = match &replay_name {
+        Some(name) => Some((
+            name.as_str(),
+            save_replay(&dir.join(name), &agent.replay, &agent.counters)?,
+        )),
+        None => None,
+    };
     let bytes = to_bytes(
         &agent.config,
         &agent.counters,
         &agent.learner,
         &agent.state(),
-        replay_name.as_deref(),
+        replay,
     )?;
     if let Err(e) = write_atomic(&dir.join(CHECKPOINT_FILE), &bytes) {
         if let Some(name) = &replay_name {
