@@ -7,6 +7,7 @@ use clap::Parser;
 fn main() -> std::process::ExitCode {
     match cli::run(cli::Cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) if e.is::<cli::Interrupted>() => std::process::ExitCode::from(130),
         Err(e) => {
             // `{:#}` prints the error with its causes on one line, and no backtrace.
             eprintln!("error: {e:#}");

@@ -27,7 +27,9 @@ pub fn moving_average(ys: &[f64], window: usize) -> Vec<f64> {
     out
 }
 
-/// Reads `(episode, reward)` from a run's `metrics.csv`.
+/// Reads `(episode, reward)` from a run's `metrics.csv`. Rows whose episode or reward is not a
+/// finite number (NaN, infinity) are skipped, with a warning naming their lines: a plot of them
+/// would have no scale.
 pub fn read_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
@@ -43,6 +45,7 @@ pub fn read_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
     };
     let (ie, ir) = (col("episode")?, col("reward")?);
     let mut points = Vec::new();
+    let mut skipped = Vec::new();
     for (n, line) in lines.enumerate() {
         let f: Vec<&str> = line.split(',').collect();
         let parse = |i: usize| -> anyhow::Result<f64> {
@@ -50,7 +53,20 @@ pub fn read_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
                 .and_then(|v| v.parse().ok())
                 .ok_or_else(|| anyhow!("{}: line {} is malformed", path.display(), n + 2))
         };
-        points.push((parse(ie)?, parse(ir)?));
+        let (x, y) = (parse(ie)?, parse(ir)?);
+        if x.is_finite() && y.is_finite() {
+            points.push((x, y));
+        } else {
+            skipped.push((n + 2).to_string());
+        }
+    }
+    if !skipped.is_empty() {
+        eprintln!(
+            "warning: {}: skipped {} row(s) with a non-finite episode or reward (line {})",
+            path.display(),
+            skipped.len(),
+            skipped.join(", ")
+        );
     }
     Ok(points)
 }
@@ -106,6 +122,9 @@ fn figure(
     draw: impl FnOnce(&mut Chart<'_, '_>) -> DrawResult,
 ) -> anyhow::Result<()> {
     let e = |err: DrawingAreaErrorKind<_>| anyhow!("plot: {err}");
+    if !(max.0.is_finite() && max.1.is_finite()) {
+        anyhow::bail!("plot: the data are not finite numbers");
+    }
     let root = BitMapBackend::new(out, (1000, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(e)?;
     let mut chart = ChartBuilder::on(&root)

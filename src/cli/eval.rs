@@ -38,9 +38,13 @@ pub struct EvalArgs {
     /// Exploration rate while evaluating a checkpoint [default: 0.05].
     #[arg(long)]
     epsilon: Option<f32>,
-    /// Record the first episode as an animated GIF at the emulator's full 210x160 colour.
+    /// Record the first episode as an animated GIF at the emulator's full 210x160 colour. An
+    /// existing file is refused unless --force; the checkpoint itself, never.
     #[arg(long, value_name = "FILE")]
     gif: Option<PathBuf>,
+    /// Replace an existing --gif file.
+    #[arg(long, requires = "gif")]
+    force: bool,
     /// Worker threads for the kernels (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -170,6 +174,9 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     } else {
         path.to_path_buf()
     };
+    if let Some(gif) = &args.gif {
+        super::guard::check_output(gif, args.force, &[&file, path], "--gif")?;
+    }
     let model = checkpoint::load_model(&file)?;
     if let Some(p) = args.preset {
         if model.config.preset != p {
@@ -267,11 +274,20 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     Ok(())
 }
 
-/// Writes an animated GIF frame by frame into a temporary file, renamed into place at the end.
+/// Writes an animated GIF frame by frame into a temporary file, renamed into place at the end
+/// (a recorder dropped before [`GifRecorder::finish`], on an error, removes its temporary file).
 struct GifRecorder {
-    encoder: gif::Encoder<std::io::BufWriter<std::fs::File>>,
+    encoder: Option<gif::Encoder<std::io::BufWriter<std::fs::File>>>,
     tmp: PathBuf,
     path: PathBuf,
+}
+
+impl Drop for GifRecorder {
+    fn drop(&mut self) {
+        if self.encoder.take().is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
 }
 
 impl GifRecorder {
@@ -285,12 +301,14 @@ impl GifRecorder {
             SCREEN_H as u16,
             &[],
         )?;
-        encoder.set_repeat(gif::Repeat::Infinite)?;
-        Ok(GifRecorder {
-            encoder,
+        let mut recorder = GifRecorder {
+            encoder: None,
             tmp,
             path: path.to_path_buf(),
-        })
+        };
+        encoder.set_repeat(gif::Repeat::Infinite)?;
+        recorder.encoder = Some(encoder);
+        Ok(recorder)
     }
 
     /// Appends one 210x160 RGB screen, shown for 1/20 s (an agent step is 2 to 4 frames at 60 Hz).
@@ -298,16 +316,26 @@ impl GifRecorder {
         let mut frame = gif::Frame::from_rgb_speed(SCREEN_W as u16, SCREEN_H as u16, rgb, 10);
         frame.delay = 5;
         self.encoder
+            .as_mut()
+            .expect("recording")
             .write_frame(&frame)
             .context("cannot write the GIF")
     }
 
-    fn finish(self) -> anyhow::Result<()> {
-        let GifRecorder { encoder, tmp, path } = self;
-        let mut w = encoder.into_inner().context("cannot finish the GIF")?;
-        std::io::Write::flush(&mut w)?;
-        drop(w);
-        std::fs::rename(&tmp, &path).with_context(|| format!("cannot write {}", path.display()))
+    fn finish(mut self) -> anyhow::Result<()> {
+        let encoder = self.encoder.take().expect("recording");
+        let result = encoder
+            .into_inner()
+            .context("cannot finish the GIF")
+            .and_then(|mut w| Ok(std::io::Write::flush(&mut w)?))
+            .and_then(|()| {
+                std::fs::rename(&self.tmp, &self.path)
+                    .with_context(|| format!("cannot write {}", self.path.display()))
+            });
+        if result.is_err() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+        result
     }
 }
 

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use clap::Args;
 
 use invaders::dqn::checkpoint;
@@ -24,12 +24,7 @@ pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
     } else {
         args.checkpoint.clone()
     };
-    if args.out.exists() {
-        bail!(
-            "{} exists: choose a new file name (nothing is overwritten)",
-            args.out.display()
-        );
-    }
+    super::guard::check_output(&args.out, false, &[&file], "--out")?;
     let ckpt = checkpoint::load(&file)?;
     let bytes = checkpoint::model_to_bytes(&ckpt.config, &ckpt.counters, &ckpt.learner)?;
     checkpoint::write_atomic(&args.out, &bytes)

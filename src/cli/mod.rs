@@ -7,9 +7,12 @@ mod bench;
 mod eval;
 mod experiment;
 mod export;
+mod guard;
 mod plot;
 mod show;
 mod train;
+
+pub use train::Interrupted;
 
 /// A from-scratch DQN that learns Atari Space Invaders.
 #[derive(Debug, Parser)]

@@ -12,9 +12,12 @@ pub struct PlotArgs {
     /// Run directories (each with a metrics.csv).
     #[arg(required = true, value_name = "RUN_DIR")]
     runs: Vec<PathBuf>,
-    /// The PNG to write.
+    /// The PNG to write (an existing file is refused unless --force).
     #[arg(long, value_name = "FILE.png")]
     out: PathBuf,
+    /// Replace an existing --out file.
+    #[arg(long)]
+    force: bool,
     /// Episodes in the moving average.
     #[arg(long, default_value_t = 100)]
     window: usize,
@@ -27,6 +30,9 @@ pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     if args.window == 0 {
         bail!("--window must be at least 1");
     }
+    let inputs: Vec<PathBuf> = args.runs.iter().map(|d| d.join("metrics.csv")).collect();
+    let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
+    super::guard::check_output(&args.out, args.force, &inputs, "--out")?;
     let mut curves = Vec::new();
     for dir in &args.runs {
         let points = read_metrics(&dir.join("metrics.csv"))?;

@@ -18,9 +18,12 @@ use invaders::env::{
 
 #[derive(Debug, Args)]
 pub struct ShowArgs {
-    /// The PNG to write.
+    /// The PNG to write (an existing file is refused unless --force).
     #[arg(long, value_name = "FILE.png")]
     out: PathBuf,
+    /// Replace an existing --out file.
+    #[arg(long)]
+    force: bool,
     /// Agent steps of random play before the picture is taken.
     #[arg(long, default_value_t = 150)]
     steps: u32,
@@ -37,6 +40,7 @@ const PIPELINES: [Pipeline; 4] = [
 ];
 
 pub fn run(args: &ShowArgs) -> anyhow::Result<()> {
+    super::guard::check_output(&args.out, args.force, &[], "--out")?;
     let mut env = SpaceInvaders::new(&EnvConfig::from_mode(EnvMode::V0), args.seed)
         .context("cannot start Space Invaders")?;
     let mut observers: Vec<Observer> = PIPELINES.iter().map(|&p| Observer::new(p)).collect();

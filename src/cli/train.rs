@@ -7,10 +7,15 @@
 //!   checkpoint.safetensors   the latest checkpoint (replaced atomically)
 //!   replay-E.safetensors     the replay memory saved with it (unless checkpoint_replay = false)
 //!   rewards.png              reward per episode with a 100-episode moving average
+//!   .lock                    held by the process training in it (one at a time)
 //! ```
+//!
+//! Ctrl-C or SIGTERM lets the current episode finish, writes a checkpoint and exits with 130; a
+//! second one stops at once (the last checkpoint is kept).
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Instant;
 
 use anyhow::{bail, Context};
@@ -18,6 +23,8 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use invaders::dqn::checkpoint::{self, write_atomic};
+
+use super::guard;
 use invaders::dqn::{Agent, Config, EpisodeRow, Preset, NO_EPISODE_LIMIT};
 use invaders::env::SpaceInvaders;
 use invaders::plot::{plot_rewards, Curve};
@@ -47,7 +54,9 @@ pub struct TrainArgs {
     #[arg(long, value_name = "DIR", conflicts_with = "resume")]
     out: Option<PathBuf>,
     /// Continue the run in DIR from its checkpoint (its configuration is kept; --episodes or
-    /// --frames may extend the budget).
+    /// --frames may extend the budget, and config.toml is rewritten to say so). The configuration
+    /// comes from the checkpoint: edits to config.toml have no effect. A run stopped before its
+    /// first checkpoint starts again from its config.toml.
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
     /// Print the resident memory (VmRSS) every N episodes, to check it stays flat.
@@ -62,7 +71,6 @@ fn rss_kib() -> Option<u64> {
     line.split_whitespace().nth(1)?.parse().ok()
 }
 
-/// Sets the size of rayon's global pool (every kernel runs on it).
 /// Runs a command's body on a rayon pool of `threads` workers (default: one per core).
 ///
 /// The body runs *on* a worker, not beside the pool: a parallel loop called from outside would
@@ -99,12 +107,50 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     in_pool(args.threads, || train(args))
 }
 
+/// The files a run writes into its directory: a directory holding nothing else, and no
+/// checkpoint, can be reused by a new run.
+const RUN_FILES: [&str; 4] = [
+    "config.toml",
+    "metrics.csv",
+    "rewards.png",
+    guard::LOCK_FILE,
+];
+
 fn train(args: &TrainArgs) -> anyhow::Result<()> {
+    if args.frames == Some(0) {
+        bail!("--frames must be at least 1 (without a frame budget, give --episodes)");
+    }
+    // The lock is taken before anything in the directory is read or written.
+    let mut lock = None;
     let (mut config, dir, resumed) = match &args.resume {
+        Some(dir) if !dir.join(checkpoint::CHECKPOINT_FILE).exists() => {
+            if args.config.is_some() || args.seed.is_some() {
+                bail!("--resume keeps the run's configuration: drop --config and --seed");
+            }
+            let saved = dir.join("config.toml");
+            if !saved.is_file() {
+                bail!(
+                    "{} holds no checkpoint and no config.toml: there is no run to resume",
+                    dir.display()
+                );
+            }
+            lock = Some(guard::RunLock::acquire(dir)?);
+            let text = std::fs::read_to_string(&saved)
+                .with_context(|| format!("cannot read {}", saved.display()))?;
+            let config = Config::resolve(args.preset, Some(&text))
+                .with_context(|| format!("{}", saved.display()))?;
+            eprintln!(
+                "{} was stopped before its first checkpoint: starting it again from episode 1 with its config.toml",
+                dir.display()
+            );
+            clear_run_files(dir)?;
+            (config, dir.clone(), None)
+        }
         Some(dir) => {
             if args.config.is_some() || args.seed.is_some() {
                 bail!("--resume keeps the run's configuration: drop --config and --seed");
             }
+            lock = Some(guard::RunLock::acquire(dir)?);
             let (ckpt, replay) = checkpoint::load_run(dir)?;
             if let Some(p) = args.preset {
                 ckpt.expect_preset(p)
@@ -137,12 +183,29 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         config.episodes = NO_EPISODE_LIMIT;
     }
     config.validate()?;
-    if resumed.is_none() {
-        prepare_new_dir(&dir)?;
-        write_atomic(&dir.join("config.toml"), config.to_toml().as_bytes())?;
+    if let Some((ckpt, _)) = &resumed {
+        let c = &ckpt.counters;
+        if c.episodes >= config.episodes || (config.max_frames > 0 && c.frames >= config.max_frames)
+        {
+            bail!(
+                "{} has done {} episodes ({} frames), which meets its budget ({}): give a larger --episodes or --frames to continue it",
+                dir.display(),
+                c.episodes,
+                c.frames,
+                budget(&config)
+            );
+        }
+    } else if lock.is_none() {
+        lock = Some(prepare_new_dir(&dir)?);
     }
+    // config.toml always says what runs, the budget included.
+    write_atomic(&dir.join("config.toml"), config.to_toml().as_bytes())?;
+    let _lock = lock;
     let env =
         SpaceInvaders::new(&config.env, config.seed).context("cannot start Space Invaders")?;
+    if resumed.is_none() {
+        check_memory(&config)?;
+    }
     let mut agent = match resumed {
         Some((mut ckpt, replay)) => {
             // A longer budget given on the command line is part of the resumed config.
@@ -155,39 +218,172 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     train_loop(&mut agent, &dir, args.log_rss)
 }
 
-fn prepare_new_dir(dir: &Path) -> anyhow::Result<()> {
-    if dir.exists() {
-        let mut entries =
-            std::fs::read_dir(dir).with_context(|| format!("cannot read {}", dir.display()))?;
-        if entries.next().is_some() {
+/// Refuses a replay memory larger than the memory this machine has available (it would abort the
+/// program when the allocation fails, or later when its pages are touched), saying how much it needs.
+fn check_memory(config: &Config) -> anyhow::Result<()> {
+    const NETWORKS: u64 = 512 << 20; // networks, optimizer state and batch buffers, generously
+    let need = config.replay_bytes() + NETWORKS;
+    let available = std::fs::read_to_string("/proc/meminfo").ok().and_then(|t| {
+        t.lines()
+            .find(|l| l.starts_with("MemAvailable:"))?
+            .split_whitespace()
+            .nth(1)?
+            .parse::<u64>()
+            .ok()
+            .map(|kib| kib * 1024)
+    });
+    if let Some(have) = available {
+        if need > have {
+            let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
             bail!(
-                "run directory {} is not empty; choose another --out, or continue it with --resume {}",
-                dir.display(),
-                dir.display()
+                "replay_capacity = {} needs about {:.1} GiB of memory, but this machine has {:.1} GiB available: lower replay_capacity (each transition takes {} bytes)",
+                config.replay_capacity,
+                gib(need),
+                gib(have),
+                invaders::env::FRAME_LEN + 8
             );
         }
     }
+    Ok(())
+}
+
+/// The budget as words.
+fn budget(config: &Config) -> String {
+    if config.max_frames > 0 {
+        format!("{} frames", config.max_frames)
+    } else {
+        format!("{} episodes", config.episodes)
+    }
+}
+
+/// Makes `dir` ready for a new run and locks it: it is created, or it is empty, or it holds only
+/// what a run that never reached its first checkpoint wrote (then that is cleared).
+fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
+    if dir.exists() && !dir.is_dir() {
+        bail!("--out {} is a file, not a directory", dir.display());
+    }
+    let names: Vec<String> = match std::fs::read_dir(dir) {
+        Ok(entries) => entries
+            .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("cannot read {}", dir.display()))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", dir.display())),
+    };
+    if names.iter().any(|n| n == checkpoint::CHECKPOINT_FILE) {
+        bail!(
+            "run directory {} is not empty: it holds a run; choose another --out, or continue it with --resume {}",
+            dir.display(),
+            dir.display()
+        );
+    }
+    if let Some(other) = names.iter().find(|n| !RUN_FILES.contains(&n.as_str())) {
+        bail!(
+            "run directory {} is not empty (it holds `{other}`); choose another --out",
+            dir.display()
+        );
+    }
     std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create run directory {}", dir.display()))
+        .with_context(|| format!("cannot create run directory {}", dir.display()))?;
+    let lock = guard::RunLock::acquire(dir)?;
+    if names.iter().any(|n| n != guard::LOCK_FILE) {
+        eprintln!(
+            "{} holds a run stopped before its first checkpoint: starting anew in it",
+            dir.display()
+        );
+        clear_run_files(dir)?;
+    }
+    Ok(lock)
+}
+
+/// Removes what a run that never reached a checkpoint left (not the lock file: it may be held).
+fn clear_run_files(dir: &Path) -> anyhow::Result<()> {
+    for name in RUN_FILES.iter().filter(|n| **n != guard::LOCK_FILE) {
+        let path = dir.join(name);
+        if path.exists() {
+            std::fs::remove_file(&path)
+                .with_context(|| format!("cannot remove {}", path.display()))?;
+        }
+    }
+    Ok(())
 }
 
 /// Keeps the first `episodes` data rows of `metrics.csv` (rows written after the checkpoint being
-/// resumed are replayed by the resumed run) and returns them as `(episode, reward)`.
+/// resumed are replayed by the resumed run, and the message says so) and returns them as
+/// `(episode, reward)`. A malformed or misnumbered row among those kept is refused, naming it; a
+/// missing file is said to be missing and started anew.
 fn reopen_metrics(path: &Path, episodes: u64) -> anyhow::Result<(std::fs::File, Vec<(f64, f64)>)> {
     let mut kept = String::from(EpisodeRow::HEADER);
     kept.push('\n');
     let mut points = Vec::new();
-    if let Ok(text) = std::fs::read_to_string(path) {
-        for line in text.lines().skip(1).take(episodes as usize) {
-            let mut f = line.split(',');
-            let ep = f.next().and_then(|v| v.parse().ok());
-            let reward = f.nth(2).and_then(|v| v.parse().ok());
-            if let (Some(ep), Some(r)) = (ep, reward) {
-                points.push((ep, r));
-                kept.push_str(line);
-                kept.push('\n');
+    match std::fs::read_to_string(path) {
+        Ok(text) => {
+            let mut lines = text.lines();
+            if lines.next() != Some(EpisodeRow::HEADER) {
+                bail!(
+                    "{}: line 1 is not the header `{}`; restore the file (or remove it to resume without the curve so far)",
+                    path.display(),
+                    EpisodeRow::HEADER
+                );
+            }
+            let (mut next, mut last_kept, mut dropped) = (None::<u64>, 0u64, 0u64);
+            for (i, line) in lines.enumerate() {
+                let mut f = line.split(',');
+                let ep = f.next().and_then(|v| v.parse::<u64>().ok());
+                let reward = f.nth(2).and_then(|v| v.parse::<f64>().ok());
+                let (Some(ep), Some(r)) = (ep, reward.filter(|r| r.is_finite())) else {
+                    bail!(
+                        "{}: line {} is malformed (`{line}`); restore the file (or remove it to resume without the curve so far)",
+                        path.display(),
+                        i + 2
+                    );
+                };
+                if next.is_some_and(|n| n != ep) || ep == 0 {
+                    bail!(
+                        "{}: line {} is episode {ep}'s row where episode {} was expected; restore the file (or remove it to resume without the curve so far)",
+                        path.display(),
+                        i + 2,
+                        next.unwrap_or(1)
+                    );
+                }
+                next = Some(ep + 1);
+                if ep <= episodes {
+                    points.push((ep as f64, r));
+                    kept.push_str(line);
+                    kept.push('\n');
+                    last_kept = ep;
+                } else {
+                    dropped += 1;
+                }
+            }
+            if last_kept != episodes {
+                bail!(
+                    "{} ends at episode {last_kept} but the checkpoint is at episode {episodes}; restore the file (or remove it to resume without the curve so far)",
+                    path.display()
+                );
+            }
+            if let Some(&(first, _)) = points.first().filter(|p| p.0 > 1.0) {
+                eprintln!(
+                    "note: {} starts at episode {first}: the rows before it were lost earlier",
+                    path.display()
+                );
+            }
+            if dropped > 0 {
+                eprintln!(
+                    "metrics.csv: dropping the {dropped} row(s) after episode {episodes}, the checkpoint's: those episodes are played again"
+                );
             }
         }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            if episodes > 0 {
+                eprintln!(
+                    "warning: {} is missing: the rows of episodes 1 to {episodes} are lost; it starts again at episode {}",
+                    path.display(),
+                    episodes + 1
+                );
+            }
+        }
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
     }
     write_atomic(path, kept.as_bytes())?;
     let file = std::fs::OpenOptions::new()
@@ -197,11 +393,46 @@ fn reopen_metrics(path: &Path, episodes: u64) -> anyhow::Result<(std::fs::File, 
     Ok((file, points))
 }
 
+/// Ctrl-C and SIGTERM received so far.
+static SIGNALS: AtomicU32 = AtomicU32::new(0);
+
+/// The error a run stopped by Ctrl-C or SIGTERM returns, after its checkpoint is written; the
+/// program then exits with 130.
+#[derive(Debug)]
+pub struct Interrupted;
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "interrupted")
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// The first Ctrl-C or SIGTERM asks the run to stop after the current episode; the second stops
+/// the program at once.
+fn catch_signals() {
+    let set = ctrlc::set_handler(|| {
+        if SIGNALS.fetch_add(1, Ordering::SeqCst) == 0 {
+            eprintln!(
+                "\nstopping after this episode, with a checkpoint (Ctrl-C again to stop at once)"
+            );
+        } else {
+            eprintln!("\nstopped at once: the last checkpoint is kept");
+            std::process::exit(130);
+        }
+    });
+    if let Err(e) = set {
+        eprintln!("warning: Ctrl-C will stop training at once ({e})");
+    }
+}
+
 fn train_loop(
     agent: &mut Agent<SpaceInvaders>,
     dir: &Path,
     log_rss: Option<u64>,
 ) -> anyhow::Result<()> {
+    catch_signals();
     let config = agent.config.clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
     let mut saved_episode = agent.counters.episodes;
@@ -276,7 +507,8 @@ fn train_loop(
         } else {
             eprintln!("{msg}");
         }
-        let finished = done(agent);
+        let interrupted = SIGNALS.load(Ordering::SeqCst) > 0;
+        let finished = done(agent) || interrupted;
         if finished || row.episode.is_multiple_of(config.checkpoint_every) {
             checkpoint::save_run(dir, agent).with_context(|| {
                 format!("cannot save the checkpoint of episode {}", row.episode)
@@ -296,6 +528,15 @@ fn train_loop(
         }
         if finished || row.episode.is_multiple_of(config.plot_every) {
             write_plot(dir, &config, &points);
+        }
+        if interrupted {
+            bar.finish();
+            eprintln!(
+                "stopped at episode {} with a checkpoint; continue with --resume {}",
+                row.episode,
+                dir.display()
+            );
+            return Err(Interrupted.into());
         }
     }
     bar.finish();

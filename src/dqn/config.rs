@@ -52,6 +52,11 @@ pub const ADAM_EPSILON: f64 = 1e-8;
 /// The `strong` preset's budget in emulator frames.
 pub const STRONG_FRAMES: u64 = 4_000_000;
 
+/// The bound of every knob counted in agent steps or episodes (`train_every`, `learning_starts`,
+/// `target_update`, `epsilon_decay_steps`, `checkpoint_every`, `plot_every`): ten billion, beyond
+/// any run this program could finish.
+pub const MAX_STEPS_KNOB: u64 = 10_000_000_000;
+
 /// The longest return a configuration may ask for (`n_step`).
 pub const MAX_N_STEP: u32 = 100;
 
@@ -240,21 +245,71 @@ impl Config {
         };
         let p = preset.or(file_preset).unwrap_or_default();
         let mut base = toml::Table::try_from(Config::preset(p)).expect("a config serialises");
-        merge(&mut base, file);
+        // Choosing a game mode sets that mode's knobs; the file's own knobs then override them.
+        if let Some(mode) = file
+            .get("env")
+            .and_then(|e| e.as_table())
+            .and_then(|e| e.get("mode"))
+        {
+            let mode = EnvMode::deserialize(mode.clone())
+                .map_err(|e| anyhow::anyhow!("config key `env.mode`: {e}"))?;
+            base.insert(
+                "env".into(),
+                toml::Value::try_from(EnvConfig::from_mode(mode))
+                    .expect("an env config serialises"),
+            );
+        }
+        merge(&mut base, file.clone());
         base.insert("preset".into(), toml::Value::String(p.name().into()));
         // Deserialising from text (not from the table) makes errors quote the offending line.
         let merged = toml::to_string(&base).expect("a table serialises");
-        let config: Config =
-            toml::from_str(&merged).map_err(|e| anyhow::anyhow!("invalid config: {e}"))?;
+        let config: Config = match toml::from_str(&merged) {
+            Ok(c) => c,
+            // The merged document's line numbers mean nothing to the user: name their key.
+            Err(e) => bail!(
+                "{}",
+                culprit(&file, toml_text.unwrap_or(""), p)
+                    .unwrap_or_else(|| e.message().to_string())
+            ),
+        };
         config.validate()?;
         Ok(config)
     }
 
-    /// Checks every value's range.
+    /// Checks every value's range: each numeric knob has a bound a real run could use, so an
+    /// absurd value is a clear error, not an allocation failure, a hang or a value `config.toml`
+    /// cannot hold (TOML integers are i64).
     pub fn validate(&self) -> anyhow::Result<()> {
         let c = self;
         if c.episodes == 0 {
             bail!("episodes must be at least 1");
+        }
+        for (name, v) in [
+            ("episodes", c.episodes),
+            ("max_frames", c.max_frames),
+            ("seed", c.seed),
+        ] {
+            if v > NO_EPISODE_LIMIT {
+                bail!("{name} must be at most {NO_EPISODE_LIMIT} (2^63 - 1), got {v}");
+            }
+        }
+        for (name, v) in [
+            ("train_every", c.train_every),
+            ("learning_starts", c.learning_starts),
+            ("target_update", c.target_update),
+            ("epsilon_decay_steps", c.epsilon_decay_steps),
+            ("checkpoint_every", c.checkpoint_every),
+            ("plot_every", c.plot_every),
+        ] {
+            if v > MAX_STEPS_KNOB {
+                bail!("{name} must be at most {MAX_STEPS_KNOB}, got {v}");
+            }
+        }
+        if c.clip_grad_norm > 1e9 {
+            bail!(
+                "clip_grad_norm must be at most 1e9, got {}",
+                c.clip_grad_norm
+            );
         }
         if c.replay_capacity < c.batch_size + 8 {
             bail!(
@@ -318,6 +373,12 @@ impl Config {
         (self.epsilon_start + frac * (self.epsilon_end - self.epsilon_start)) as f32
     }
 
+    /// Bytes the replay memory takes when full: one 88x80 frame and 8 bytes of transition data
+    /// per entry.
+    pub fn replay_bytes(&self) -> u64 {
+        self.replay_capacity as u64 * (crate::env::FRAME_LEN as u64 + 8)
+    }
+
     /// The network input shape `[88, 80, k]`.
     pub fn input_shape(&self) -> [usize; 3] {
         [
@@ -331,6 +392,61 @@ impl Config {
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).expect("a config serialises")
     }
+}
+
+/// The first key of the user's `file` that makes the configuration invalid on its own, as
+/// `line N: key `k`: what is wrong`, with the line of the user's `text`.
+fn culprit(file: &toml::Table, text: &str, p: Preset) -> Option<String> {
+    let mut keys: Vec<(Option<&str>, &str, &toml::Value)> = Vec::new();
+    for (k, v) in file {
+        match v.as_table() {
+            Some(t) if k == "env" => {
+                keys.extend(t.iter().map(|(k2, v2)| (Some("env"), k2.as_str(), v2)))
+            }
+            _ => keys.push((None, k.as_str(), v)),
+        }
+    }
+    for (table, key, value) in keys {
+        let mut base = toml::Table::try_from(Config::preset(p)).ok()?;
+        let target = match table {
+            Some(t) => base.get_mut(t)?.as_table_mut()?,
+            None => &mut base,
+        };
+        target.insert(key.to_string(), value.clone());
+        let text_one = toml::to_string(&base).ok()?;
+        if let Err(e) = toml::from_str::<Config>(&text_one) {
+            let name = table.map_or(key.to_string(), |t| format!("{t}.{key}"));
+            return Some(match key_line(text, table, key) {
+                Some(line) => format!("line {line}: key `{name}`: {}", e.message()),
+                None => format!("key `{name}`: {}", e.message()),
+            });
+        }
+    }
+    None
+}
+
+/// The line (from 1) of `text` that sets `key`, in the table `table` (`None`: the top level).
+fn key_line(text: &str, table: Option<&str>, key: &str) -> Option<usize> {
+    let mut current: Option<String> = None;
+    for (i, line) in text.lines().enumerate() {
+        let t = line.trim();
+        if let Some(name) = t.strip_prefix('[').and_then(|r| r.strip_suffix(']')) {
+            current = Some(name.trim().to_string());
+            continue;
+        }
+        let Some((k, _)) = t.split_once('=') else {
+            continue;
+        };
+        let k = k.trim().trim_matches('"');
+        let (in_table, k) = match k.split_once('.') {
+            Some((t, k)) if current.is_none() => (Some(t.trim().to_string()), k.trim()),
+            _ => (current.clone(), k),
+        };
+        if k == key && in_table.as_deref() == table {
+            return Some(i + 1);
+        }
+    }
+    None
 }
 
 /// Overlays `top` on `base`, recursing into tables (so `[env]` keys override one by one).

@@ -232,8 +232,27 @@ impl Drop for Ale {
     }
 }
 
-/// Reads a user-supplied ROM, turning every failure into a clear error before ALE sees it.
+/// The Space Invaders ROMs this program knows: `(size, CRC-32)`. The bundled one is the only dump
+/// here; another file would make ALE emulate whatever it holds (random bytes spin forever on an
+/// illegal instruction, a 1-byte file overflows the stack), so anything else is refused.
+const KNOWN_ROMS: [(usize, u32); 1] = [(4096, 0xd1ef_5725)];
+
+/// Reads a user-supplied ROM, turning every failure into a clear error before ALE sees it:
+/// missing, unreadable, empty, or not a Space Invaders ROM ([`KNOWN_ROMS`]).
 fn read_rom(path: &Path) -> Result<Vec<u8>, EnvError> {
+    let bytes = read_rom_file(path)?;
+    let crc = crc32fast::hash(&bytes);
+    if !KNOWN_ROMS.contains(&(bytes.len(), crc)) {
+        return Err(EnvError::RomUnknown {
+            path: path.to_path_buf(),
+            size: bytes.len(),
+            crc,
+        });
+    }
+    Ok(bytes)
+}
+
+fn read_rom_file(path: &Path) -> Result<Vec<u8>, EnvError> {
     let meta = match fs::metadata(path) {
         Ok(m) => m,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {

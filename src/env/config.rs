@@ -7,6 +7,15 @@ use serde::{Deserialize, Serialize};
 
 use super::EnvError;
 
+/// The most emulator frames one agent step may repeat an action for.
+pub const MAX_FRAME_SKIP: u32 = 100;
+/// The most no-op frames a reset may play.
+pub const MAX_NOOPS: u32 = 10_000;
+/// The longest episode cut a configuration may ask for, in agent steps; an episode without a
+/// configured cut is cut here too (about 60 hours of play at 4 frames a step), so that no game,
+/// however broken, plays forever.
+pub const MAX_EPISODE_STEPS: u32 = 1_000_000;
+
 /// A named set of environment settings.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
@@ -46,7 +55,9 @@ pub struct EnvConfig {
     pub max_pool_last_two: bool,
     /// At reset, play a uniformly random number of no-op frames in `0..=noop_max`.
     pub noop_max: u32,
-    /// Cut episodes after this many agent steps (reported as `truncated`).
+    /// Cut episodes after this many agent steps (reported as `truncated`); `None` for no cut,
+    /// written `0` in a config file (TOML has no null).
+    #[serde(serialize_with = "none_as_zero")]
     pub max_episode_steps: Option<u32>,
     /// Use all 18 joystick actions instead of the game's 6 meaningful ones.
     pub full_action_set: bool,
@@ -116,7 +127,31 @@ impl EnvConfig {
             ));
         }
         if self.max_episode_steps == Some(0) {
-            return bad("max_episode_steps must be at least 1 (or absent for no limit)".into());
+            return bad(
+                "max_episode_steps must be at least 1 (or 0 in a config file for no limit)".into(),
+            );
+        }
+        // Bounds a real run could use: beyond them a step or a reset would take hours.
+        if self.frame_skip_max > MAX_FRAME_SKIP {
+            return bad(format!(
+                "frame_skip_max must be at most {MAX_FRAME_SKIP}, got {}",
+                self.frame_skip_max
+            ));
+        }
+        if self.noop_max > MAX_NOOPS {
+            return bad(format!(
+                "noop_max must be at most {MAX_NOOPS}, got {}",
+                self.noop_max
+            ));
+        }
+        if self
+            .max_episode_steps
+            .is_some_and(|n| n > MAX_EPISODE_STEPS)
+        {
+            return bad(format!(
+                "max_episode_steps must be at most {MAX_EPISODE_STEPS} (0 for no limit), got {}",
+                self.max_episode_steps.unwrap_or(0)
+            ));
         }
         if self.contrast_rgb_sum.is_some_and(|s| s > 765) {
             return bad("contrast_rgb_sum must be at most 765 (= 3 * 255)".into());
@@ -159,7 +194,7 @@ struct PartialEnvConfig {
     sticky_prob: Option<f64>,
     max_pool_last_two: Option<bool>,
     noop_max: Option<u32>,
-    #[serde(default, deserialize_with = "present")]
+    #[serde(default, deserialize_with = "present_zero_none")]
     max_episode_steps: Option<Option<u32>>,
     full_action_set: Option<bool>,
     #[serde(default, deserialize_with = "present")]
@@ -167,6 +202,19 @@ struct PartialEnvConfig {
     #[serde(default, deserialize_with = "present")]
     contrast_rgb_sum: Option<Option<u16>>,
     ale_verbose: Option<bool>,
+}
+
+/// Writes `None` as 0 (TOML has no null), so `config.toml` says "no cut" where there is none.
+fn none_as_zero<S: serde::Serializer>(v: &Option<u32>, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_u32(v.unwrap_or(0))
+}
+
+/// Like [`present`], with 0 also meaning `None` (no episode cut).
+fn present_zero_none<'de, D>(d: D) -> Result<Option<Option<u32>>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    Option::<u32>::deserialize(d).map(|v| Some(v.filter(|&n| n > 0)))
 }
 
 /// Distinguishes a field given as `null` (`Some(None)`) from a missing one (`None`).

@@ -24,6 +24,16 @@ pub enum EnvError {
     /// The ROM file is empty (or not a regular file).
     #[error("ROM file {} is empty or not a regular file", .0.display())]
     RomEmpty(PathBuf),
+    /// The file is not a Space Invaders ROM this program knows.
+    #[error(
+        "{} is not a Space Invaders ROM ({size} bytes, CRC-32 {crc:08x}; the known dump has 4096 bytes, CRC-32 d1ef5725)",
+        .path.display()
+    )]
+    RomUnknown {
+        path: PathBuf,
+        size: usize,
+        crc: u32,
+    },
     /// The private temporary copy of the ROM could not be written.
     #[error("cannot write the temporary ROM copy: {0}")]
     TempRom(#[source] std::io::Error),

@@ -214,10 +214,11 @@ impl SpaceInvaders {
         self.stats.score += reward as f64;
         self.lives = self.ale.lives();
         let truncated = !terminal
-            && self
-                .config
-                .max_episode_steps
-                .is_some_and(|m| self.stats.steps >= m);
+            && self.stats.steps
+                >= self
+                    .config
+                    .max_episode_steps
+                    .unwrap_or(super::config::MAX_EPISODE_STEPS);
         self.finished = terminal || truncated;
         self.make_observation();
         StepResult {
