@@ -21,8 +21,9 @@
 //!
 //! Optimisation: always `-O2`, and `NDEBUG` unless the profile has `opt-level = 0`. Under cmake
 //! the effective level depended on the profile: this project's release profile has `debug = 1`,
-//! which the `cmake` crate maps to `RelWithDebInfo`, whose `-O2 -g -DNDEBUG` comes after ALE's
-//! own `-O3`, so release builds were `-O2` already; a dev build (`Debug`, `-g`) kept ALE's `-O3`.
+//! which the published build script mapped to CMake's `RelWithDebInfo`, whose `-O2 -g -DNDEBUG`
+//! comes after ALE's own `-O3` on the command line, so release builds were `-O2` already; a dev
+//! build (`Debug`, `-g`) kept ALE's `-O3`.
 //! Unoptimised, the emulator runs several times slower, which would make debug-profile tests
 //! that step it crawl; `-O2` everywhere keeps the release build's code as it was and the debug
 //! build fast. The debug-information level still follows the profile (cc reads `DEBUG`).
