@@ -4,6 +4,39 @@ use anyhow::{anyhow, Context};
 use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use std::path::Path;
+use std::sync::Once;
+
+/// DejaVu Sans (`assets/fonts/`, with its licence), the font fontconfig gave plotters for
+/// "sans-serif" before the font was embedded.
+const SANS: &[u8] = include_bytes!("../assets/fonts/DejaVuSans.ttf");
+
+/// plotters sizes text differently by backend: font-kit (the `ttf` feature, what plotters used
+/// with fontconfig) takes a size of `s` pixels as an em of `s / 1.24` pixels, ab_glyph as a
+/// height (ascender to descender) of `s` pixels, which for DejaVu Sans (2048 units per em,
+/// ascender 1901, descender −483) is an em of `s / 1.164`. Sizes go through [`sans`], which scales
+/// by the ratio so that text keeps the size it had.
+const AB_GLYPH_SCALE: f64 = (1901.0 + 483.0) / (1.24 * 2048.0);
+
+/// The embedded sans-serif font at the size that font-kit drew as `size` (see `AB_GLYPH_SCALE`).
+pub fn sans(size: f64) -> FontDesc<'static> {
+    register_fonts();
+    FontDesc::new(
+        FontFamily::SansSerif,
+        size * AB_GLYPH_SCALE,
+        FontStyle::Normal,
+    )
+}
+
+/// Registers the embedded font as plotters' "sans-serif", once per process. Every function that
+/// draws text calls it first: plotters is built without system font support (no fontconfig),
+/// so a family that is not registered cannot be drawn.
+pub fn register_fonts() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        plotters::style::register_font("sans-serif", FontStyle::Normal, SANS)
+            .unwrap_or_else(|_| panic!("the embedded font is a valid TrueType file"));
+    });
+}
 
 /// One run's curve: a label and `(episode, reward)` points.
 pub struct Curve {
@@ -121,6 +154,7 @@ fn figure(
     max: (f64, f64),
     draw: impl FnOnce(&mut Chart<'_, '_>) -> DrawResult,
 ) -> anyhow::Result<()> {
+    register_fonts();
     let e = |err: DrawingAreaErrorKind<_>| anyhow!("plot: {err}");
     if !(max.0.is_finite() && max.1.is_finite()) {
         anyhow::bail!("plot: the data are not finite numbers");
@@ -128,7 +162,7 @@ fn figure(
     let root = BitMapBackend::new(out, (1000, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(e)?;
     let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 24))
+        .caption(title, sans(24.0))
         .margin(15)
         .x_label_area_size(45)
         .y_label_area_size(60)
@@ -138,11 +172,14 @@ fn figure(
         .configure_mesh()
         .x_desc("episode")
         .y_desc(y_desc)
+        .label_style(sans(12.0)) // plotters' default size, as for the legend below
+        .axis_desc_style(sans(12.0))
         .draw()
         .map_err(e)?;
     draw(&mut chart).map_err(e)?;
     chart
         .configure_series_labels()
+        .label_font(sans(12.0))
         .background_style(WHITE.mix(0.8))
         .border_style(BLACK)
         .position(SeriesLabelPosition::UpperLeft)

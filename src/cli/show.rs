@@ -77,7 +77,7 @@ fn draw(args: &ShowArgs, env: &SpaceInvaders, observers: &[Observer]) -> anyhow:
     let (w, h) = (760u32, 1400u32);
     let root = BitMapBackend::new(&args.out, (w, h)).into_drawing_area();
     root.fill(&WHITE).map_err(e)?;
-    let font = ("sans-serif", 20).into_font();
+    let font = invaders::plot::sans(20.0);
     let text = |s: &str, x: i32, y: i32| root.draw(&Text::new(s.to_string(), (x, y), font.clone()));
     // Raw screen, 2x.
     text("raw screen (210x160 RGB)", 20, 10).map_err(e)?;

@@ -71,7 +71,8 @@ fn rss_kib() -> Option<u64> {
     line.split_whitespace().nth(1)?.parse().ok()
 }
 
-/// Runs a command's body on a rayon pool of `threads` workers (default: one per core).
+/// Runs a command's body on a rayon pool of its own with `threads` workers (default: one per
+/// core); every kernel the body calls runs on that pool, not on rayon's global one.
 ///
 /// The body runs *on* a worker, not beside the pool: a parallel loop called from outside would
 /// hand its work over and sleep until it is done (two futex round trips per call, a tenth of a
