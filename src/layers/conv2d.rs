@@ -2,6 +2,7 @@
 //! ReLU and an optional zero border written around the output.
 
 use super::{Layer, Param};
+use crate::tensor::cpu::avx512_twin;
 use crate::tensor::{
     col2im, fill_iota, gemm, im2col, pad_input, unpad_input, winograd_conv, winograd_filters,
     winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Background, Border,
@@ -107,13 +108,12 @@ pub struct Conv2d<T> {
     bg: Background<T>,
 }
 
-/// `dZ` row by row for one image (see [`Conv2d::pre_activation_grad`]): row `m` of `z` is `dY`'s
-/// pixel at `at[m]`, times `[y > 0]` if `relu`. Compiled for AVX-512 where the fast path runs:
-/// a function of its own, since a closure handed to [`crate::tensor::vectorized`] is not always inlined into
-/// it (this loop was, and ran 4 lanes wide at 3% of a train step).
-fn mask_rows<T: Float>(z: &mut [T], dy: &[T], y: &[T], at: &[usize], c: usize, relu: bool) {
-    #[inline(always)]
-    fn rows<T: Float>(z: &mut [T], dy: &[T], y: &[T], at: &[usize], c: usize, relu: bool) {
+avx512_twin! {
+    /// `dZ` row by row for one image (see [`Conv2d::pre_activation_grad`]): row `m` of `z` is
+    /// `dY`'s pixel at `at[m]`, times `[y > 0]` if `relu`. A function of its own compiled for
+    /// AVX-512 ([`avx512_twin`]): a closure handed to [`crate::tensor::vectorized`] is not always
+    /// inlined into it (this loop was, and ran 4 lanes wide at 3% of a train step).
+    fn mask_rows<T: Float>(z: &mut [T], dy: &[T], y: &[T], at: &[usize], c: usize, relu: bool) {
         for (dz, &o) in z.chunks_exact_mut(c).zip(at) {
             let (d, yv) = (&dy[o..o + c], &y[o..o + c]);
             if relu {
@@ -126,18 +126,6 @@ fn mask_rows<T: Float>(z: &mut [T], dy: &[T], y: &[T], at: &[usize], c: usize, r
             }
         }
     }
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx512f")]
-        unsafe fn wide<T: Float>(z: &mut [T], dy: &[T], y: &[T], at: &[usize], c: usize, r: bool) {
-            rows(z, dy, y, at, c, r)
-        }
-        if T::simd() {
-            // SAFETY: `simd` holds only where the CPU runs AVX-512F.
-            return unsafe { wide(z, dy, y, at, c, relu) };
-        }
-    }
-    rows(z, dy, y, at, c, relu)
 }
 
 impl<T: Float> Conv2d<T> {
