@@ -17,6 +17,7 @@ pub mod cpu;
 mod float;
 mod gather;
 mod gemm;
+pub mod plan;
 mod sparse;
 mod transpose;
 mod winograd;
