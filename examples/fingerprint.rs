@@ -15,6 +15,11 @@ use invaders::tensor::{Float, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// Cache-line-aligned buffers for the kernels (`invaders::CacheAligned`): the library leaves
+/// the allocator to the program.
+#[global_allocator]
+static GLOBAL: invaders::CacheAligned = invaders::CacheAligned;
+
 /// FNV-1a over the values' bits.
 fn hash<T: Float>(v: &[T]) -> u64 {
     let mut h = 0xcbf2_9ce4_8422_2325u64;

@@ -6,9 +6,10 @@
 //!
 //! Buffers are allocated once and reused: [`Tensor::set_shape`] changes the shape in place and only
 //! allocates when the new size exceeds every size seen before, so after the first pass at the
-//! largest batch nothing in a forward or backward pass allocates. Every buffer of 1 KiB or more
-//! starts on a 64-byte cache line (the crate's global allocator, `align.rs`), so the kernels'
-//! AVX-512 vectors never straddle two lines.
+//! largest batch nothing in a forward or backward pass allocates. In a program that opts in to
+//! [`CacheAligned`] as its global allocator (the `invaders` binary, the benchmarks and examples
+//! do), every buffer of 1 KiB or more starts on a 64-byte cache line, so the kernels' AVX-512
+//! vectors never straddle two lines; the kernels assume no alignment for correctness.
 
 mod align;
 mod background;
@@ -22,6 +23,7 @@ mod sparse;
 mod transpose;
 mod winograd;
 
+pub use align::CacheAligned;
 pub use background::Background;
 pub use conv::{
     col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, Border,
