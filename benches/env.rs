@@ -16,6 +16,11 @@ use invaders::env::{
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// Cache-line-aligned buffers for the kernels (`invaders::CacheAligned`): the library leaves
+/// the allocator to the program.
+#[global_allocator]
+static GLOBAL: invaders::CacheAligned = invaders::CacheAligned;
+
 const FRAMES: u64 = 1000;
 
 /// A fixed action sequence, so every benchmark emulates exactly the same game.

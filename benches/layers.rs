@@ -18,6 +18,11 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Duration;
 
+/// Cache-line-aligned buffers for the kernels (`invaders::CacheAligned`): the library leaves
+/// the allocator to the program.
+#[global_allocator]
+static GLOBAL: invaders::CacheAligned = invaders::CacheAligned;
+
 fn random(shape: &[usize], rng: &mut impl Rng) -> Tensor<f32> {
     let n = shape.iter().product();
     Tensor::from_vec(shape, (0..n).map(|_| rng.random_range(-1.0..1.0)).collect())

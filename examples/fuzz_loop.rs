@@ -22,6 +22,11 @@ use invaders::env::SpaceInvaders;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// Cache-line-aligned buffers for the kernels (`invaders::CacheAligned`): the library leaves
+/// the allocator to the program.
+#[global_allocator]
+static GLOBAL: invaders::CacheAligned = invaders::CacheAligned;
+
 fn seed_checkpoint() -> Vec<u8> {
     let mut c = Config::preset(Preset::Article);
     c.learning_starts = 20;

@@ -6,6 +6,11 @@
 use invaders::dqn::Replay;
 use invaders::env::FRAME_LEN;
 
+/// Cache-line-aligned buffers for the kernels (`invaders::CacheAligned`): the library leaves
+/// the allocator to the program.
+#[global_allocator]
+static GLOBAL: invaders::CacheAligned = invaders::CacheAligned;
+
 fn rss_mb() -> f64 {
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     let kb: f64 = status

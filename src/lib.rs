@@ -17,3 +17,5 @@ pub mod layers;
 pub mod optim;
 pub mod plot;
 pub mod tensor;
+
+pub use tensor::CacheAligned;

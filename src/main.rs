@@ -2,6 +2,11 @@
 
 mod cli;
 
+/// Cache-line-aligned buffers for the kernels (`invaders::CacheAligned`): the library leaves
+/// the allocator to the program.
+#[global_allocator]
+static GLOBAL: invaders::CacheAligned = invaders::CacheAligned;
+
 use clap::Parser;
 
 fn main() -> std::process::ExitCode {

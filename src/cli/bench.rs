@@ -42,7 +42,7 @@ fn median(mut xs: Vec<f64>) -> f64 {
 }
 
 pub fn run(args: &BenchArgs) -> anyhow::Result<()> {
-    super::train::in_pool(args.threads, || bench(args))
+    super::in_pool(args.threads, || bench(args))
 }
 
 fn bench(args: &BenchArgs) -> anyhow::Result<()> {
@@ -51,7 +51,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         None => None,
         Some(path) => {
             let file = if path.is_dir() {
-                path.join("checkpoint.safetensors")
+                path.join(checkpoint::CHECKPOINT_FILE)
             } else {
                 path.clone()
             };

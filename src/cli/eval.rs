@@ -13,9 +13,8 @@ use invaders::dqn::Preset;
 use invaders::env::{EnvConfig, EnvMode, Observer, SpaceInvaders};
 use invaders::tensor::Tensor;
 
-/// The emulator's screen size.
-const SCREEN_W: usize = 160;
-const SCREEN_H: usize = 210;
+// The emulator's screen size (the ALE's).
+use invaders::env::ale::{SCREEN_HEIGHT as SCREEN_H, SCREEN_WIDTH as SCREEN_W};
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -77,7 +76,7 @@ struct Plan {
 }
 
 pub fn run(args: &EvalArgs) -> anyhow::Result<()> {
-    super::train::in_pool(args.threads, || eval(args))
+    super::in_pool(args.threads, || eval(args))
 }
 
 fn plan(args: &EvalArgs) -> anyhow::Result<Plan> {

@@ -218,7 +218,7 @@ fn train_one(
     dir: &Path,
     episodes: u64,
 ) -> anyhow::Result<()> {
-    let ckpt = dir.join("checkpoint.safetensors");
+    let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
     let mut cmd = Command::new(exe);
     if ckpt.exists() {
         let done = checkpoint::load(&ckpt)?.counters.episodes;

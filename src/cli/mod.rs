@@ -1,6 +1,7 @@
 //! Subcommands of the `invaders` binary. Add a subcommand by adding a variant to [`Command`]
 //! with its own `Args` struct in a file of this folder, and a line in [`run`].
 
+use anyhow::{bail, Context};
 use clap::{Parser, Subcommand};
 
 mod bench;
@@ -40,6 +41,27 @@ pub enum Command {
     /// Reproduce one of the article's experiments.
     #[command(subcommand)]
     Experiment(experiment::Experiment),
+}
+
+/// Runs a command's body on a rayon pool of its own with `threads` workers (default: one per
+/// core); every kernel the body calls runs on that pool, not on rayon's global one.
+///
+/// The body runs *on* a worker, not beside the pool: a parallel loop called from outside would
+/// hand its work over and sleep until it is done (two futex round trips per call, a tenth of a
+/// batch-1 forward pass); from a worker it runs in place, helped by the others.
+pub fn in_pool<R: Send>(
+    threads: Option<usize>,
+    body: impl FnOnce() -> anyhow::Result<R> + Send,
+) -> anyhow::Result<R> {
+    let mut builder = rayon::ThreadPoolBuilder::new().stack_size(8 << 20);
+    if let Some(t) = threads {
+        if t == 0 {
+            bail!("--threads must be at least 1");
+        }
+        builder = builder.num_threads(t);
+    }
+    let pool = builder.build().context("cannot set up the thread pool")?;
+    pool.install(body)
 }
 
 /// Runs the chosen subcommand.

@@ -22,6 +22,7 @@ use anyhow::{bail, Context};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
+use super::in_pool;
 use invaders::dqn::checkpoint::{self, write_atomic};
 
 use super::guard;
@@ -69,27 +70,6 @@ fn rss_kib() -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
     line.split_whitespace().nth(1)?.parse().ok()
-}
-
-/// Runs a command's body on a rayon pool of its own with `threads` workers (default: one per
-/// core); every kernel the body calls runs on that pool, not on rayon's global one.
-///
-/// The body runs *on* a worker, not beside the pool: a parallel loop called from outside would
-/// hand its work over and sleep until it is done (two futex round trips per call, a tenth of a
-/// batch-1 forward pass); from a worker it runs in place, helped by the others.
-pub fn in_pool<R: Send>(
-    threads: Option<usize>,
-    body: impl FnOnce() -> anyhow::Result<R> + Send,
-) -> anyhow::Result<R> {
-    let mut builder = rayon::ThreadPoolBuilder::new().stack_size(8 << 20);
-    if let Some(t) = threads {
-        if t == 0 {
-            bail!("--threads must be at least 1");
-        }
-        builder = builder.num_threads(t);
-    }
-    let pool = builder.build().context("cannot set up the thread pool")?;
-    pool.install(body)
 }
 
 fn default_out(config: &Config) -> PathBuf {

@@ -4,20 +4,22 @@
 //! 2015, Algorithm 1) with the article's hyperparameters from [`Config`]:
 //!
 //! ```text
-//! reset the game; compose the first frame; fill the stack with it; store it
-//! repeat
-//!     ε ← linear schedule(agent step)
-//!     a ← random action with probability ε, else argmax_a Q_online(stack, a)
-//!     play a (2–4 emulator frames); compose the step's frame; push it on the stack
-//!     store (a, r, done, new frame) in the replay memory
-//!     every `train_every` steps after `learning_starts`: one gradient step on a sampled batch
-//!     every `target_update` steps: copy the online network into the target network
-//! until the game is over or the step limit is hit
+//! 1  reset the game; compose the first frame; fill the stack with it; store it
+//!    repeat
+//! 2      ε ← linear schedule(agent step)
+//! 3      a ← random action with probability ε, else argmax_a Q_online(stack, a)
+//! 4      play a (2–4 emulator frames); compose the step's frame; push it on the stack
+//! 5      store (a, r, done, new frame) in the replay memory
+//! 6      every `train_every` steps after `learning_starts`: one gradient step on a sampled batch
+//! 7      every `target_update` steps: copy the online network into the target network
+//! 8  until the game is over or the step limit is hit
 //! ```
+//!
+//! The code marks these lines `ALGO 1` … `ALGO 8`.
 
 use super::checkpoint::{AgentState, Checkpoint, Counters};
-use super::{argmax, Batch, Config, Learner, Replay};
-use crate::env::{Game, Observer, FRAME_LEN};
+use super::{argmax, Batch, Config, Learner, Replay, StepStats};
+use crate::env::{Game, Observer, StepResult, FRAME_LEN};
 use crate::layers::Sequential;
 use crate::tensor::Tensor;
 use anyhow::{bail, Context};
@@ -283,7 +285,9 @@ impl<G: Game> Agent<G> {
         greedy(net, &self.observer, &self.table, &mut self.input)
     }
 
-    /// Plays one episode, learning as it goes, and returns its metrics row.
+    /// Plays one episode, learning as it goes, and returns its metrics row. The lines marked
+    /// `ALGO n` are the algorithm, numbered as in the module documentation; everything else is
+    /// bookkeeping (counters, metrics, the divergence guard), in functions of its own.
     ///
     /// # Errors
     /// If training diverges: a gradient step gives a non-finite loss, gradient norm or weight.
@@ -291,103 +295,154 @@ impl<G: Game> Agent<G> {
     /// weights are not finite), and nothing has been saved.
     pub fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
         let start = Instant::now();
-        let c = &self.config;
-        let (train_every, learning_starts, target_update) =
-            (c.train_every, c.learning_starts, c.target_update);
-        let (clip, life_loss_terminal) = (c.clip_rewards, c.life_loss_terminal);
+        let mut metrics = EpisodeMetrics::default();
+        // ALGO 1: reset the game; compose the first frame; fill the stack with it; store it.
         self.game.reset();
         let first = self.observer.reset(&self.game);
         self.replay.push_start(first);
-        let (mut score, mut length, mut loss_sum, mut q_sum, mut n_train) =
-            (0.0f64, 0u64, 0.0f64, 0.0f64, 0u32);
         let mut lives: Option<i32> = None;
         let last_action = loop {
+            // ALGO 2: ε from the linear schedule of the agent step.
             let eps = self.epsilon();
+            // ALGO 3: a random action with probability ε, else argmax_a Q(stack, a).
             let action = if self.explore_rng.random::<f32>() < eps {
                 self.explore_rng.random_range(0..self.game.n_actions())
             } else {
                 self.greedy_action()
             };
+            // ALGO 4: play it; compose the step's frame; push it on the stack.
             let r = self.game.step(action);
             let frame = self.observer.step(&self.game);
-            let reward = if clip {
+            // ALGO 5: store (a, r, done, new frame). Rewards clipped to [-1, 1] if so
+            // configured; done ends the bootstrapping: the game is over, or (if so configured)
+            // a life was lost.
+            let reward = if self.config.clip_rewards {
                 r.reward.clamp(-1.0, 1.0)
             } else {
                 r.reward
             };
-            // The end of bootstrapping: the game is over, or (if so configured) a life was lost.
             let life_lost = lives.is_some_and(|l| r.lives < l);
             lives = Some(r.lives);
-            let done = r.terminal || (life_loss_terminal && life_lost);
+            let done = r.terminal || (self.config.life_loss_terminal && life_lost);
             self.replay.push_step(action, reward, done, frame);
-            score += r.reward as f64;
-            length += 1;
-            self.counters.agent_steps += 1;
-            self.counters.frames += r.frames as u64;
-            let t = self.counters.agent_steps;
-            if t > learning_starts
-                && t.is_multiple_of(train_every)
-                && self.replay.can_sample(self.batch.len())
-            {
+            let t = self.count_step(&r, &mut metrics);
+            // ALGO 6: every `train_every` steps after `learning_starts`, one gradient step on a
+            // sampled batch.
+            if self.train_due(t) {
                 self.replay
                     .sample(&mut self.sample_rng, &self.table, &mut self.batch);
-                let s = self.learner.train_step(&self.batch);
+                let stats = self.learner.train_step(&self.batch);
                 self.counters.train_steps += 1;
-                let what = if !s.loss.is_finite() {
-                    Some(format!("the loss is {}", s.loss))
-                } else if !s.grad_norm.is_finite() {
-                    Some(format!("the gradient norm is {}", s.grad_norm))
-                } else {
-                    self.learner
-                        .non_finite_param()
-                        .map(|p| format!("weight {p} is not finite"))
-                };
-                if let Some(what) = what {
-                    bail!(
-                        "training diverged at agent step {t}, train step {} (episode {}): {what}",
-                        self.counters.train_steps,
-                        self.counters.episodes + 1
-                    );
-                }
-                loss_sum += s.loss as f64;
-                q_sum += s.mean_max_q as f64;
-                n_train += 1;
+                self.check_finite(&stats, t)?;
+                metrics.add_train_step(&stats);
             }
-            if t.is_multiple_of(target_update) {
+            // ALGO 7: every `target_update` steps, copy the online network into the target.
+            if t.is_multiple_of(self.config.target_update) {
                 self.learner.update_target();
             }
+            // ALGO 8: until the game is over or the step limit is hit.
             if r.terminal || r.truncated {
                 break action;
             }
         };
         if self.config.fake_terminal_transition {
-            // The notebook's extra transition: the final state again, marked terminal.
-            let last = self
-                .observer
-                .stack()
-                .get(self.observer.stack().len() - 1)
-                .to_vec();
-            self.replay.push_step(last_action, 0.0, true, &last);
+            self.push_fake_terminal(last_action);
         }
+        Ok(self.finish_episode(start, &metrics))
+    }
+
+    /// Counts one agent step (its reward, length, emulator frames); returns the agent step.
+    fn count_step(&mut self, r: &StepResult, metrics: &mut EpisodeMetrics) -> u64 {
+        metrics.score += r.reward as f64;
+        metrics.length += 1;
+        self.counters.agent_steps += 1;
+        self.counters.frames += r.frames as u64;
+        self.counters.agent_steps
+    }
+
+    /// Whether agent step `t` takes a gradient step: past `learning_starts`, every
+    /// `train_every` steps, once the replay memory holds a batch.
+    fn train_due(&self, t: u64) -> bool {
+        t > self.config.learning_starts
+            && t.is_multiple_of(self.config.train_every)
+            && self.replay.can_sample(self.batch.len())
+    }
+
+    /// The divergence guard: an error naming the agent step `t` and the train step if the last
+    /// gradient step gave a non-finite loss, gradient norm or weight.
+    fn check_finite(&self, s: &StepStats, t: u64) -> anyhow::Result<()> {
+        let what = if !s.loss.is_finite() {
+            Some(format!("the loss is {}", s.loss))
+        } else if !s.grad_norm.is_finite() {
+            Some(format!("the gradient norm is {}", s.grad_norm))
+        } else {
+            self.learner
+                .non_finite_param()
+                .map(|p| format!("weight {p} is not finite"))
+        };
+        if let Some(what) = what {
+            bail!(
+                "training diverged at agent step {t}, train step {} (episode {}): {what}",
+                self.counters.train_steps,
+                self.counters.episodes + 1
+            );
+        }
+        Ok(())
+    }
+
+    /// The notebook's extra transition at the end of an episode: the final state again, marked
+    /// terminal ([`Config::fake_terminal_transition`]).
+    fn push_fake_terminal(&mut self, last_action: usize) {
+        let last = self
+            .observer
+            .stack()
+            .get(self.observer.stack().len() - 1)
+            .to_vec();
+        self.replay.push_step(last_action, 0.0, true, &last);
+    }
+
+    /// Counts the episode and its wall time, and makes its metrics row.
+    fn finish_episode(&mut self, start: Instant, m: &EpisodeMetrics) -> EpisodeRow {
         self.counters.episodes += 1;
         self.counters.wall_seconds += start.elapsed().as_secs_f64();
-        let mean = |s: f64| {
-            if n_train > 0 {
-                (s / n_train as f64) as f32
-            } else {
-                f32::NAN
-            }
-        };
-        Ok(EpisodeRow {
+        EpisodeRow {
             episode: self.counters.episodes,
             agent_steps: self.counters.agent_steps,
             frames: self.counters.frames,
-            reward: score,
-            length,
+            reward: m.score,
+            length: m.length,
             epsilon: self.epsilon(),
-            mean_loss: mean(loss_sum),
-            mean_max_q: mean(q_sum),
+            mean_loss: m.mean(m.loss_sum),
+            mean_max_q: m.mean(m.q_sum),
             wall_seconds: self.counters.wall_seconds,
-        })
+        }
+    }
+}
+
+/// What one episode sums for its metrics row.
+#[derive(Default)]
+struct EpisodeMetrics {
+    /// The unclipped game score.
+    score: f64,
+    length: u64,
+    loss_sum: f64,
+    q_sum: f64,
+    n_train: u32,
+}
+
+impl EpisodeMetrics {
+    fn add_train_step(&mut self, s: &StepStats) {
+        self.loss_sum += s.loss as f64;
+        self.q_sum += s.mean_max_q as f64;
+        self.n_train += 1;
+    }
+
+    /// The mean of a sum over the episode's train steps (NaN without any).
+    fn mean(&self, sum: f64) -> f32 {
+        if self.n_train > 0 {
+            (sum / self.n_train as f64) as f32
+        } else {
+            f32::NAN
+        }
     }
 }

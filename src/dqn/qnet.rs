@@ -2,6 +2,7 @@
 
 use crate::layers::init::VarianceScaling;
 use crate::layers::{Conv2d, Dense, Dueling, Relu, Sequential};
+use crate::tensor::plan;
 use crate::tensor::{Border, ConvGeom, Float, Padding};
 use rand::Rng;
 
@@ -31,7 +32,7 @@ const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 /// padding copy per layer (about 11 MB of memory traffic per batch-48 forward pass). conv1 reads
 /// a training batch in place too when it arrives inside conv1's padding ([`input_border`]).
 /// conv2 and conv3 run by Winograd's minimal filtering at batches of 8 or more
-/// ([`Conv2d::with_winograd`]): the same sums, rounded differently.
+/// ([`Conv2d::with_winograd`], [`plan::winograd_pays`]): the same sums, rounded differently.
 pub fn article_qnet<T: Float>(
     input: [usize; 3],
     n_actions: usize,
@@ -84,15 +85,13 @@ pub fn qnet<T: Float>(
         if let Some(next) = same.get(i + 1) {
             conv = conv.with_border(next.as_valid().1);
         }
-        // Winograd for conv2 (F(2×2, 2×2) over 2×2 blocks) and conv3 (F(2×2, 3×3)). conv1
-        // would take F(2×2, 2×2) over 4×4 blocks, but with 4 input channels its transforms
-        // cost more than the products save: the train step measured 2% slower with it, and
-        // its weight gradient alone level.
+        // Winograd where the plan says it pays: conv2 (F(2×2, 2×2) over 2×2 blocks) and conv3
+        // (F(2×2, 3×3)), not conv1 (4 input channels).
         // conv2 and conv3 read a ReLU's output: acting skips its zeros. conv1 reads frames:
         // acting skips their background.
         net.push(
             conv.with_relu()
-                .with_winograd(i > 0)
+                .with_winograd(plan::winograd_pays(g))
                 .with_sparse_inference(i > 0)
                 .with_background_inference(i == 0),
         );

@@ -52,6 +52,11 @@ pub struct AleSettings {
 
 /// One emulator with Space Invaders loaded. Frame skip is always 1 inside the emulator and colour
 /// averaging is off, so every [`act`](Ale::act) is exactly one raw frame.
+///
+/// Invariant, which every `unsafe` call below relies on: `ptr` is the non-null `ALEInterface` that
+/// `ALE_new` returned, owned by this value alone (`Ale` is neither `Clone` nor `Send`, and the
+/// pointer never leaves it), with the ROM loaded once [`Ale::new`] has returned; it is deleted
+/// only in `Drop`. ALE's C functions are then sound to call with it from this thread.
 pub struct Ale {
     ptr: *mut ale_sys::ALEInterface,
     minimal_actions: Vec<i32>,
@@ -75,7 +80,11 @@ impl Ale {
         let _guard = LOAD_LOCK.lock().unwrap_or_else(|e| e.into_inner());
         // The logger level is global to the process; set it before the constructor, which
         // already prints a banner at the info level.
+        // SAFETY: `setLoggerMode` takes a plain integer and sets a process-wide level; the load
+        // lock held here keeps it from racing another thread's emulator construction.
         unsafe { ale_sys::setLoggerMode(if settings.verbose { 0 } else { 2 }) };
+        // SAFETY: `ALE_new` takes no arguments; its result is checked for null before any use,
+        // and under the load lock Stella's global state is written by one thread at a time.
         let ptr = unsafe { ale_sys::ALE_new() };
         if ptr.is_null() {
             return Err(EnvError::Ale("ALE_new returned null".into()));
@@ -92,6 +101,9 @@ impl Ale {
         );
         ale.set_int("frame_skip", 1);
         ale.set_bool("color_averaging", false);
+        // SAFETY: `ale.ptr` is the live emulator just created; `c_path` is a NUL-terminated
+        // string that outlives the call, naming a file written above (so the C++ side does not
+        // throw on a missing file); the load lock serialises Stella's global state.
         unsafe { ale_sys::loadROM(ale.ptr, c_path.as_ptr()) };
         drop(dir); // the emulator has read the ROM into memory
 
@@ -110,16 +122,22 @@ impl Ale {
 
     fn set_int(&mut self, key: &str, value: i32) {
         let key = CString::new(key).expect("static key");
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant);
+        // `key` is a NUL-terminated string that lives until the call returns.
         unsafe { ale_sys::setInt(self.ptr, key.as_ptr(), value as c_int) };
     }
 
     fn set_float(&mut self, key: &str, value: f32) {
         let key = CString::new(key).expect("static key");
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant);
+        // `key` is a NUL-terminated string that lives until the call returns.
         unsafe { ale_sys::setFloat(self.ptr, key.as_ptr(), value) };
     }
 
     fn set_bool(&mut self, key: &str, value: bool) {
         let key = CString::new(key).expect("static key");
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant);
+        // `key` is a NUL-terminated string that lives until the call returns.
         unsafe { ale_sys::setBool(self.ptr, key.as_ptr(), value) };
     }
 
@@ -128,8 +146,12 @@ impl Ale {
         size: unsafe extern "C" fn(*mut ale_sys::ALEInterface) -> c_int,
         fill: unsafe extern "C" fn(*mut ale_sys::ALEInterface, *mut c_int),
     ) -> Vec<i32> {
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant), and
+        // `size` is one of ALE's action-set size functions, which only read it.
         let n = unsafe { size(self.ptr) }.max(0) as usize;
         let mut v = vec![0 as c_int; n];
+        // SAFETY: `fill` is the fill function paired with `size`, which writes exactly `n`
+        // values (the size it just reported, the ROM unchanged in between) into `v`'s `n`.
         unsafe { fill(self.ptr, v.as_mut_ptr()) };
         v
     }
@@ -151,31 +173,38 @@ impl Ale {
     /// If `action` is not one of the 18 legal ids.
     pub fn act(&mut self, action: i32) -> i32 {
         assert!((0..18).contains(&action), "illegal ALE action id {action}");
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant); `action` was checked
+        // to be a legal id, so the emulator does not index out of its action table.
         unsafe { ale_sys::act(self.ptr, action as c_int) }
     }
 
     /// True once the game is over (all lives lost).
     pub fn game_over(&self) -> bool {
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant).
         unsafe { ale_sys::game_over(self.ptr) }
     }
 
     /// Starts a new game (ALE runs a fixed, deterministic sequence of frames to do so).
     pub fn reset_game(&mut self) {
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant).
         unsafe { ale_sys::reset_game(self.ptr) }
     }
 
     /// Lives left, as read from the console's RAM (Space Invaders starts with 3).
     pub fn lives(&self) -> i32 {
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant).
         unsafe { ale_sys::lives(self.ptr) }
     }
 
     /// Frames emulated since the emulator was created.
     pub fn frame_number(&self) -> i32 {
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant).
         unsafe { ale_sys::getFrameNumber(self.ptr) }
     }
 
     /// Frames emulated since the last reset (ALE's own count, which includes its reset frames).
     pub fn episode_frame_number(&self) -> i32 {
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant).
         unsafe { ale_sys::getEpisodeFrameNumber(self.ptr) }
     }
 
@@ -189,11 +218,16 @@ impl Ale {
             SCREEN_RGB_LEN,
             "RGB screen buffer has the wrong length"
         );
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant); ALE writes
+        // 210·160·3 bytes, and `out` was checked to hold exactly that many.
         unsafe { ale_sys::getScreenRGB(self.ptr, out.as_mut_ptr()) };
     }
 
     /// Serialises the whole emulator state, including ALE's random generator (about 7.7 KB).
     pub fn save_state(&self) -> Vec<u8> {
+        // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant);
+        // `state` is a fresh state object owned here, encoded into a buffer of exactly the
+        // length `encodeStateLen` reported for it, and deleted once, after its last use.
         unsafe {
             let state = ale_sys::cloneSystemState(self.ptr);
             let len = ale_sys::encodeStateLen(state).max(0) as usize;
@@ -212,6 +246,9 @@ impl Ale {
                 "empty or oversized emulator state".into(),
             ));
         }
+        // SAFETY: `bytes` is readable for the `len` passed (checked to fit a `c_int`);
+        // `decodeState` returns a fresh state object or null (checked before use); `self.ptr`
+        // is the live emulator this `Ale` owns; the state is deleted once, after its last use.
         unsafe {
             let state = ale_sys::decodeState(bytes.as_ptr().cast(), bytes.len() as c_int);
             if state.is_null() {
@@ -228,6 +265,8 @@ impl Ale {
 
 impl Drop for Ale {
     fn drop(&mut self) {
+        // SAFETY: `self.ptr` came from `ALE_new`, is owned by this value alone and is deleted
+        // here exactly once; nothing uses it afterwards.
         unsafe { ale_sys::ALE_del(self.ptr) }
     }
 }

@@ -1,6 +1,7 @@
 //! Fully connected layer.
 
 use super::{Layer, Param};
+use crate::tensor::plan::{self, Kernel, Product};
 use crate::tensor::{
     fill_iota, gemm, transpose, Float, GatherGemm, Init, Nonzeros, Op, SparseConv, Tensor,
 };
@@ -32,6 +33,12 @@ pub struct Dense<T> {
 }
 
 impl<T: Float> Dense<T> {
+    /// [`Layer::infer`] by [`Layer::forward`], recorded as such for [`plan::last`].
+    fn infer_dense(&mut self, x: &Tensor<T>) {
+        self.forward(x);
+        plan::ran(Product::DenseInfer, plan::dense::<T>());
+    }
+
     /// A dense layer with zero weights and bias (initialise them with [`super::init`]).
     ///
     /// # Panics
@@ -145,7 +152,7 @@ impl<T: Float> Layer<T> for Dense<T> {
         );
         let n = x.batch();
         self.y.set_shape(&[n, self.n_out]);
-        if T::simd() {
+        if plan::ran(Product::DenseForward, plan::dense::<T>()) == Kernel::Gather {
             // y = b + x·W by the gather GEMM (rows i·In, steps 0..In), starting from the bias.
             fill_iota(&mut self.x_rows, n, self.n_in);
             fill_iota(&mut self.iota_in, self.n_in, 1);
@@ -189,17 +196,17 @@ impl<T: Float> Layer<T> for Dense<T> {
     fn infer(&mut self, x: &Tensor<T>) {
         let n = x.batch();
         if !self.sparse {
-            return self.forward(x);
+            return self.infer_dense(x);
         }
         assert_eq!(x.len(), n * self.n_in, "{}: input shape", self.name);
-        // One sample always takes the sparse product; a batch only under a tenth nonzero.
-        let share = if n == 1 { 1 } else { 10 };
+        let share = plan::dense_sparse_share(n);
         if !self
             .nz
             .collect_sparse(x.data(), self.n_in, self.n_in, share)
         {
-            return self.forward(x);
+            return self.infer_dense(x);
         }
+        plan::ran(Product::DenseInfer, Kernel::Sparse);
         self.y.set_shape(&[n, self.n_out]);
         // Sample i is "pixel" i with one tap; its row of y starts at i·Out.
         fill_iota(&mut self.x_rows, n, 1);
@@ -233,7 +240,7 @@ impl<T: Float> Layer<T> for Dense<T> {
             "{}: upstream gradient shape",
             self.name
         );
-        if T::simd() {
+        if plan::ran(Product::DenseBackward, plan::dense::<T>()) == Kernel::Gather {
             self.backward_gather(x, dy, need_dx);
             return;
         }

@@ -1,4 +1,4 @@
-//! Cache-line-aligned heap memory for every buffer of the program.
+//! Cache-line-aligned heap memory for every buffer of a program that opts in.
 //!
 //! The kernels move data in 64-byte AVX-512 vectors. The system allocator returns large blocks
 //! 16 bytes past a page (glibc's chunk header), so every vector of a tensor, a weight matrix or
@@ -6,6 +6,17 @@
 //! store that splits costs two. This allocator asks the system for 64-byte alignment for every
 //! block of at least 1 KiB (small ones, strings and the like, keep the system's), so every
 //! `Vec<f32>` the kernels stream over starts on a cache line and its vectors lie inside lines.
+//!
+//! The library does not set the program's allocator: a program that links `invaders` keeps its
+//! own. The `invaders` binary, the benchmarks and the examples opt in, each with
+//!
+//! ```ignore
+//! #[global_allocator]
+//! static GLOBAL: invaders::CacheAligned = invaders::CacheAligned;
+//! ```
+//!
+//! Without it everything computes the same values (the kernels use unaligned loads and stores
+//! and assume no alignment), only slower where a vector straddles two cache lines.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 
@@ -58,6 +69,8 @@ unsafe impl GlobalAlloc for CacheAligned {
     }
 }
 
+/// The library's own unit tests run with it, as the binaries do.
+#[cfg(test)]
 #[global_allocator]
 static GLOBAL: CacheAligned = CacheAligned;
 

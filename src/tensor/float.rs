@@ -139,7 +139,7 @@ impl Float for f32 {
     }
     #[cfg(target_arch = "x86_64")]
     fn simd() -> bool {
-        super::gather::avx512::available()
+        super::cpu::avx512()
     }
     #[cfg(target_arch = "x86_64")]
     fn gather_gemm(g: GatherGemm<'_, f32>) {

@@ -17,6 +17,7 @@
 //! Every element of `C` is summed in the order `t = 0, 1, …` (after its initial value), whatever
 //! the tiling and the thread count, so results are bit-identical for any number of threads.
 
+use super::cpu::avx512_twin;
 use super::Float;
 
 /// What `C` starts from before the sum.
@@ -63,50 +64,25 @@ fn within(start: Option<usize>, plus: usize, limit: usize) -> bool {
         .is_some_and(|end| end < limit)
 }
 
-/// The largest offset in a table (0 if empty).
-fn largest(v: &[usize]) -> usize {
-    // Branch-free folds, so that compiled for AVX-512 (`wide`) they run 8 lanes wide: the checks
-    // scan every offset table of every product (over 20 000 rows for conv1), and as baseline
-    // SSE2, which has no 64-bit max, they took 1.5% of a train step.
-    #[inline(always)]
-    fn scan(v: &[usize]) -> usize {
+avx512_twin! {
+    /// The largest offset in a table (0 if empty).
+    ///
+    /// A branch-free fold, so that compiled for AVX-512 it runs 8 lanes wide: the checks scan
+    /// every offset table of every product (over 20 000 rows for conv1), and as baseline SSE2,
+    /// which has no 64-bit max, they took 1.5% of a train step.
+    fn largest(v: &[usize]) -> usize {
         v.iter().fold(0, |m, &x| m.max(x))
     }
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx512f")]
-        unsafe fn wide(v: &[usize]) -> usize {
-            scan(v)
-        }
-        if avx512::available() {
-            // SAFETY: `available` checked that this CPU runs AVX-512F.
-            return unsafe { wide(v) };
-        }
-    }
-    scan(v)
 }
 
-/// Whether each row start is at least `n` past the one before (rows increase, never overlap),
-/// written without a sum that could wrap.
-fn rows_apart(starts: &[usize], n: usize) -> bool {
-    #[inline(always)]
-    fn scan(starts: &[usize], n: usize) -> bool {
+avx512_twin! {
+    /// Whether each row start is at least `n` past the one before (rows increase, never
+    /// overlap), written without a sum that could wrap.
+    fn rows_apart(starts: &[usize], n: usize) -> bool {
         starts.windows(2).fold(true, |ok, w| {
             ok & (w[1] >= w[0]) & (w[1].wrapping_sub(w[0]) >= n)
         })
     }
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx512f")]
-        unsafe fn wide(starts: &[usize], n: usize) -> bool {
-            scan(starts, n)
-        }
-        if avx512::available() {
-            // SAFETY: `available` checked that this CPU runs AVX-512F.
-            return unsafe { wide(starts, n) };
-        }
-    }
-    scan(starts, n)
 }
 
 /// Where row `r` of `C` starts in `c`: `c_rows[r]`, or `r·ldc` without a table.
@@ -300,16 +276,7 @@ pub(crate) mod avx512 {
     use rayon::prelude::*;
     use std::arch::x86_64::*;
 
-    /// Whether this CPU runs the kernel (and `INVADERS_NO_SIMD` is unset: the switch back to
-    /// im2col + faer, for A/B timing in one session and for running the portable path here).
-    pub fn available() -> bool {
-        static AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        *AVAILABLE.get_or_init(|| {
-            is_x86_feature_detected!("avx512f")
-                && is_x86_feature_detected!("fma")
-                && std::env::var_os("INVADERS_NO_SIMD").is_none()
-        })
-    }
+    use crate::tensor::cpu::avx512 as available;
 
     /// Reduction steps per block: the block's `b` rows (128 × 64 floats, 32 KiB) stay in L1
     /// while every row tile of a task runs over them.

@@ -6,25 +6,30 @@
 //!
 //! Buffers are allocated once and reused: [`Tensor::set_shape`] changes the shape in place and only
 //! allocates when the new size exceeds every size seen before, so after the first pass at the
-//! largest batch nothing in a forward or backward pass allocates. Every buffer of 1 KiB or more
-//! starts on a 64-byte cache line (the crate's global allocator, `align.rs`), so the kernels'
-//! AVX-512 vectors never straddle two lines.
+//! largest batch nothing in a forward or backward pass allocates. In a program that opts in to
+//! [`CacheAligned`] as its global allocator (the `invaders` binary, the benchmarks and examples
+//! do), every buffer of 1 KiB or more starts on a 64-byte cache line, so the kernels' AVX-512
+//! vectors never straddle two lines; the kernels assume no alignment for correctness.
 
 mod align;
 mod background;
 mod conv;
+pub mod cpu;
 mod float;
 mod gather;
 mod gemm;
+pub mod plan;
 mod sparse;
 mod transpose;
 mod winograd;
 
+pub use align::CacheAligned;
 pub use background::Background;
 pub use conv::{
     col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, Border,
     ConvGeom, Padding,
 };
+pub use cpu::vectorized;
 pub use float::Float;
 pub use gather::{
     fill_iota, gather_gemm_portable, scatter_gemm_portable, GatherGemm, Init, ScatterGemm,
@@ -38,29 +43,6 @@ pub use winograd::{
 };
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};
-
-/// Runs `f` compiled for AVX-512 where this CPU has it (and `INVADERS_NO_SIMD` is unset), else as
-/// built (baseline x86-64: 4-wide SSE).
-///
-/// For the element-wise loops between the products (Adam, the ReLU masks, the gradient norm):
-/// they are written as plain loops, and inlined here LLVM vectorises them 16 lanes wide. Each
-/// element gets the same operations in the same order either way (no reassociation, no fused
-/// multiply-add), so the result is bit-identical with or without it.
-#[inline(always)]
-pub fn vectorized<R>(f: impl FnOnce() -> R) -> R {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx512f")]
-        unsafe fn wide<R>(f: impl FnOnce() -> R) -> R {
-            f()
-        }
-        if gather::avx512::available() {
-            // SAFETY: `available` checked that this CPU runs AVX-512F.
-            return unsafe { wide(f) };
-        }
-    }
-    f()
-}
 
 /// A dense row-major tensor of `T` with a reusable buffer.
 ///

@@ -1064,17 +1064,13 @@ fn output_tile<T: Float, const P: usize>(
     }
 }
 
-/// Whether `T` is f32 on a CPU with AVX-512F: then the transforms run as intrinsics
+/// Whether `T` is f32 and the AVX-512 kernels run ([`Float::simd`], which honours
+/// `INVADERS_NO_SIMD` like every kernel family): then the transforms run as intrinsics
 /// ([`avx512`]), the same operations in the same order as [`input_tile`] and [`output_tile`].
 fn fast_f32<T: Float>() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        static AVX512: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()
-            && *AVX512.get_or_init(|| is_x86_feature_detected!("avx512f"))
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    false
+    cfg!(target_arch = "x86_64")
+        && std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()
+        && T::simd()
 }
 
 #[cfg(target_arch = "x86_64")]

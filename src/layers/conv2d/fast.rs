@@ -1,0 +1,509 @@
+//! The fast kernels of [`Conv2d`], as chosen by [`crate::tensor::plan::conv`]: the gather GEMMs
+//! on a padded input (or the input itself), Winograd's minimal filtering, and for acting the
+//! sparse and background products. Each computes the same products as the im2col path in
+//! `conv2d.rs`, which is the reference they are tested against (`tests/kernels.rs`,
+//! `tests/sparse.rs`); the f64 gradient checks run that one.
+//!
+//! Where the input is read: a zero-padded copy `xpad` (`[N, HP, WP, Cin]`), or the input itself
+//! when it needs no padding (e.g. when the layer before wrote the border). The forward product
+//! starts from the bias and stores `max(·, 0)` straight into the interior of the bordered
+//! output; the weight gradient reduces over all output pixels straight from the padded input.
+
+use super::Conv2d;
+use crate::tensor::plan::{self, ConvPlan, Kernel};
+use crate::tensor::{
+    fill_iota, pad_input, unpad_input, winograd_conv, winograd_filters, winograd_filters_s2d,
+    winograd_filters_s2d_adjoint, winograd_wgrad, Background, ConvGeom, Float, GatherGemm, Init,
+    Nonzeros, ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch, WinogradShape,
+    SKIP_OUTPUT,
+};
+use rayon::prelude::*;
+
+/// The fast kernels' buffers, reused from call to call.
+#[derive(Default)]
+pub(super) struct Scratch<T> {
+    /// The zero-padded input of the last forward pass, `[N, HP, WP, Cin]`.
+    pub(super) xpad: Vec<T>,
+    /// Where each output pixel's window starts in `xpad` (empty until a forward pass, and after
+    /// acting: a backward pass checks it), and each patch element's offset from there.
+    pub(super) pixels: Vec<usize>,
+    patch: Vec<usize>,
+    /// Input gradient by scatter: `m·Cout` per output pixel, `0..Cout`, and `Wᵀ` `[Cout, K]`.
+    dy_rows: Vec<usize>,
+    iota: Vec<usize>,
+    wt: Vec<T>,
+    /// The input gradient with respect to `xpad`.
+    dxpad: Vec<T>,
+    /// Input gradient by phases: `dZ` inside a zero border, and one phase's row starts in it,
+    /// destinations in `dX`, tap offsets and packed taps `[taps·Cout, Cin]`.
+    dzpad: Vec<T>,
+    ph_p: Vec<usize>,
+    ph_rows: Vec<usize>,
+    ph_q: Vec<usize>,
+    ph_w: Vec<T>,
+    /// Winograd: the transformed filters (`[16, I, O]`, `[9, s²I, O]`, or `[9, O, s²I]` for the
+    /// input gradient over blocks), the adjoint filter before its transform (`[2, 2, Cout,
+    /// s²·Cin]`, strided filters), the output pixel offsets (for that input gradient, one per
+    /// pixel of each block, [`SKIP_OUTPUT`] for the input border's), the scratch.
+    wino_u: Vec<T>,
+    wino_w: Vec<T>,
+    wino_pix: Vec<usize>,
+    wino: WinogradScratch<T>,
+    /// Sparse acting: the input's nonzeros, each output pixel's window start and each tap's
+    /// offset, in pixels.
+    nz: Nonzeros<T>,
+    sp_windows: Vec<usize>,
+    sp_taps: Vec<usize>,
+    /// Background acting.
+    bg: Background<T>,
+}
+
+impl<T: Float> Conv2d<T> {
+    /// The forward product of a batch of `n` as a Winograd convolution: VALID over the (padded)
+    /// input, every input tile (4×4 pixels, or 3×3 blocks of s×s) of a 2×2 output tile, into the
+    /// bordered output.
+    fn winograd_shape(&self, g: ConvGeom, n: usize, kind: WinogradKind) -> WinogradShape {
+        let (hp, wp) = g.padded();
+        let (hb, wb) = self.border.around(g.oh, g.ow);
+        WinogradShape {
+            n,
+            h: hp,
+            w: wp,
+            ci: g.cin,
+            oh: g.oh,
+            ow: g.ow,
+            pad_top: 0,
+            pad_left: 0,
+            co: g.cout,
+            out_image: hb * wb * g.cout,
+            out_pieces: 1,
+            kind,
+        }
+    }
+
+    /// `dX` for an input read directly, by phases: a gather GEMM per `(iy mod SH, ix mod SW)`.
+    ///
+    /// Input row `iy = a·SH + py` meets the filter rows `ky = py + SH·j` (`j < J`, the phase's
+    /// taps), through output rows `oy = a − j`; columns likewise. So
+    /// `dX[a·SH+py, b·SW+px, ci] = Σ_{j,l,co} dZ[a−j, b−l, co] · W[py+SH·j, px+SW·l, ci, co]`,
+    /// with `dZ` read as zero outside the image: every input pixel of a phase is one row of a
+    /// GEMM that reduces over the phase's `J·L·Cout` taps, gathered from `dZ` inside a zero
+    /// border (taps in reverse order, so the offsets are non-negative). Each `dX` value is
+    /// written once (no scatter, no overlapping adds), `Cin` columns wide.
+    fn dx_by_phases(&mut self, g: ConvGeom, dz: &[T], n: usize) {
+        let (sh, sw, co, ci) = (g.sh, g.sw, g.cout, g.cin);
+        // dZ inside a border of (max taps − 1) above/left and enough below/right.
+        let (tj, tl) = (g.kh.div_ceil(sh) - 1, g.kw.div_ceil(sw) - 1);
+        let hz = tj + g.oh.max((g.h - 1) / sh + 1);
+        let wz = tl + g.ow.max((g.w - 1) / sw + 1);
+        // Every place written on every call (the interior copied, the border zeroed), so the
+        // buffer is reused without clearing it first.
+        self.fast.dzpad.resize(n * hz * wz * co, T::zero());
+        self.fast
+            .dzpad
+            .par_chunks_mut(hz * wz * co)
+            .zip(dz.par_chunks(g.out_pixels() * co))
+            .for_each(|(pad, img)| {
+                for (zy, row) in pad.chunks_exact_mut(wz * co).enumerate() {
+                    match zy.checked_sub(tj).filter(|&oy| oy < g.oh) {
+                        Some(oy) => {
+                            let (left, rest) = row.split_at_mut(tl * co);
+                            let (mid, right) = rest.split_at_mut(g.ow * co);
+                            left.fill(T::zero());
+                            mid.copy_from_slice(&img[oy * g.ow * co..][..g.ow * co]);
+                            right.fill(T::zero());
+                        }
+                        None => row.fill(T::zero()),
+                    }
+                }
+            });
+        let w = self.params[0].value.data();
+        let b = self.in_border;
+        for py in 0..sh.min(g.h) {
+            for px in 0..sw.min(g.w) {
+                // Taps of this phase (none if the filter is smaller than the stride).
+                let (nj, nl) = (
+                    g.kh.saturating_sub(py).div_ceil(sh),
+                    g.kw.saturating_sub(px).div_ceil(sw),
+                );
+                self.fast.ph_p.clear();
+                self.fast.ph_rows.clear();
+                for i in 0..n {
+                    for (a, iy) in (py..g.h).step_by(sh).enumerate() {
+                        for (bb, ix) in (px..g.w).step_by(sw).enumerate() {
+                            if b.contains(g.h, g.w, iy, ix) {
+                                continue;
+                            }
+                            let (zy, zx) = (a + tj + 1 - nj.max(1), bb + tl + 1 - nl.max(1));
+                            self.fast.ph_p.push(((i * hz + zy) * wz + zx) * co);
+                            self.fast.ph_rows.push(((i * g.h + iy) * g.w + ix) * ci);
+                        }
+                    }
+                }
+                // Tap (j', l', c) is dZ row j' and column l' of the window, filter row
+                // py + SH·(J − 1 − j') and column px + SW·(L − 1 − l').
+                self.fast.ph_q.clear();
+                self.fast.ph_w.clear();
+                for jr in 0..nj {
+                    for lr in 0..nl {
+                        let (ky, kx) = (py + sh * (nj - 1 - jr), px + sw * (nl - 1 - lr));
+                        for c in 0..co {
+                            self.fast.ph_q.push((jr * wz + lr) * co + c);
+                            let wrow = ((ky * g.kw + kx) * ci) * co + c;
+                            self.fast.ph_w.extend((0..ci).map(|k| w[wrow + k * co]));
+                        }
+                    }
+                }
+                T::gather_gemm(GatherGemm {
+                    a: &self.fast.dzpad,
+                    p: &self.fast.ph_p,
+                    q: &self.fast.ph_q,
+                    b: &self.fast.ph_w,
+                    ldb: ci,
+                    n: ci,
+                    c: self.dx.data_mut(),
+                    ldc: ci,
+                    c_rows: Some(&self.fast.ph_rows),
+                    init: Init::Zero,
+                    relu: false,
+                });
+            }
+        }
+        self.zero_input_border(g, n, false);
+    }
+
+    /// The forward pass by [`Kernel::Gather`] or [`Kernel::Winograd`], with `g` the input's
+    /// geometry.
+    pub(super) fn forward_fast(&mut self, g: ConvGeom, x: &Tensor<T>, kernel: Kernel) {
+        let n = x.batch();
+        let a: &[T] = if g.reads_input_directly() {
+            x.data()
+        } else {
+            pad_input(&g, n, x.data(), &mut self.fast.xpad);
+            &self.fast.xpad
+        };
+        g.gather_offsets(n, &mut self.fast.pixels, &mut self.fast.patch);
+        let c_rows = if self.border.is_none() {
+            None
+        } else {
+            self.border
+                .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
+            Some(&self.out_rows[..])
+        };
+        if let Kernel::Winograd(kind) = kernel {
+            // VALID over the (padded) input: every input tile (4×4 pixels, or 3×3 blocks of
+            // s×s) of a 2×2 output tile.
+            let w = self.params[0].value.data();
+            match kind {
+                WinogradKind::F2x3 => {
+                    winograd_filters(w, g.cin, g.cout, false, &mut self.fast.wino_u)
+                }
+                WinogradKind::S2d(s) => {
+                    winograd_filters_s2d(w, s, g.cin, g.cout, &mut self.fast.wino_u)
+                }
+            }
+            self.border
+                .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.fast.wino_pix);
+            let shape = self.winograd_shape(g, n, kind);
+            let bias = Some(self.params[1].value.data());
+            let y = self.y.data_mut();
+            winograd_conv(
+                shape,
+                a,
+                &self.fast.wino_u,
+                bias,
+                self.relu,
+                y,
+                &self.fast.wino_pix,
+                &mut self.fast.wino,
+            );
+            return;
+        }
+        T::gather_gemm(GatherGemm {
+            a,
+            p: &self.fast.pixels,
+            q: &self.fast.patch,
+            b: self.params[0].value.data(),
+            ldb: g.cout,
+            n: g.cout,
+            c: self.y.data_mut(),
+            ldc: g.cout,
+            c_rows,
+            init: Init::Bias(self.params[1].value.data()),
+            relu: self.relu,
+        });
+    }
+
+    /// The weight and input gradients by the plan's fast kernels, with `g` the input's geometry:
+    /// the same products as [`Conv2d::backward_im2col`]. `dz` is `[N·OH·OW, Cout]`.
+    pub(super) fn backward_fast(
+        &mut self,
+        g: ConvGeom,
+        x: &Tensor<T>,
+        dz: &[T],
+        plan: ConvPlan,
+        need_dx: bool,
+    ) {
+        let n = x.batch();
+        let m = self.rows(n);
+        assert_eq!(
+            self.fast.pixels.len(),
+            m,
+            "{}: backward without forward",
+            self.name
+        );
+        let direct = g.reads_input_directly();
+        let a = if direct { x.data() } else { &self.fast.xpad };
+        match plan.weight_grad() {
+            Kernel::Winograd(kind) => {
+                // dW by Winograd: the products' adjoints over the (padded) input's tiles.
+                let shape = self.winograd_shape(g, n, kind);
+                let dw = self.params[0].grad.data_mut();
+                winograd_wgrad(shape, a, dz, dw, &mut self.fast.wino);
+            }
+            _ => {
+                // dW[k, co] += Σ_m xpad[pixels[m] + patch[k]] · dZ[m, co]
+                T::gather_gemm(GatherGemm {
+                    a,
+                    p: &self.fast.patch,
+                    q: &self.fast.pixels,
+                    b: dz,
+                    ldb: g.cout,
+                    n: g.cout,
+                    c: self.params[0].grad.data_mut(),
+                    ldc: g.cout,
+                    c_rows: None,
+                    init: Init::Accumulate,
+                    relu: false,
+                });
+            }
+        }
+        if !need_dx {
+            return;
+        }
+        // dX by Winograd where the input is read in place: the filters of the adjoint
+        // convolution into `wino_u`, where each output goes into `wino_pix`, and its shape.
+        let b = self.in_border;
+        let w = self.params[0].value.data();
+        self.dx.set_shape(&[n, g.h, g.w, g.cin]);
+        let shape = match plan.input_grad() {
+            Kernel::Winograd(WinogradKind::F2x3) => {
+                // The adjoint convolution of dZ (the rotated, transposed filter): interior input
+                // pixel (iy, ix) = (oy + top, ox + left) collects Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx],
+                // i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.
+                let (ih, iw) = (g.h - b.top - b.bottom, g.w - b.left - b.right);
+                winograd_filters(w, g.cin, g.cout, true, &mut self.fast.wino_u);
+                b.interior_offsets(1, ih, iw, g.cin, &mut self.fast.wino_pix);
+                WinogradShape {
+                    n,
+                    h: g.oh,
+                    w: g.ow,
+                    ci: g.cout,
+                    oh: ih,
+                    ow: iw,
+                    pad_top: 2 - b.top,
+                    pad_left: 2 - b.left,
+                    co: g.cin,
+                    out_image: g.in_len(),
+                    out_pieces: 1,
+                    kind: WinogradKind::F2x3,
+                }
+            }
+            Kernel::Winograd(WinogradKind::S2d(s)) => {
+                // Over s × s blocks, the adjoint convolution of dZ is 2×2 over blocks, by F(2×2,
+                // 2×2) (see `winograd_filters_s2d_adjoint`): block (Y, X) collects dZ[Y − by,
+                // X − bx] for by, bx < 2, i.e. dZ read from one pixel above and to the left. Each
+                // block's s² pixels are stored as pieces, except the input border's.
+                winograd_filters_s2d_adjoint(
+                    w,
+                    s,
+                    g.cin,
+                    g.cout,
+                    &mut self.fast.wino_w,
+                    &mut self.fast.wino_u,
+                );
+                self.fast.wino_pix.clear();
+                for by in 0..=g.oh {
+                    for bx in 0..=g.ow {
+                        for (dy, dx) in (0..s).flat_map(|dy| (0..s).map(move |dx| (dy, dx))) {
+                            let (iy, ix) = (s * by + dy, s * bx + dx);
+                            self.fast.wino_pix.push(if b.contains(g.h, g.w, iy, ix) {
+                                SKIP_OUTPUT
+                            } else {
+                                (iy * g.w + ix) * g.cin
+                            });
+                        }
+                    }
+                }
+                WinogradShape {
+                    n,
+                    h: g.oh,
+                    w: g.ow,
+                    ci: g.cout,
+                    oh: g.oh + 1,
+                    ow: g.ow + 1,
+                    pad_top: 1,
+                    pad_left: 1,
+                    co: s * s * g.cin,
+                    out_image: g.in_len(),
+                    out_pieces: s * s,
+                    kind: WinogradKind::S2d(1),
+                }
+            }
+            Kernel::Phases => return self.dx_by_phases(g, dz, n),
+            _ => return self.dx_by_scatter(g, dz, n),
+        };
+        {
+            let (u, pix) = (&self.fast.wino_u, &self.fast.wino_pix);
+            let dx = self.dx.data_mut();
+            winograd_conv(shape, dz, u, None, false, dx, pix, &mut self.fast.wino);
+            self.zero_input_border(g, n, false);
+        }
+    }
+
+    /// `dX` for a padded copy of the input: `dZ·Wᵀ` (with `Wᵀ` packed) added tile by tile onto
+    /// the padded input gradient (col2im fused), whose interior is then `dX`.
+    fn dx_by_scatter(&mut self, g: ConvGeom, dz: &[T], n: usize) {
+        let (m, k) = (self.rows(n), g.patch_len());
+        let w = self.params[0].value.data();
+        // dcols[m, k] = Σ_co dZ[m, co] · Wᵀ[co, k]
+        self.fast.wt.resize(k * g.cout, T::zero());
+        for (kk, wrow) in w.chunks_exact(g.cout).enumerate() {
+            for (co, &v) in wrow.iter().enumerate() {
+                self.fast.wt[co * k + kk] = v;
+            }
+        }
+        fill_iota(&mut self.fast.dy_rows, m, g.cout);
+        fill_iota(&mut self.fast.iota, g.cout, 1);
+        // dxpad[pixels[m] + patch[k]] += dcols[m, k], image by image (col2im fused).
+        self.fast.dxpad.clear();
+        self.fast.dxpad.resize(self.fast.xpad.len(), T::zero());
+        T::scatter_gemm(ScatterGemm {
+            a: dz,
+            p: &self.fast.dy_rows,
+            q: &self.fast.iota,
+            b: &self.fast.wt,
+            ldb: k,
+            n: k,
+            out: &mut self.fast.dxpad,
+            out_rows: &self.fast.pixels,
+            out_cols: &self.fast.patch,
+            groups: n,
+        });
+        unpad_input(&g, n, &self.fast.dxpad, self.dx.data_mut());
+        self.zero_input_border(g, n, true);
+    }
+
+    /// [`Layer::infer`] by [`SparseConv`], with `g` the input's geometry; `false` (nothing
+    /// written) if the input is not sparse enough ([`plan::sparse_share`]): output pixel
+    /// `(i, oy, ox)`'s window starts at padded pixel `(i, oy·SH, ox·SW)` and tap `(ky, kx)` is
+    /// `ky·WP + kx` pixels further on.
+    pub(super) fn infer_sparse(&mut self, g: ConvGeom, x: &Tensor<T>) -> bool {
+        let n = x.batch();
+        assert_eq!(
+            x.shape()[1..],
+            [g.h, g.w, g.cin],
+            "{}: input shape",
+            self.name
+        );
+        self.y.set_shape(&self.out_shape(n));
+        let a: &[T] = if g.reads_input_directly() {
+            x.data()
+        } else {
+            pad_input(&g, n, x.data(), &mut self.fast.xpad);
+            &self.fast.xpad
+        };
+        // The sparse product loads a weight row from L2 for every nonzero value and tap, where
+        // the dense one shares each load between several output pixels: at batch 1 on one
+        // thread they cross at about 22% nonzero for conv2 and conv3 (`cargo bench --bench
+        // layers -- sparse_act`). A batch's dense product is faster per image still (Winograd,
+        // both threads), so a batch takes the sparse one only under a tenth. The count includes
+        // the zero border the layer before wrote: an initial network's conv2 and conv3 inputs on
+        // game frames are 43% and 36% nonzero by it, a trained network's 5% and 1%.
+        let (hp, wp) = g.padded();
+        let share = plan::sparse_share(n);
+        if !self
+            .fast
+            .nz
+            .collect_sparse(a, g.cin, hp * wp * g.cin, share)
+        {
+            return false;
+        }
+        self.fast.sp_windows.clear();
+        for i in 0..n {
+            for oy in 0..g.oh {
+                let row = (i * hp + oy * g.sh) * wp;
+                self.fast
+                    .sp_windows
+                    .extend((0..g.ow).map(|ox| row + ox * g.sw));
+            }
+        }
+        self.fast.sp_taps.clear();
+        for ky in 0..g.kh {
+            self.fast.sp_taps.extend((0..g.kw).map(|kx| ky * wp + kx));
+        }
+        self.border
+            .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
+        SparseConv {
+            x: &self.fast.nz,
+            windows: &self.fast.sp_windows,
+            taps: &self.fast.sp_taps,
+            w: self.params[0].value.data(),
+            bias: self.params[1].value.data(),
+            relu: self.relu,
+            y: self.y.data_mut(),
+            rows: &self.out_rows,
+        }
+        .run();
+        self.zero_border(n);
+        // What the last forward pass left for backward no longer matches `y`: a backward pass
+        // now fails its "backward without forward" check instead of mixing the two.
+        self.fast.pixels.clear();
+        self.cols.clear();
+        true
+    }
+
+    /// [`Layer::infer`] of one image by [`Background`], with `self.geom` the layer's own
+    /// geometry. `false` (nothing written) if more than an eighth of the pixels differ from the
+    /// background.
+    pub(super) fn infer_background(&mut self, x: &Tensor<T>) -> bool {
+        let g = self.geom;
+        let (hp, wp) = g.padded();
+        let padded = !g.reads_input_directly() && x.shape()[1..] == [hp, wp, g.cin];
+        assert!(
+            padded || x.shape()[1..] == [g.h, g.w, g.cin],
+            "{}: input shape {:?}",
+            self.name,
+            x.shape()
+        );
+        // Game frames have 5–13% of their pixels differing (9% typically). With differing
+        // pixels scattered at random, the split's per-pixel work made it 14% faster than the
+        // dense product at a tenth and 1.6–1.8× slower at a fifth (`cargo bench --bench layers
+        // -- sparse_act/conv1`).
+        if !self.fast.bg.split(
+            &g,
+            x.data(),
+            padded,
+            g.h * g.w / plan::BACKGROUND_MAX_DIFFERING,
+        ) {
+            return false;
+        }
+        self.y.set_shape(&self.out_shape(1));
+        self.border
+            .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.out_rows);
+        let [w, b] = &self.params;
+        self.fast.bg.conv(
+            &g,
+            w.value.data(),
+            b.value.data(),
+            self.relu,
+            self.y.data_mut(),
+            &self.out_rows,
+        );
+        self.zero_border(1);
+        // As in `infer_sparse`: a backward pass now fails its check.
+        self.fast.pixels.clear();
+        self.cols.clear();
+        true
+    }
+}

@@ -1,0 +1,298 @@
+//! The kernel plan: which algorithm computes each product of a layer, and why.
+//!
+//! The layers hold the maths (`y = x·W + b` and its gradients); they ask this module which
+//! implementation runs each product for their shape, batch, precision and this CPU, and then
+//! call it. Every threshold is a named constant here, with the measurement behind it. Nothing
+//! else in the library branches on the CPU: the kernels themselves only pick between their
+//! AVX-512 and portable loops by the one check in [`super::cpu`].
+//!
+//! | product | portable (f64, or no AVX-512) | f32 on AVX-512 |
+//! |---|---|---|
+//! | conv forward | [`Kernel::Im2col`] | [`Kernel::Winograd`] where the layer allows it and the batch is at least [`WINOGRAD_MIN_BATCH`], else [`Kernel::Gather`] |
+//! | conv weight gradient | [`Kernel::Im2col`] | as the forward |
+//! | conv input gradient | [`Kernel::Im2col`] | input read in place: [`Kernel::Winograd`] where its adjoint fits, else [`Kernel::Phases`]; a padded copy: [`Kernel::Scatter`] |
+//! | conv acting | [`Kernel::Background`] or [`Kernel::Sparse`] where the layer allows it and the input is sparse enough ([`BACKGROUND_MAX_DIFFERING`], [`sparse_share`]); else the forward | the same |
+//! | dense forward, backward | [`Kernel::Gemm`] | [`Kernel::Gather`] |
+//! | dense acting | [`Kernel::Sparse`] where allowed and sparse enough ([`dense_sparse_share`]); else the forward | the same |
+//!
+//! A new kernel family (bf16, issue 19) is a variant of [`Kernel`] and a rule in the functions
+//! below; the layers change only where they call it.
+//!
+//! Tests can ask which implementation ran: every choice a layer acts on is recorded per thread
+//! ([`last`]), on the thread that called the layer.
+
+use super::{ConvGeom, Float, WinogradKind, MAX_PIECES};
+use crate::tensor::Border;
+use std::cell::Cell;
+
+/// A product a layer computes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Product {
+    /// A convolution's forward pass (also acting when no sparse product ran).
+    ConvForward,
+    /// A convolution's weight gradient.
+    ConvWeightGrad,
+    /// A convolution's input gradient.
+    ConvInputGrad,
+    /// A convolution's [`crate::layers::Layer::infer`]: [`Kernel::Sparse`],
+    /// [`Kernel::Background`] or, when neither ran, the forward pass's kernel.
+    ConvInfer,
+    /// A dense layer's forward pass.
+    DenseForward,
+    /// A dense layer's weight and input gradients.
+    DenseBackward,
+    /// A dense layer's [`crate::layers::Layer::infer`].
+    DenseInfer,
+}
+
+const PRODUCTS: usize = 7;
+
+/// An implementation of a product.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernel {
+    /// im2col, then one GEMM (faer) for the forward pass and the weight gradient; for the input
+    /// gradient a GEMM then col2im. The portable reference path, any precision: what the f64
+    /// gradient checks run.
+    Im2col,
+    /// A plain GEMM (faer) on the layer's rows: a dense layer's portable path.
+    Gemm,
+    /// The AVX-512 gather GEMM ([`crate::tensor::GatherGemm`]), reading the (padded) input
+    /// through offset tables: no im2col matrix is written.
+    Gather,
+    /// A convolution's input gradient for an input read in place, by one gather GEMM per stride
+    /// phase over `dZ` in a zero border: each `dX` value written once.
+    Phases,
+    /// A convolution's input gradient `dZ·Wᵀ` added tile by tile onto a padded input gradient
+    /// ([`crate::tensor::ScatterGemm`], col2im fused).
+    Scatter,
+    /// Winograd's minimal filtering ([`crate::tensor::winograd_conv`]).
+    Winograd(WinogradKind),
+    /// The sum over the input's nonzero values only ([`crate::tensor::SparseConv`]).
+    Sparse,
+    /// A constant background's response plus the sparse difference's
+    /// ([`crate::tensor::Background`]).
+    Background,
+}
+
+thread_local! {
+    static LAST: [Cell<Option<Kernel>>; PRODUCTS] = const { [const { Cell::new(None) }; PRODUCTS] };
+}
+
+/// Records that `kernel` runs `product` on this thread, and returns it.
+pub fn ran(product: Product, kernel: Kernel) -> Kernel {
+    LAST.with(|l| l[product as usize].set(Some(kernel)));
+    kernel
+}
+
+/// The implementation that last ran `product` on this thread (`None` before the first).
+pub fn last(product: Product) -> Option<Kernel> {
+    LAST.with(|l| l[product as usize].get())
+}
+
+/// Batches under this keep the direct product instead of Winograd: the filters are transformed
+/// on every call, and at batch 1 (acting) F(2×2, 3×3) measured 30% slower for conv3.
+pub const WINOGRAD_MIN_BATCH: usize = 8;
+
+/// Winograd for layers with at least this many input channels
+/// ([`crate::dqn::article_qnet`]: conv2 with 32, conv3 with 64). conv1 (4 input channels, so 9
+/// products of only 64 × 32 per 8×8 pixels, and 5.9 MB of input read by a transform that cannot
+/// hide the memory behind arithmetic) measured the train step 2% slower by F(2×2, 2×2) over
+/// 4×4 blocks, and its weight gradient alone level. Between 4 and 32 nothing was measured.
+pub const WINOGRAD_MIN_INPUT_CHANNELS: usize = 32;
+
+/// Whether Winograd pays for a layer of geometry `g` ([`WINOGRAD_MIN_INPUT_CHANNELS`]):
+/// the network builder's default for [`crate::layers::Conv2d::with_winograd`].
+pub fn winograd_pays(g: &ConvGeom) -> bool {
+    winograd_kind(g).is_some() && g.cin >= WINOGRAD_MIN_INPUT_CHANNELS
+}
+
+/// The Winograd algorithm for a filter shape, if it has one:
+/// - a 3×3 stride-1 filter by F(2×2, 3×3): 4/9 of the multiply-adds;
+/// - a `2s × 2s` filter of stride `s` (conv1: 8×8 stride 4; conv2: 4×4 stride 2) by F(2×2,
+///   2×2) over `s × s` pixel blocks: 9/16 of the multiply-adds.
+pub fn winograd_kind(g: &ConvGeom) -> Option<WinogradKind> {
+    match (g.kh, g.kw, g.sh, g.sw) {
+        (3, 3, 1, 1) => Some(WinogradKind::F2x3),
+        (kh, kw, sh, sw) if kh == kw && sh == sw && kh == 2 * sh => Some(WinogradKind::S2d(sh)),
+        _ => None,
+    }
+}
+
+/// The kernels of a convolution's training products for one batch (see [`conv`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ConvPlan {
+    forward: Kernel,
+    weight_grad: Kernel,
+    input_grad: Kernel,
+}
+
+impl ConvPlan {
+    /// The forward product's kernel (recorded as run, [`last`]).
+    pub fn forward(&self) -> Kernel {
+        ran(Product::ConvForward, self.forward)
+    }
+
+    /// The weight gradient's kernel (recorded as run).
+    pub fn weight_grad(&self) -> Kernel {
+        ran(Product::ConvWeightGrad, self.weight_grad)
+    }
+
+    /// The input gradient's kernel (recorded as run).
+    pub fn input_grad(&self) -> Kernel {
+        ran(Product::ConvInputGrad, self.input_grad)
+    }
+}
+
+/// The kernels for a convolution of (input) geometry `g` on a batch of `n` in precision `T`,
+/// with Winograd allowed or not, whose input has the zero border `in_border` (written by the
+/// layer before; its gradient is not computed).
+///
+/// - Where [`Float::simd`] (f32 on AVX-512): the gather GEMM, on a zero-padded copy of the input
+///   or on the input itself when it needs no padding. It writes no im2col matrix (16× the input
+///   for conv1, 21 MB at batch 48), starts from the bias and stores `max(·, 0)` straight into
+///   the bordered output. Otherwise im2col + GEMM, which any precision runs.
+/// - Winograd (allowed, shape has one, batch at least [`WINOGRAD_MIN_BATCH`]): measured on the
+///   1-thread train step, conv3's forward and input gradient about 2–5% faster, its weight
+///   gradient about 4% and conv2's forward about 2%; conv2's weight gradient went from 4.7 to
+///   3.6 ms, its input gradient from 5.1–7.2 to 3.9–4.4 ms (`kbench net`, one thread, 3
+///   alternating rounds). The products reduce over few values (64 channels for conv3, 128 for
+///   conv2) and the transforms add passes over tiles 2.25× the input, so the saving is less
+///   than the multiply-adds.
+/// - The input gradient by Winograd needs the input read in place (its adjoint is again a
+///   convolution over it): F(2×2, 3×3) when the input border is at most 2 above and left (the
+///   adjoint's padding), F(2×2, 2×2) over blocks when the blocks tile the input exactly and a
+///   block has at most [`MAX_PIECES`] pixels. Otherwise, for an input read in place, by stride
+///   phases (each `dX` value written once); for a padded copy, scattered onto the padded
+///   gradient.
+pub fn conv<T: Float>(g: &ConvGeom, n: usize, winograd: bool, in_border: Border) -> ConvPlan {
+    if !T::simd() {
+        return ConvPlan {
+            forward: Kernel::Im2col,
+            weight_grad: Kernel::Im2col,
+            input_grad: Kernel::Im2col,
+        };
+    }
+    let wino = winograd_kind(g).filter(|_| winograd && n >= WINOGRAD_MIN_BATCH);
+    let direct = g.reads_input_directly();
+    let b = in_border;
+    let input_grad = match wino {
+        Some(WinogradKind::F2x3) if direct && b.top <= 2 && b.left <= 2 => {
+            Kernel::Winograd(WinogradKind::F2x3)
+        }
+        Some(WinogradKind::S2d(s))
+            if direct && g.h == s * (g.oh + 1) && g.w == s * (g.ow + 1) && s * s <= MAX_PIECES =>
+        {
+            Kernel::Winograd(WinogradKind::S2d(s))
+        }
+        _ if direct => Kernel::Phases,
+        _ => Kernel::Scatter,
+    };
+    let product = wino.map_or(Kernel::Gather, Kernel::Winograd);
+    ConvPlan {
+        forward: product,
+        weight_grad: product,
+        input_grad,
+    }
+}
+
+/// A convolution's acting ([`crate::layers::Layer::infer`]) by [`Kernel::Background`] takes one
+/// image of which at most `1/BACKGROUND_MAX_DIFFERING` of the pixels differ from the
+/// background. Game frames have 5–13% of their pixels differing (9% typically). With differing
+/// pixels scattered at random, the split's per-pixel work made it 14% faster than the dense
+/// product at a tenth and 1.6–1.8× slower at a fifth (`cargo bench --bench layers --
+/// sparse_act/conv1`).
+pub const BACKGROUND_MAX_DIFFERING: usize = 8;
+
+/// Whether acting on a batch of `n` may try [`Kernel::Background`] (allowed by the layer: it
+/// reads frames): one image only.
+pub fn background(allowed: bool, n: usize) -> bool {
+    allowed && n == 1
+}
+
+/// Acting by [`Kernel::Sparse`] on one image takes an input of which at most
+/// `1/SPARSE_MAX_NONZERO_ONE` is nonzero. The sparse product loads a weight row from L2 for every
+/// nonzero value and tap, where the dense one shares each load between several output pixels:
+/// at batch 1 on one thread they cross at about 22% nonzero for conv2 and conv3 (`cargo bench
+/// --bench layers -- sparse_act`). The count includes the zero border the layer before wrote:
+/// an initial network's conv2 and conv3 inputs on game frames are 43% and 36% nonzero by it, a
+/// trained network's 5% and 1%.
+pub const SPARSE_MAX_NONZERO_ONE: usize = 5;
+
+/// The same for a batch: a batch's dense product is faster per image still (Winograd, both
+/// threads), so a batch takes the sparse one only under a tenth.
+pub const SPARSE_MAX_NONZERO_BATCH: usize = 10;
+
+/// `share` for [`crate::tensor::Nonzeros::collect_sparse`] when a convolution acts on a batch
+/// of `n`: the sparse product runs if at most `1/share` of the (padded) input is nonzero.
+pub fn sparse_share(n: usize) -> usize {
+    if n == 1 {
+        SPARSE_MAX_NONZERO_ONE
+    } else {
+        SPARSE_MAX_NONZERO_BATCH
+    }
+}
+
+/// The same for a dense layer: one sample always takes the sparse product (a GEMV reads every
+/// weight row, the sparse one only the nonzero inputs' rows); a batch only under a tenth
+/// nonzero ([`SPARSE_MAX_NONZERO_BATCH`]: the dense product reads each weight row once for
+/// the whole batch, the sparse one once per sample that needs it).
+pub fn dense_sparse_share(n: usize) -> usize {
+    if n == 1 {
+        1
+    } else {
+        SPARSE_MAX_NONZERO_BATCH
+    }
+}
+
+/// A dense layer's forward or backward kernel in precision `T`: the gather GEMM where
+/// [`Float::simd`] (rows `i·In` and steps `0..In` make it a plain `x·W`), else the GEMM.
+pub fn dense<T: Float>() -> Kernel {
+    if T::simd() {
+        Kernel::Gather
+    } else {
+        Kernel::Gemm
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::layers::{Conv2d, Layer};
+    use crate::tensor::{Padding, Tensor};
+
+    /// The layer records what it ran: f64 always takes im2col (what the gradient checks test);
+    /// f32 takes the plan's AVX-512 kernels where the CPU has them.
+    #[test]
+    fn the_layer_reports_the_kernel_it_ran() {
+        let g = ConvGeom::new(10, 10, 32, 16, 3, 3, (1, 1), Padding::Valid).unwrap();
+        let x = Tensor::<f64>::zeros(&[8, 10, 10, 32]);
+        let mut conv = Conv2d::<f64>::new("c", g).with_winograd(true);
+        conv.forward(&x);
+        assert_eq!(last(Product::ConvForward), Some(Kernel::Im2col));
+        let dy = Tensor::<f64>::zeros(&[8, 8, 8, 16]);
+        conv.backward(&x, &dy, true);
+        assert_eq!(last(Product::ConvWeightGrad), Some(Kernel::Im2col));
+        assert_eq!(last(Product::ConvInputGrad), Some(Kernel::Im2col));
+
+        let x = Tensor::<f32>::zeros(&[8, 10, 10, 32]);
+        let mut conv = Conv2d::<f32>::new("c", g).with_winograd(true);
+        conv.forward(&x);
+        let expected = if f32::simd() {
+            Kernel::Winograd(WinogradKind::F2x3)
+        } else {
+            Kernel::Im2col
+        };
+        assert_eq!(last(Product::ConvForward), Some(expected));
+        conv.forward(&Tensor::zeros(&[1, 10, 10, 32]));
+        let at_one = if f32::simd() {
+            Kernel::Gather
+        } else {
+            Kernel::Im2col
+        };
+        assert_eq!(
+            last(Product::ConvForward),
+            Some(at_one),
+            "batch 1: no Winograd"
+        );
+    }
+}
