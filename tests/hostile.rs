@@ -3,52 +3,16 @@
 //! hangs, interruptions). Each asserts a clear message, the exit code, and that nothing earlier
 //! was harmed.
 
+mod common;
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_invaders"));
-    c.env_remove("RUST_BACKTRACE");
-    c
-}
-
-fn invaders(args: &[&str]) -> Output {
-    bin().args(args).output().expect("the binary runs")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
-
-fn ok(out: &Output) -> String {
-    assert!(out.status.success(), "command failed:\n{}", text(out));
-    text(out)
-}
-
-/// Asserts a clear failure: exit code 1, every one of `needles` in the message, no panic.
-fn fails_with(out: &Output, needles: &[&str]) -> String {
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert_eq!(out.status.code(), Some(1), "expected exit code 1:\n{err}");
-    for n in needles {
-        assert!(err.contains(n), "error should mention `{n}`:\n{err}");
-    }
-    assert!(
-        !err.contains("panicked"),
-        "a panic is not a clear error:\n{err}"
-    );
-    err
-}
+use common::cli::{bin, fails_with, invaders, ok, tmp_dir};
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("invaders-hostile-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tmp_dir("invaders-hostile", name)
 }
 
 /// Short episodes (cut at 50 agent steps, so two seeds reach the same counters), learning early.
@@ -80,6 +44,21 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
+/// One episode of `run`'s checkpoint, recorded to `gif`.
+fn eval_gif(run: &Path, gif: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "eval",
+        "--checkpoint",
+        s(run),
+        "--episodes",
+        "1",
+        "--gif",
+        s(gif),
+    ];
+    args.extend_from_slice(extra);
+    invaders(&args)
+}
+
 #[test]
 fn nothing_a_user_types_loses_or_damages_data() {
     let root = tmp("data");
@@ -92,44 +71,13 @@ fn nothing_a_user_types_loses_or_damages_data() {
 
     // An output path never replaces an input, nor an existing file without --force, and a
     // directory is refused before any episode is played, leaving no temporary file.
+    fails_with(&eval_gif(&a, &ckpt, &[]), &["refusing to write over it"]);
     fails_with(
-        &invaders(&[
-            "eval",
-            "--checkpoint",
-            s(&a),
-            "--episodes",
-            "1",
-            "--gif",
-            s(&ckpt),
-        ]),
-        &["refusing to write over it"],
-    );
-    fails_with(
-        &invaders(&[
-            "eval",
-            "--checkpoint",
-            s(&a),
-            "--episodes",
-            "1",
-            "--gif",
-            s(&ckpt),
-            "--force",
-        ]),
+        &eval_gif(&a, &ckpt, &["--force"]),
         &["refusing to write over it"],
     );
     let metrics = a.join("metrics.csv");
-    fails_with(
-        &invaders(&[
-            "eval",
-            "--checkpoint",
-            s(&a),
-            "--episodes",
-            "1",
-            "--gif",
-            s(&metrics),
-        ]),
-        &["exists", "--force"],
-    );
+    fails_with(&eval_gif(&a, &metrics, &[]), &["exists", "--force"]);
     let dir_out = invaders(&[
         "eval",
         "--checkpoint",

@@ -3,6 +3,9 @@
 //! stopping the run, and write failures (a blocked path, a full disk) keeping the previous
 //! checkpoint.
 
+mod common;
+
+use common::cli::{bin, fails_with, invaders, ok, tmp_dir};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -10,47 +13,8 @@ use std::time::{Duration, Instant};
 use invaders::dqn::checkpoint::{self, CHECKPOINT_FILE};
 use safetensors::SafeTensors;
 
-fn bin() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_invaders"));
-    c.env_remove("RUST_BACKTRACE");
-    c
-}
-
-fn invaders(args: &[&str]) -> Output {
-    bin().args(args).output().expect("the binary runs")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
-
-fn ok(out: &Output) {
-    assert!(out.status.success(), "command failed:\n{}", text(out));
-}
-
-/// Asserts a clear failure: exit code 1, every `needles` in the message, no panic.
-fn fails_with(out: &Output, needles: &[&str]) -> String {
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert_eq!(out.status.code(), Some(1), "expected exit code 1:\n{err}");
-    for n in needles {
-        assert!(err.contains(n), "error should mention `{n}`:\n{err}");
-    }
-    assert!(
-        !err.contains("panicked"),
-        "a panic is not a clear error:\n{err}"
-    );
-    err
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("invaders-rel-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tmp_dir("invaders-rel", name)
 }
 
 /// A fast but complete configuration: short episodes, learning from step 40, a replay memory

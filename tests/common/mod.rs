@@ -1,6 +1,8 @@
 //! Helpers shared by the integration tests.
 #![allow(dead_code)]
 
+pub mod cli;
+
 use invaders::layers::Layer;
 use invaders::tensor::{Float, Tensor};
 use proptest::prelude::*;

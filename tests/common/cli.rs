@@ -1,0 +1,53 @@
+//! Running the `invaders` binary from a test, and asserting on what it says.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+/// The binary, without a backtrace setting inherited from the test's environment.
+pub fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_invaders"));
+    c.env_remove("RUST_BACKTRACE");
+    c
+}
+
+/// Runs the binary to completion.
+pub fn invaders(args: &[&str]) -> Output {
+    bin().args(args).output().expect("the binary runs")
+}
+
+/// Standard output then standard error.
+pub fn text(out: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+/// Asserts success; returns what it printed.
+pub fn ok(out: &Output) -> String {
+    assert!(out.status.success(), "command failed:\n{}", text(out));
+    text(out)
+}
+
+/// Asserts a clear failure: exit code 1, every one of `needles` in the message, no panic.
+pub fn fails_with(out: &Output, needles: &[&str]) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(1), "expected exit code 1:\n{err}");
+    for n in needles {
+        assert!(err.contains(n), "error should mention `{n}`:\n{err}");
+    }
+    assert!(
+        !err.contains("panicked"),
+        "a panic is not a clear error:\n{err}"
+    );
+    err
+}
+
+/// A new empty directory under the system's temporary one, named after the test process.
+pub fn tmp_dir(prefix: &str, name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("{prefix}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
