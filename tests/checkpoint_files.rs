@@ -3,6 +3,8 @@
 //! damage; property tests cover random truncation points, random byte flips in the header and
 //! random bytes.
 
+mod common;
+
 use std::collections::HashMap;
 use std::sync::OnceLock;
 
@@ -364,7 +366,7 @@ fn header_end(bytes: &[u8]) -> usize {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(48), ..ProptestConfig::default() })]
 
     /// Any truncation is an error.
     #[test]

@@ -32,7 +32,7 @@ fn randomise(layer: &mut dyn Layer<f64>, seed: u64) {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(96), ..ProptestConfig::default() })]
 
     /// Conv2d: kernel 1..8 (height and width drawn separately), strides 1/2/4 (separately),
     /// SAME and VALID, 1..3 channels in and out, batch 1..2, with and without the fused ReLU

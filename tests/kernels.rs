@@ -14,7 +14,7 @@ use invaders::tensor::{
 use proptest::prelude::*;
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(64), ..ProptestConfig::default() })]
 
     /// The parallel GEMM for every transpose combination, with beta 0 (overwrite, even NaN) and 1
     /// (accumulate), at sizes that split into several row blocks.
@@ -464,7 +464,7 @@ fn winograd_s2d_case<T: Float>(
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(64), ..ProptestConfig::default() })]
 
     /// Winograd F(2×2, 2×2) over blocks, f32 (AVX-512 transforms where `s·ci` and `co` are
     /// multiples of 16) and f64 (portable), odd and even output sizes: forward, weight gradient
@@ -497,7 +497,7 @@ proptest! {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 16, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(16), ..ProptestConfig::default() })]
 
     /// The article's conv1 (8×8 stride 4 over 4 frames) and conv2 (4×4 stride 2, 32 → 64
     /// channels) as `Conv2d` layers with Winograd on, at a batch of 8 (where it runs, on the
@@ -669,7 +669,7 @@ fn prepadded_case<T: Float>(
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(48), ..ProptestConfig::default() })]
 
     /// A pre-padded input, on the fast path (f32) and the portable one (f64).
     #[test]
@@ -889,7 +889,7 @@ fn gather_gemm_refuses_out_of_range_tables() {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(64), ..ProptestConfig::default() })]
 
     /// `transpose` (16 × 16 register blocks and value-by-value edges on AVX-512, blocks of 64
     /// rows otherwise) moves every value exactly, f32 and f64, for any shape.

@@ -177,7 +177,7 @@ fn dense_case<T: Float>(
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: common::cases(64), ..ProptestConfig::default() })]
 
     #[test]
     fn nonzeros_lists_each_pixels_nonzero_channels(

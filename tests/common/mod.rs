@@ -9,6 +9,15 @@ use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// Proptest cases for a property: `default`, or `PROPTEST_CASES` from the environment for a
+/// longer (or shorter) sweep, e.g. `PROPTEST_CASES=2000 cargo test --release --test gradcheck`.
+pub fn cases(default: u32) -> u32 {
+    std::env::var("PROPTEST_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
 /// A seeded generator.
 pub fn rng(seed: u64) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(seed)
