@@ -196,10 +196,8 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     let config = model.config;
     let mut env_config = config.env.clone();
     if let Some(mode) = plan.mode {
-        env_config = EnvConfig {
-            rom: env_config.rom,
-            ..EnvConfig::from_mode(mode)
-        };
+        // The game's dynamics change; the preprocessing the network was trained on does not.
+        env_config = env_config.with_mode(mode);
     }
     if args.rom.is_some() {
         env_config.rom = args.rom.clone();

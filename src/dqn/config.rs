@@ -4,7 +4,7 @@
 //! keys of an optional TOML file, then command-line flags. Unknown keys and out-of-range values
 //! are errors, and the resolved configuration is saved with the run as `config.toml`.
 
-use crate::env::{EnvConfig, EnvMode, Normalization, Pipeline};
+use crate::env::{Downsample, EnvConfig, EnvMode, Normalization, Pipeline};
 use crate::layers::loss::LossKind;
 use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
@@ -223,7 +223,10 @@ impl Config {
                 clip_rewards: true,
                 checkpoint_every: 50,
                 plot_every: 25,
-                env: EnvConfig::from_mode(EnvMode::V5),
+                env: EnvConfig {
+                    downsample: Downsample::Max,
+                    ..EnvConfig::from_mode(EnvMode::V5)
+                },
                 ..article
             },
         }
@@ -255,7 +258,7 @@ impl Config {
                 .map_err(|e| anyhow::anyhow!("config key `env.mode`: {e}"))?;
             base.insert(
                 "env".into(),
-                toml::Value::try_from(EnvConfig::from_mode(mode))
+                toml::Value::try_from(Config::preset(p).env.with_mode(mode))
                     .expect("an env config serialises"),
             );
         }

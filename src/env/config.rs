@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
+use super::preprocess::Downsample;
 use super::EnvError;
 
 /// The most emulator frames one agent step may repeat an action for.
@@ -67,6 +68,9 @@ pub struct EnvConfig {
     /// default) disables it; the article's value is [`MSPACMAN_RGB_SUM`](super::MSPACMAN_RGB_SUM),
     /// which never occurs in Space Invaders.
     pub contrast_rgb_sum: Option<u16>,
+    /// How each 2 x 2 pixel block becomes one pixel of the 88 x 80 frame: `pick` its top-left
+    /// pixel (the article's, and the default) or its `max` (keeps one-pixel-wide shots).
+    pub downsample: Downsample,
     /// Let ALE print its informational console output.
     pub ale_verbose: bool,
 }
@@ -85,6 +89,7 @@ impl EnvConfig {
             full_action_set: false,
             rom: None,
             contrast_rgb_sum: None,
+            downsample: Downsample::Pick,
             ale_verbose: false,
         };
         match mode {
@@ -105,6 +110,19 @@ impl EnvConfig {
                 max_episode_steps: Some(27_000),
                 ..base
             },
+        }
+    }
+
+    /// `mode`'s dynamics (frame skip, sticky actions, max-pool, no-ops, episode cut, action set)
+    /// with this configuration's preprocessing (`contrast_rgb_sum`, `downsample`), ROM and
+    /// verbosity: what choosing a game mode changes, for a run or an evaluation.
+    pub fn with_mode(&self, mode: EnvMode) -> EnvConfig {
+        EnvConfig {
+            rom: self.rom.clone(),
+            contrast_rgb_sum: self.contrast_rgb_sum,
+            downsample: self.downsample,
+            ale_verbose: self.ale_verbose,
+            ..EnvConfig::from_mode(mode)
         }
     }
 
@@ -161,10 +179,15 @@ impl EnvConfig {
 
     /// The settings that shape the game's dynamics, as text; a saved state records it so it is
     /// not restored into a differently configured environment. (The ROM path and verbosity may
-    /// differ; the mode label is ignored as only the knobs matter.)
+    /// differ; the mode label is ignored as only the knobs matter. The downsampling is named
+    /// only when it is not the default, so the fingerprints of earlier checkpoints still match.)
     pub(crate) fn dynamics_fingerprint(&self) -> String {
+        let downsample = match self.downsample {
+            Downsample::Pick => String::new(),
+            d => format!(" downsample={d:?}"),
+        };
         format!(
-            "skip={}..={} sticky={} maxpool={} noop={} limit={:?} full={} contrast={:?}",
+            "skip={}..={} sticky={} maxpool={} noop={} limit={:?} full={} contrast={:?}{downsample}",
             self.frame_skip_min,
             self.frame_skip_max,
             self.sticky_prob,
@@ -201,6 +224,7 @@ struct PartialEnvConfig {
     rom: Option<Option<PathBuf>>,
     #[serde(default, deserialize_with = "present")]
     contrast_rgb_sum: Option<Option<u16>>,
+    downsample: Option<Downsample>,
     ale_verbose: Option<bool>,
 }
 
@@ -242,6 +266,7 @@ impl TryFrom<PartialEnvConfig> for EnvConfig {
             full_action_set: p.full_action_set.unwrap_or(d.full_action_set),
             rom: p.rom.unwrap_or(d.rom),
             contrast_rgb_sum: p.contrast_rgb_sum.unwrap_or(d.contrast_rgb_sum),
+            downsample: p.downsample.unwrap_or(d.downsample),
             ale_verbose: p.ale_verbose.unwrap_or(d.ale_verbose),
         };
         c.validate()?;

@@ -3,7 +3,8 @@
 //! The Atari screen is 210 rows by 160 columns of RGB. The article keeps rows 25, 27, ..., 199
 //! (`obs[25:201:2]`, which drops the score bar at the top and the ground at the bottom and halves
 //! the height) and every second column (`obs[:, ::2]`), giving an 88 x 80 image, then averages the
-//! three colour channels into one grey value.
+//! three colour channels into one grey value. Picking one pixel of each 2 x 2 block loses the
+//! one-pixel-wide shots in odd columns; [`Downsample::Max`] keeps them (the `strong` preset).
 //!
 //! Frames stay `u8` (7 040 bytes each) so a replay memory of a million frames fits in memory;
 //! they become `f32` only when written into the network's input, by [`normalize_into`].
@@ -28,28 +29,70 @@ pub const CROP_TOP: usize = 25;
 /// (the test suite checks this on real frames). It is therefore off by default.
 pub const MSPACMAN_RGB_SUM: u16 = 210 + 164 + 74;
 
+/// How each 2 x 2 block of screen pixels (rows `y, y + 1`, columns `x, x + 1`) becomes one
+/// pixel of the 88 x 80 frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Downsample {
+    /// The block's top-left pixel: the article's `obs[25:201:2, ::2]`. Space Invaders draws its
+    /// shots one pixel wide, so every shot in an odd column is invisible to the network.
+    #[default]
+    Pick,
+    /// The brightest grey of the block (a 2 x 2 max pool): a one-pixel shot stays visible
+    /// wherever it is. Used by the `strong` preset.
+    Max,
+}
+
 /// Crops, downsamples and greys one RGB screen into an 88 x 80 frame.
 ///
-/// Grey is the integer mean of the three channels rounded down, `(r + g + b) / 3`. The article's
-/// code takes the floating-point mean; flooring differs from it by less than one grey level.
+/// Output pixel `(r, c)` comes from screen rows `25 + 2r` (and `26 + 2r`) and columns `2c`
+/// (and `2c + 1`), as [`Downsample`] says. Grey is the integer mean of the three channels
+/// rounded down, `(r + g + b) / 3`. The article's code takes the floating-point mean; flooring
+/// differs from it by less than one grey level.
 ///
 /// `contrast`: if `Some(sum)`, pixels whose `r + g + b == sum` become 0 (the article's contrast
-/// step, compared on the exact RGB sum as the article's float comparison effectively does).
+/// step, compared on the exact RGB sum as the article's float comparison effectively does),
+/// before any max is taken.
 ///
 /// # Panics
 /// If `rgb.len() != 210 * 160 * 3` or `out.len() != 88 * 80`.
-pub fn preprocess_rgb(rgb: &[u8], contrast: Option<u16>, out: &mut [u8]) {
+pub fn preprocess_rgb(rgb: &[u8], contrast: Option<u16>, downsample: Downsample, out: &mut [u8]) {
     assert_eq!(rgb.len(), SCREEN_RGB_LEN, "RGB screen has the wrong length");
     assert_eq!(out.len(), FRAME_LEN, "frame buffer has the wrong length");
     let key = contrast.map(u32::from).unwrap_or(u32::MAX);
+    let grey = |px: &[u8]| {
+        let sum = px[0] as u32 + px[1] as u32 + px[2] as u32;
+        if sum == key {
+            0
+        } else {
+            (sum / 3) as u8
+        }
+    };
+    let screen_row = |y: usize| &rgb[y * SCREEN_WIDTH * 3..(y + 1) * SCREEN_WIDTH * 3];
     for (r, out_row) in out.chunks_exact_mut(FRAME_WIDTH).enumerate() {
         let y = CROP_TOP + 2 * r;
-        debug_assert!(y < SCREEN_HEIGHT);
-        let row = &rgb[y * SCREEN_WIDTH * 3..(y + 1) * SCREEN_WIDTH * 3];
-        // Every second pixel: a stride of 6 bytes.
-        for (o, px) in out_row.iter_mut().zip(row.chunks_exact(6)) {
-            let sum = px[0] as u32 + px[1] as u32 + px[2] as u32;
-            *o = if sum == key { 0 } else { (sum / 3) as u8 };
+        debug_assert!(y + 1 < SCREEN_HEIGHT);
+        let top = screen_row(y);
+        match downsample {
+            // Every second pixel: a stride of 6 bytes.
+            Downsample::Pick => {
+                for (o, px) in out_row.iter_mut().zip(top.chunks_exact(6)) {
+                    *o = grey(px);
+                }
+            }
+            Downsample::Max => {
+                let bottom = screen_row(y + 1);
+                for ((o, a), b) in out_row
+                    .iter_mut()
+                    .zip(top.chunks_exact(6))
+                    .zip(bottom.chunks_exact(6))
+                {
+                    *o = grey(&a[..3])
+                        .max(grey(&a[3..]))
+                        .max(grey(&b[..3]))
+                        .max(grey(&b[3..]));
+                }
+            }
         }
     }
 }
@@ -128,13 +171,13 @@ mod tests {
             }
         }
         let mut out = vec![0u8; FRAME_LEN];
-        preprocess_rgb(&by_row, None, &mut out);
+        preprocess_rgb(&by_row, None, Downsample::Pick, &mut out);
         for r in 0..FRAME_HEIGHT {
             assert!(out[r * FRAME_WIDTH..(r + 1) * FRAME_WIDTH]
                 .iter()
                 .all(|&v| v as usize == 25 + 2 * r));
         }
-        preprocess_rgb(&by_col, None, &mut out);
+        preprocess_rgb(&by_col, None, Downsample::Pick, &mut out);
         for (c, &v) in out[..FRAME_WIDTH].iter().enumerate() {
             assert_eq!(v as usize, 2 * c);
         }
@@ -150,10 +193,33 @@ mod tests {
         let k = (CROP_TOP * SCREEN_WIDTH + 6) * 3;
         rgb[k..k + 3].copy_from_slice(&[210, 164, 75]); // one off
         let mut out = vec![0u8; FRAME_LEN];
-        preprocess_rgb(&rgb, None, &mut out);
+        preprocess_rgb(&rgb, None, Downsample::Pick, &mut out);
         assert_eq!(&out[..4], &[0, 1, 149, 149]);
-        preprocess_rgb(&rgb, Some(MSPACMAN_RGB_SUM), &mut out);
+        preprocess_rgb(&rgb, Some(MSPACMAN_RGB_SUM), Downsample::Pick, &mut out);
         assert_eq!(&out[..4], &[0, 1, 0, 149]);
+    }
+
+    /// A one-pixel shot in an odd column (x = 47) and odd row vanishes when the top-left pixel
+    /// of each block is picked and survives the max, at its block (row 0, column 23).
+    #[test]
+    fn max_keeps_a_one_pixel_shot_that_pick_loses() {
+        let mut rgb = vec![0u8; SCREEN_RGB_LEN];
+        let shot = |y: usize| ((y * SCREEN_WIDTH) + 47) * 3;
+        let i = shot(CROP_TOP + 1);
+        rgb[i..i + 3].copy_from_slice(&[142, 142, 142]);
+        let j = (CROP_TOP * SCREEN_WIDTH + 46) * 3; // the block's top-left pixel, dimmer
+        rgb[j..j + 3].copy_from_slice(&[30, 30, 30]);
+        let mut out = vec![0u8; FRAME_LEN];
+        preprocess_rgb(&rgb, None, Downsample::Pick, &mut out);
+        assert_eq!(out[23], 30);
+        assert_eq!(out.iter().map(|&v| v as u32).sum::<u32>(), 30);
+        preprocess_rgb(&rgb, None, Downsample::Max, &mut out);
+        assert_eq!(out[23], 142);
+        assert_eq!(out.iter().map(|&v| v as u32).sum::<u32>(), 142);
+        // The contrast colour is blanked before the max: it cannot win a block.
+        rgb[i..i + 3].copy_from_slice(&[210, 164, 74]);
+        preprocess_rgb(&rgb, Some(MSPACMAN_RGB_SUM), Downsample::Max, &mut out);
+        assert_eq!(out[23], 30);
     }
 
     #[test]
