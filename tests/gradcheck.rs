@@ -7,7 +7,7 @@
 mod common;
 
 use common::*;
-use invaders::dqn::qnet;
+use invaders::dqn::{qnet, ARTICLE_HIDDEN};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::loss::{huber, mse};
 use invaders::layers::{Conv2d, Dense, Dueling, Flatten, Layer, Relu};
@@ -149,18 +149,26 @@ fn losses_known_values() {
 /// at a reduced input size, end to end through `Sequential`, including the input gradient.
 #[test]
 fn article_qnet_gradients() {
-    qnet_gradients(false);
+    qnet_gradients(ARTICLE_HIDDEN, false);
 }
 
-/// The same with the dueling head (dense 1 + 6, then `Q = V + A − mean A`).
+/// The same with the dueling head (dense 1 + 6, then `Q = V + A − mean A`) and a dense layer of
+/// another width (40).
 #[test]
 fn dueling_qnet_gradients() {
-    qnet_gradients(true);
+    qnet_gradients(40, true);
 }
 
-fn qnet_gradients(dueling: bool) {
+fn qnet_gradients(hidden: usize, dueling: bool) {
     let mut r = rng(7);
-    let mut net = qnet::<f64>([21, 19, 2], 6, dueling, &VarianceScaling::HE, &mut r);
+    let mut net = qnet::<f64>(
+        [21, 19, 2],
+        6,
+        hidden,
+        dueling,
+        &VarianceScaling::HE,
+        &mut r,
+    );
     // Non-zero biases, so bias indexing is exercised too.
     for p in net.params_mut() {
         if p.name.ends_with(".bias") {

@@ -196,8 +196,7 @@ impl<G: Game> Agent<G> {
         let input = config.input_shape();
         Agent {
             observer: Observer::new(config.pipeline),
-            replay: Replay::new(config.replay_capacity, config.pipeline.channels())
-                .with_returns(config.n_step as usize, config.gamma as f32),
+            replay: config.new_replay(),
             table: config.normalization.table(),
             input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
             batch: Batch::padded(config.batch_size, input),
@@ -332,6 +331,8 @@ impl<G: Game> Agent<G> {
                 self.replay
                     .sample(&mut self.sample_rng, &self.table, &mut self.batch);
                 let stats = self.learner.train_step(&self.batch);
+                self.replay
+                    .update_priorities(&self.batch.entries, self.learner.td_errors());
                 self.counters.train_steps += 1;
                 self.check_finite(&stats, t)?;
                 metrics.add_train_step(&stats);

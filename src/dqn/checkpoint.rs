@@ -42,6 +42,8 @@
 //! | `replay.actions` | U8 | `[len]` |
 //! | `replay.rewards` | F32 | `[len]` (after clipping, as stored) |
 //! | `replay.flags` | U8 | `[len]`: bit 0 done, bit 1 episode start, bit 2 acted on |
+//! | `replay.priorities` | F64 | `[len]`: each slot's priority (only if `prioritized`) |
+//! | `replay.max_priority` | F64 | `[1]`: the largest priority ever set (only if `prioritized`) |
 //!
 //! Metadata: `format`, `checksum`, `written` (the entry counter), `capacity`, `frames_per_state`,
 //! and the `episodes` and `agent_steps` of the checkpoint it belongs to (checked on loading).
@@ -604,6 +606,7 @@ pub fn model_from_bytes(bytes: &[u8]) -> anyhow::Result<Model> {
     let mut online = super::qnet(
         config.input_shape(),
         n_actions,
+        config.hidden,
         config.dueling,
         &crate::layers::init::VarianceScaling::HE,
         &mut rng,
@@ -639,7 +642,9 @@ pub fn replay_file_name(counters: &Counters) -> String {
 pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow::Result<u32> {
     let (frames, actions, rewards, flags) = replay.parts();
     let len = actions.len();
-    let tensors = vec![
+    let priorities = replay.priorities();
+    let max_priority = priorities.as_ref().map(|p| [p.1]);
+    let mut tensors = vec![
         (
             "replay.frames",
             TensorView::new(Dtype::U8, vec![len, FRAME_HEIGHT, FRAME_WIDTH], frames)?,
@@ -657,6 +662,16 @@ pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow:
             TensorView::new(Dtype::U8, vec![len], &flags)?,
         ),
     ];
+    if let (Some((values, _)), Some(max)) = (&priorities, &max_priority) {
+        tensors.push((
+            "replay.priorities",
+            TensorView::new(Dtype::F64, vec![len], bytemuck::cast_slice(values))?,
+        ));
+        tensors.push((
+            "replay.max_priority",
+            TensorView::new(Dtype::F64, vec![1], bytemuck::cast_slice(max))?,
+        ));
+    }
     let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (*n, v.data())));
     let meta = HashMap::from([
         ("format".to_string(), REPLAY_FORMAT.to_string()),
@@ -725,8 +740,9 @@ pub fn replay_from_bytes(bytes: &[u8], ckpt: &Checkpoint) -> anyhow::Result<Repl
     let actions = tensor(&st, "replay.actions", Dtype::U8, &[len])?;
     let rewards = tensor(&st, "replay.rewards", Dtype::F32, &[len])?;
     let flags = tensor(&st, "replay.flags", Dtype::U8, &[len])?;
-    if st.len() != 4 {
-        bail!("replay file has {} tensors, expected 4", st.len());
+    let expected = if config.prioritized { 6 } else { 4 };
+    if st.len() != expected {
+        bail!("replay file has {} tensors, expected {expected}", st.len());
     }
     let n_actions = ckpt.learner.n_actions();
     if let Some(i) = actions.data().iter().position(|&a| a as usize >= n_actions) {
@@ -736,8 +752,7 @@ pub fn replay_from_bytes(bytes: &[u8], ckpt: &Checkpoint) -> anyhow::Result<Repl
         );
     }
     let rewards: Vec<f32> = bytemuck::pod_collect_to_vec(rewards.data());
-    let mut replay = Replay::new(config.replay_capacity, k)
-        .with_returns(config.n_step as usize, config.gamma as f32);
+    let mut replay = config.new_replay();
     replay
         .restore(
             written,
@@ -747,6 +762,15 @@ pub fn replay_from_bytes(bytes: &[u8], ckpt: &Checkpoint) -> anyhow::Result<Repl
             flags.data(),
         )
         .map_err(|e| anyhow!("bad replay memory: {e}"))?;
+    if config.prioritized {
+        let values = tensor(&st, "replay.priorities", Dtype::F64, &[len])?;
+        let values: Vec<f64> = bytemuck::pod_collect_to_vec(values.data());
+        let max = tensor(&st, "replay.max_priority", Dtype::F64, &[1])?;
+        let max: f64 = bytemuck::pod_read_unaligned(max.data());
+        replay
+            .restore_priorities(&values, max)
+            .map_err(|e| anyhow!("bad replay priorities: {e}"))?;
+    }
     Ok(replay)
 }
 

@@ -4,6 +4,7 @@
 //! keys of an optional TOML file, then command-line flags. Unknown keys and out-of-range values
 //! are errors, and the resolved configuration is saved with the run as `config.toml`.
 
+use super::Replay;
 use crate::env::{Downsample, EnvConfig, EnvMode, Normalization, Pipeline};
 use crate::layers::loss::LossKind;
 use anyhow::{bail, Context};
@@ -64,6 +65,22 @@ fn one() -> u32 {
     1
 }
 
+/// The article's dense layer: 128 units.
+pub const ARTICLE_HIDDEN: usize = 128;
+
+/// Prioritized replay's `α`: sampling probability ∝ `(|δ| + ε)^α` (Dopamine's Rainbow: 0.5).
+pub const PRIORITY_EXPONENT: f64 = 0.5;
+
+/// Prioritized replay's `β`: loss weights `(N · P)^(−β)` (Dopamine's Rainbow: 0.5, fixed).
+pub const IMPORTANCE_EXPONENT: f64 = 0.5;
+
+/// The widest dense layer a configuration may ask for (`hidden`).
+pub const MAX_HIDDEN: usize = 4096;
+
+fn article_hidden() -> usize {
+    ARTICLE_HIDDEN
+}
+
 fn adam_epsilon_default() -> f64 {
     ADAM_EPSILON
 }
@@ -115,6 +132,9 @@ pub struct Config {
     pub loss: LossKind,
     /// Double DQN targets.
     pub double_dqn: bool,
+    /// Units of the dense layer after the convolutions (the article: 128; the Nature DQN: 512).
+    #[serde(default = "article_hidden")]
+    pub hidden: usize,
     /// A dueling head: Q = V + A − mean A ([`crate::layers::Dueling`]).
     #[serde(default)]
     pub dueling: bool,
@@ -127,6 +147,11 @@ pub struct Config {
     /// goes on). The article: no.
     #[serde(default)]
     pub life_loss_terminal: bool,
+    /// Prioritized replay: transitions drawn in proportion to `(|δ| + ε)^α`, losses weighted by
+    /// `(N · P)^(−β)` ([`PRIORITY_EXPONENT`], [`IMPORTANCE_EXPONENT`]; `dqn::Replay`). The
+    /// article: uniform.
+    #[serde(default)]
+    pub prioritized: bool,
     /// Adam's ε (TensorFlow's default 1e-8; Rainbow and its data-efficient variants use 1.5e-4,
     /// which damps the steps of parameters with rare gradients).
     #[serde(default = "adam_epsilon_default")]
@@ -174,9 +199,11 @@ impl Config {
             epsilon_decay_steps: 500_000,
             loss: LossKind::Mse,
             double_dqn: false,
+            hidden: ARTICLE_HIDDEN,
             dueling: false,
             n_step: 1,
             life_loss_terminal: false,
+            prioritized: false,
             adam_epsilon: ADAM_EPSILON,
             clip_grad_norm: 0.0,
             clip_rewards: false,
@@ -229,6 +256,18 @@ impl Config {
                 },
                 ..article
             },
+        }
+    }
+
+    /// An empty replay memory as this configuration asks for: its capacity, frames per state,
+    /// `n_step` returns and, if `prioritized`, prioritized sampling.
+    pub fn new_replay(&self) -> Replay {
+        let replay = Replay::new(self.replay_capacity, self.pipeline.channels())
+            .with_returns(self.n_step as usize, self.gamma as f32);
+        if self.prioritized {
+            replay.with_priorities(PRIORITY_EXPONENT, IMPORTANCE_EXPONENT)
+        } else {
+            replay
         }
     }
 
@@ -349,6 +388,9 @@ impl Config {
             if !(0.0..=1.0).contains(&e) {
                 bail!("{name} must be in [0, 1], got {e}");
             }
+        }
+        if !(1..=MAX_HIDDEN).contains(&c.hidden) {
+            bail!("hidden must be in 1..={MAX_HIDDEN}, got {}", c.hidden);
         }
         if !(1..=MAX_N_STEP).contains(&c.n_step) {
             bail!("n_step must be in 1..={MAX_N_STEP}, got {}", c.n_step);

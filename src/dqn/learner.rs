@@ -1,5 +1,6 @@
 //! The learning half of DQN: one gradient step on a minibatch of transitions.
 
+use super::config::ARTICLE_HIDDEN;
 use super::{input_border, qnet};
 use crate::layers::init::VarianceScaling;
 use crate::layers::loss::LossKind;
@@ -22,6 +23,10 @@ pub struct Batch {
     pub next_states: Tensor<f32>,
     /// `[B]`, whether `s'` is terminal (then there is no future to bootstrap from).
     pub dones: Vec<bool>,
+    /// `[B]` loss weights of prioritized sampling ([`super::Replay::with_priorities`]), or empty: all 1.
+    pub weights: Vec<f32>,
+    /// `[B]` the replay entries drawn, when sampling is prioritized (else empty).
+    pub entries: Vec<u64>,
     /// The zero border around each state image: none, or the network's first padding
     /// ([`input_border`]), so that conv1 reads the states in place (it would otherwise copy each
     /// batch into a padded buffer, about 11 MB of memory traffic per train step at batch 48).
@@ -52,6 +57,8 @@ impl Batch {
             steps: vec![1; batch],
             next_states: Tensor::zeros(&shape),
             dones: vec![false; batch],
+            weights: Vec::new(),
+            entries: Vec::new(),
             border,
         }
     }
@@ -101,6 +108,8 @@ pub struct Learner {
     dq_taken: Vec<f32>,
     /// `[B]`: the online network's greedy `a'` (Double DQN only).
     next_greedy: Vec<usize>,
+    /// `[B]`: the TD errors `Q(s, a) − y` of the last step.
+    td: Vec<f32>,
     /// `[B, n_actions]`: the upstream gradient, non-zero only at the taken actions.
     dq: Tensor<f32>,
 }
@@ -115,20 +124,21 @@ impl Learner {
         gamma: f32,
         rng: &mut impl Rng,
     ) -> Self {
-        Learner::with_head(input, n_actions, false, lr, gamma, rng)
+        Learner::with_head(input, n_actions, ARTICLE_HIDDEN, false, lr, gamma, rng)
     }
 
-    /// [`Learner::new`], with a dueling head if `dueling` ([`qnet`]).
+    /// [`Learner::new`] with `hidden` units in dense1 and a dueling head if `dueling` ([`qnet`]).
     pub fn with_head(
         input: [usize; 3],
         n_actions: usize,
+        hidden: usize,
         dueling: bool,
         lr: f32,
         gamma: f32,
         rng: &mut impl Rng,
     ) -> Self {
-        let online = qnet(input, n_actions, dueling, &VarianceScaling::HE, rng);
-        let mut target = qnet(input, n_actions, dueling, &VarianceScaling::HE, rng);
+        let online = qnet(input, n_actions, hidden, dueling, &VarianceScaling::HE, rng);
+        let mut target = qnet(input, n_actions, hidden, dueling, &VarianceScaling::HE, rng);
         target.copy_params_from(&online);
         Learner {
             online,
@@ -143,6 +153,7 @@ impl Learner {
             y: Vec::new(),
             dq_taken: Vec::new(),
             next_greedy: Vec::new(),
+            td: Vec::new(),
             dq: Tensor::empty(),
         }
     }
@@ -152,6 +163,7 @@ impl Learner {
         let mut l = Learner::with_head(
             config.input_shape(),
             n_actions,
+            config.hidden,
             config.dueling,
             config.learning_rate as f32,
             config.gamma as f32,
@@ -181,6 +193,12 @@ impl Learner {
         })
     }
 
+    /// The TD errors `Q(s_b, a_b) − y_b` of the last [`train_step`](Self::train_step), `[B]`: what
+    /// prioritized replay sets its priorities from.
+    pub fn td_errors(&self) -> &[f32] {
+        &self.td
+    }
+
     /// Copies the online network into the target network.
     pub fn update_target(&mut self) {
         self.target.copy_params_from(&self.online);
@@ -195,6 +213,8 @@ impl Learner {
     /// 2. Forward `Q_online(s, ·)`, keep `Q(s, a)` of the taken actions.
     /// 3. Loss `L = mean_b ℓ(Q(s_b, a_b) − y_b)` (MSE or Huber); `∂L/∂Q(s_b, a)` is non-zero only
     ///    at `a = a_b`, so the upstream gradient `dQ[B, A]` is zero except one entry per row.
+    ///    With prioritized sampling each term is weighted: `L = mean_b w_b ℓ(…)`
+    ///    (`batch.weights`), and so is its gradient.
     /// 4. Backward through the online network (the first layer skips its input gradient), then
     ///    one Adam step.
     pub fn train_step(&mut self, batch: &Batch) -> StepStats {
@@ -238,7 +258,23 @@ impl Learner {
             self.q_taken[i] = row[batch.actions[i]];
             max_q_sum += row[argmax(row)];
         }
-        let loss = self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken);
+        let mut loss = self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken);
+        self.td.clear();
+        self.td
+            .extend(self.q_taken.iter().zip(&self.y).map(|(q, y)| q - y));
+        if !batch.weights.is_empty() {
+            // The weighted mean: each term's share of the mean loss and its gradient scaled by
+            // its weight (one-term losses recomputed from the same function).
+            let mut one = [0.0f32];
+            loss = 0.0;
+            for (i, &w) in batch.weights.iter().enumerate() {
+                let l = self
+                    .loss
+                    .eval(&self.q_taken[i..=i], &self.y[i..=i], &mut one);
+                loss += w * l / b as f32;
+                self.dq_taken[i] *= w;
+            }
+        }
         self.dq.set_shape(&[b, na]);
         self.dq.fill_zero();
         for (i, row) in self.dq.data_mut().chunks_exact_mut(na).enumerate() {

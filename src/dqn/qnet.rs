@@ -1,5 +1,6 @@
 //! The article's Q-network.
 
+use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
 use crate::layers::{Conv2d, Dense, Dueling, Relu, Sequential};
 use crate::tensor::plan;
@@ -39,15 +40,17 @@ pub fn article_qnet<T: Float>(
     init: &VarianceScaling,
     rng: &mut impl Rng,
 ) -> Sequential<T> {
-    qnet(input, n_actions, false, init, rng)
+    qnet(input, n_actions, ARTICLE_HIDDEN, false, init, rng)
 }
 
-/// The article's Q-network ([`article_qnet`]), with a dueling head if `dueling`: dense2 then has
-/// `1 + n_actions` outputs, the state value and one advantage per action, which [`Dueling`]
-/// combines into `n_actions` Q-values (`Q = V + A − mean A`).
+/// The article's Q-network ([`article_qnet`]) with `hidden` units in dense1 (the article: 128),
+/// and a dueling head if `dueling`: dense2 then has `1 + n_actions` outputs, the state value and
+/// one advantage per action, which [`Dueling`] combines into `n_actions` Q-values
+/// (`Q = V + A − mean A`).
 pub fn qnet<T: Float>(
     input: [usize; 3],
     n_actions: usize,
+    hidden: usize,
     dueling: bool,
     init: &VarianceScaling,
     rng: &mut impl Rng,
@@ -98,13 +101,13 @@ pub fn qnet<T: Float>(
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
     let flat = shape.iter().product();
-    net.push(Dense::new("dense1", flat, 128).with_sparse_inference(true));
-    net.push(Relu::new("relu4", &[128]));
+    net.push(Dense::new("dense1", flat, hidden).with_sparse_inference(true));
+    net.push(Relu::new("relu4", &[hidden]));
     if dueling {
-        net.push(Dense::new("dense2", 128, 1 + n_actions));
+        net.push(Dense::new("dense2", hidden, 1 + n_actions));
         net.push(Dueling::new("dueling", n_actions));
     } else {
-        net.push(Dense::new("dense2", 128, n_actions));
+        net.push(Dense::new("dense2", hidden, n_actions));
     }
     for p in net.params_mut() {
         if p.name.ends_with(".weight") {

@@ -13,7 +13,20 @@
 //! transitions take 134 MiB and 1 000 000 take 6 722 MiB (7.05 GB), against about 9 GB for the
 //! notebook's float64 stacks of 20 000. Pages are touched as the ring fills, so the resident size
 //! grows with the entries actually written.
+//!
+//! # Prioritized replay
+//!
+//! [`Replay::with_priorities`] samples entry `i` with probability `P(i) = p_i / Σ p` instead of
+//! uniformly (Schaul et al. 2016), where `p_i = (|δ_i| + ε)^α` and `δ_i` is the TD error of the
+//! entry's last train step ([`Replay::update_priorities`]); an entry never trained on has the
+//! largest priority seen so far, so it is drawn soon. The batch is drawn stratified: the
+//! priority mass is cut into `B` equal segments and one entry is drawn from each. Sampling out of
+//! proportion biases the gradient, so each sample's loss is weighted by
+//! `w_i = (N · P(i))^(−β) / max_j w_j` (`N` entries held; `max` over the batch, as Dopamine does).
+//! The priorities live in a [`SumTree`] over the slots; a slot's priority is 0 while its entry
+//! cannot be sampled (not yet acted on, or overwritten).
 
+use super::sumtree::SumTree;
 use super::Batch;
 use crate::env::{write_stacked_input_bordered, FRAME_LEN};
 use rand::Rng;
@@ -49,7 +62,25 @@ pub struct Replay {
     written: u64,
     /// Scratch: the sampled entries.
     picks: Vec<u64>,
+    /// Prioritized sampling, if on.
+    priorities: Option<Priorities>,
 }
+
+/// The state of prioritized sampling ([`Replay::with_priorities`]).
+#[derive(Clone, Debug)]
+struct Priorities {
+    /// `p_i` per slot, 0 where nothing can be sampled.
+    tree: SumTree,
+    /// `α`: how strongly priorities skew the sampling (0: uniform).
+    alpha: f64,
+    /// `β`: how much of the skew the loss weights undo (1: all of it).
+    beta: f64,
+    /// The largest `p_i` ever set: the priority of new entries.
+    max: f64,
+}
+
+/// `ε` in `p = (|δ| + ε)^α`: keeps an entry with a zero TD error drawable.
+pub const PRIORITY_EPSILON: f64 = 1e-6;
 
 impl Replay {
     /// An empty memory of `capacity` entries (= transitions) and states of `k` frames.
@@ -71,7 +102,29 @@ impl Replay {
             gamma: 1.0,
             written: 0,
             picks: Vec::new(),
+            priorities: None,
         }
+    }
+
+    /// The same memory sampling in proportion to `(|δ| + ε)^alpha` with loss weights
+    /// `(N · P)^(−beta)` (module documentation, "Prioritized replay").
+    pub fn with_priorities(mut self, alpha: f64, beta: f64) -> Self {
+        assert!(
+            (0.0..=1.0).contains(&alpha) && (0.0..=1.0).contains(&beta),
+            "priority exponents in [0, 1]"
+        );
+        self.priorities = Some(Priorities {
+            tree: SumTree::new(self.capacity),
+            alpha,
+            beta,
+            max: 1.0,
+        });
+        self
+    }
+
+    /// Whether sampling is prioritized.
+    pub fn is_prioritized(&self) -> bool {
+        self.priorities.is_some()
     }
 
     /// The same memory sampling `n`-step returns discounted by `gamma` ([`Replay::sample`]).
@@ -112,6 +165,9 @@ impl Replay {
 
     fn push_frame(&mut self, frame: &[u8], start: bool) {
         let s = self.slot(self.written);
+        if let Some(p) = &mut self.priorities {
+            p.tree.set(s, 0.0); // not acted on yet (and whatever it held is gone)
+        }
         self.frames[s * FRAME_LEN..][..FRAME_LEN].copy_from_slice(frame);
         self.starts[s] = start;
         self.acted[s] = false;
@@ -133,6 +189,9 @@ impl Replay {
         self.rewards[s] = reward;
         self.dones[s] = done;
         self.acted[s] = true;
+        if let Some(p) = &mut self.priorities {
+            p.tree.set(s, p.max);
+        }
         self.push_frame(next_frame, false);
     }
 
@@ -261,22 +320,78 @@ impl Replay {
         unreachable!("n_step >= 1")
     }
 
-    /// Fills `batch` with transitions drawn uniformly (with replacement) from those held,
-    /// normalising frames with `table`. Each is `(s_g, a_g, R, s_{g+m}, done)` with the `n`-step
-    /// return `R` over `m` steps ([`Replay::with_returns`]; `m = 1`, `R = r_g` by default).
+    /// The entry held in slot `s` (the one of the last `capacity` written that lives there).
+    fn entry_in_slot(&self, s: usize) -> u64 {
+        let cap = self.capacity as u64;
+        let base = self.oldest();
+        base + (s as u64 + cap - base % cap) % cap
+    }
+
+    /// Whether entry `g` can be sampled with its whole state.
+    fn sampleable(&self, g: u64) -> bool {
+        self.valid(g) && self.state_frames(g).is_some()
+    }
+
+    /// Fills `batch` with transitions drawn (with replacement) from those held, normalising frames
+    /// with `table`: uniformly, or in proportion to their priorities
+    /// ([`Replay::with_priorities`]; then `batch.weights` holds the loss weights and
+    /// `batch.entries` the entries, for [`Replay::update_priorities`]). Each is
+    /// `(s_g, a_g, R, s_{g+m}, done)` with the `n`-step return `R` over `m` steps
+    /// ([`Replay::with_returns`]; `m = 1`, `R = r_g` by default).
     pub fn sample(&mut self, rng: &mut impl Rng, table: &[f32; 256], batch: &mut Batch) {
         assert!(self.k <= 4, "states of at most 4 frames");
         assert!(
             self.can_sample(batch.len()),
             "too few transitions to sample"
         );
-        let (lo, hi) = (self.oldest(), self.written - 1);
         let mut picks = std::mem::take(&mut self.picks);
         picks.clear();
-        while picks.len() < batch.len() {
-            let g = rng.random_range(lo..hi);
-            if self.valid(g) && self.state_frames(g).is_some() {
-                picks.push(g);
+        batch.weights.clear();
+        batch.entries.clear();
+        match &self.priorities {
+            None => {
+                let (lo, hi) = (self.oldest(), self.written - 1);
+                while picks.len() < batch.len() {
+                    let g = rng.random_range(lo..hi);
+                    if self.sampleable(g) {
+                        picks.push(g);
+                    }
+                }
+            }
+            Some(p) => {
+                // One draw from each of B equal segments of the priority mass; an entry whose
+                // state reaches past the oldest frame held is drawn again (from anywhere after
+                // a few tries, so a segment of only such entries cannot stall it).
+                let total = p.tree.total();
+                let segment = total / batch.len() as f64;
+                for i in 0..batch.len() {
+                    let mut tries = 0;
+                    let g = loop {
+                        let u = if tries < 8 {
+                            (i as f64 + rng.random::<f64>()) * segment
+                        } else {
+                            rng.random::<f64>() * total
+                        };
+                        let s = p.tree.find(u).expect("sampleable entries have priorities");
+                        let g = self.entry_in_slot(s);
+                        if self.sampleable(g) {
+                            break g;
+                        }
+                        tries += 1;
+                    };
+                    picks.push(g);
+                }
+                // w = (N·P)^(−β), over the batch's largest.
+                let n = self.len() as f64;
+                for &g in &picks {
+                    let prob = p.tree.get(self.slot(g)) / total;
+                    batch.weights.push((n * prob).powf(-p.beta) as f32);
+                }
+                let max = batch.weights.iter().fold(0.0f32, |m, &w| m.max(w));
+                for w in &mut batch.weights {
+                    *w /= max;
+                }
+                batch.entries.extend_from_slice(&picks);
             }
         }
         let per = batch.states.len() / batch.len();
@@ -305,5 +420,61 @@ impl Replay {
             );
         }
         self.picks = picks;
+    }
+
+    /// Sets the priorities of the sampled `entries` from their TD errors `td`:
+    /// `p = (|δ| + ε)^α` ([`PRIORITY_EPSILON`]). Entries no longer held are skipped; without
+    /// prioritized sampling this does nothing.
+    pub fn update_priorities(&mut self, entries: &[u64], td: &[f32]) {
+        assert_eq!(entries.len(), td.len(), "one TD error per entry");
+        let oldest = self.oldest();
+        let Some(p) = &mut self.priorities else {
+            return;
+        };
+        for (&g, &d) in entries.iter().zip(td) {
+            let s = (g % self.capacity as u64) as usize;
+            if g >= oldest && g < self.written && self.acted[s] {
+                let v = (f64::from(d.abs()) + PRIORITY_EPSILON).powf(p.alpha);
+                if v.is_finite() {
+                    p.tree.set(s, v);
+                    p.max = p.max.max(v);
+                }
+            }
+        }
+    }
+
+    /// The priorities for a checkpoint: `(p per held slot in slot order, the largest ever)`,
+    /// or `None` without prioritized sampling.
+    pub fn priorities(&self) -> Option<(Vec<f64>, f64)> {
+        self.priorities
+            .as_ref()
+            .map(|p| ((0..self.len()).map(|s| p.tree.get(s)).collect(), p.max))
+    }
+
+    /// Restores what [`priorities`](Self::priorities) gave, after [`restore`](Self::restore).
+    /// Each value must be finite and `>= 0`, positive exactly where the entry was acted on, and
+    /// at most `max`.
+    pub fn restore_priorities(&mut self, values: &[f64], max: f64) -> Result<(), String> {
+        let len = self.len();
+        let acted = &self.acted;
+        let Some(p) = &mut self.priorities else {
+            return Err("this memory does not sample by priority".into());
+        };
+        if values.len() != len {
+            return Err(format!("{} priorities for {len} entries", values.len()));
+        }
+        if !(max.is_finite() && max > 0.0) {
+            return Err(format!("bad largest priority {max}"));
+        }
+        for (s, &v) in values.iter().enumerate() {
+            if !(v.is_finite() && v >= 0.0 && v <= max) || (v > 0.0) != acted[s] {
+                return Err(format!("bad priority {v} in row {s}"));
+            }
+        }
+        for (s, &v) in values.iter().enumerate() {
+            p.tree.set(s, v);
+        }
+        p.max = max;
+        Ok(())
     }
 }
