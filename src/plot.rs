@@ -64,6 +64,16 @@ pub fn moving_average(ys: &[f64], window: usize) -> Vec<f64> {
 /// finite number (NaN, infinity) are skipped, with a warning naming their lines: a plot of them
 /// would have no scale.
 pub fn read_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
+    read_columns(path, "episode", "reward")
+}
+
+/// Reads `(emulator frames, reward)` from a run's `metrics.csv`, as [`read_metrics`] does.
+pub fn read_frame_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
+    read_columns(path, "emulator_frames", "reward")
+}
+
+/// Reads the columns `x` and `y` of a `metrics.csv` as points (see [`read_metrics`]).
+fn read_columns(path: &Path, x: &str, y: &str) -> anyhow::Result<Vec<(f64, f64)>> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     let mut lines = text.lines();
@@ -76,7 +86,7 @@ pub fn read_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
             .position(|c| *c == name)
             .ok_or_else(|| anyhow!("{}: no `{name}` column", path.display()))
     };
-    let (ie, ir) = (col("episode")?, col("reward")?);
+    let (ie, ir) = (col(x)?, col(y)?);
     let mut points = Vec::new();
     let mut skipped = Vec::new();
     for (n, line) in lines.enumerate() {
@@ -120,24 +130,31 @@ pub fn plot_rewards(
         .iter()
         .flat_map(|c| c.points.iter().map(|p| p.1))
         .fold(10.0, f64::max);
-    figure(out, title, "reward per episode", (max_x, max_y), |chart| {
-        for (i, c) in curves.iter().enumerate() {
-            let color = Palette99::pick(i);
-            let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
-            let avg = moving_average(&ys, window);
-            chart.draw_series(LineSeries::new(c.points.iter().copied(), color.mix(0.25)))?;
-            chart
-                .draw_series(LineSeries::new(
-                    c.points.iter().zip(avg).map(|(p, a)| (p.0, a)),
-                    color.stroke_width(3),
-                ))?
-                .label(format!("{} ({window}-episode mean)", c.label))
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
-                });
-        }
-        Ok(())
-    })
+    figure(
+        out,
+        title,
+        "episode",
+        "reward per episode",
+        (max_x, max_y),
+        |chart| {
+            for (i, c) in curves.iter().enumerate() {
+                let color = Palette99::pick(i);
+                let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
+                let avg = moving_average(&ys, window);
+                chart.draw_series(LineSeries::new(c.points.iter().copied(), color.mix(0.25)))?;
+                chart
+                    .draw_series(LineSeries::new(
+                        c.points.iter().zip(avg).map(|(p, a)| (p.0, a)),
+                        color.stroke_width(3),
+                    ))?
+                    .label(format!("{} ({window}-episode mean)", c.label))
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+                    });
+            }
+            Ok(())
+        },
+    )
 }
 
 type Chart<'a, 'b> =
@@ -145,11 +162,12 @@ type Chart<'a, 'b> =
 type DrawResult =
     Result<(), DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>>;
 
-/// A 1000x600 figure of reward against episode with axes up to `max` and a legend; `draw` adds
+/// A 1000x600 figure of reward against `x_desc` with axes up to `max` and a legend; `draw` adds
 /// the series. Every figure of the project goes through here.
 fn figure(
     out: &Path,
     title: &str,
+    x_desc: &str,
     y_desc: &str,
     max: (f64, f64),
     draw: impl FnOnce(&mut Chart<'_, '_>) -> DrawResult,
@@ -170,7 +188,15 @@ fn figure(
         .map_err(e)?;
     chart
         .configure_mesh()
-        .x_desc("episode")
+        .x_desc(x_desc)
+        .x_label_formatter(&|x| {
+            if max.0 >= 1e6 {
+                format!("{:.1}M", x / 1e6) // frames
+            } else {
+                format!("{x:.0}")
+            }
+        })
+        .y_label_formatter(&|y| format!("{y:.0}"))
         .y_desc(y_desc)
         .label_style(sans(12.0)) // plotters' default size, as for the legend below
         .axis_desc_style(sans(12.0))
@@ -231,7 +257,7 @@ pub fn plot_groups(groups: &[Group], title: &str, window: usize, out: &Path) -> 
         .flat_map(|b| b.iter().map(|p| p.3))
         .fold(10.0, f64::max);
     let y_desc = format!("reward per episode ({window}-episode moving average)");
-    figure(out, title, &y_desc, (max_x, max_y), |chart| {
+    figure(out, title, "episode", &y_desc, (max_x, max_y), |chart| {
         for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
             let color = Palette99::pick(i);
             let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
@@ -249,4 +275,185 @@ pub fn plot_groups(groups: &[Group], title: &str, window: usize, out: &Path) -> 
         }
         Ok(())
     })
+}
+
+/// Each seed's `window`-episode moving average against emulator frames, read on a grid of
+/// `step` frames (at each grid point, the average as of the last episode ended by then), then
+/// the mean, lowest and highest seed at each grid point that every seed reached:
+/// `(frames, mean, low, high)`. `seeds` hold `(frames, reward)` points in episode order.
+pub fn mean_band_frames(
+    seeds: &[Vec<(f64, f64)>],
+    window: usize,
+    step: f64,
+) -> Vec<(f64, f64, f64, f64)> {
+    assert!(step > 0.0, "a positive grid step");
+    let averaged: Vec<Vec<(f64, f64)>> = seeds
+        .iter()
+        .map(|s| {
+            let avg = moving_average(&s.iter().map(|p| p.1).collect::<Vec<_>>(), window);
+            s.iter().map(|p| p.0).zip(avg).collect()
+        })
+        .collect();
+    let reach = averaged
+        .iter()
+        .map(|s| s.last().map_or(0.0, |p| p.0))
+        .fold(f64::INFINITY, f64::min);
+    let mut out = Vec::new();
+    let mut x = step;
+    while x <= reach {
+        let vals: Vec<f64> = averaged
+            .iter()
+            .filter_map(|s| s.iter().take_while(|p| p.0 <= x).last().map(|p| p.1))
+            .collect();
+        if vals.len() == averaged.len() {
+            let mean = vals.iter().sum::<f64>() / vals.len() as f64;
+            let lo = vals.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            out.push((x, mean, lo, hi));
+        }
+        x += step;
+    }
+    out
+}
+
+/// A published learning curve to compare with: a label and `(emulator frames, score)` points.
+pub struct Reference {
+    /// Legend label.
+    pub label: String,
+    /// `(frames, score)`.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// Reads reference curves from a CSV with the header `agent,frames,score` (one row per point,
+/// rows of one agent in frame order), keeping the agents named in `agents` (all if empty).
+pub fn read_references(path: &Path, agents: &[String]) -> anyhow::Result<Vec<Reference>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    if lines.next() != Some("agent,frames,score") {
+        anyhow::bail!(
+            "{}: the header must be `agent,frames,score`",
+            path.display()
+        );
+    }
+    let mut refs: Vec<Reference> = Vec::new();
+    for (n, line) in lines.enumerate() {
+        let bad = || anyhow!("{}: line {} is malformed", path.display(), n + 2);
+        let mut f = line.split(',');
+        let (agent, x, y) = (f.next(), f.next(), f.next());
+        let (Some(agent), Some(x), Some(y), None) = (agent, x, y, f.next()) else {
+            return Err(bad());
+        };
+        let (x, y): (f64, f64) = (x.parse().map_err(|_| bad())?, y.parse().map_err(|_| bad())?);
+        if !(x.is_finite() && y.is_finite()) {
+            return Err(bad());
+        }
+        if !agents.is_empty() && !agents.iter().any(|a| a == agent) {
+            continue;
+        }
+        match refs.iter_mut().find(|r| r.label == agent) {
+            Some(r) => r.points.push((x, y)),
+            None => refs.push(Reference {
+                label: agent.to_string(),
+                points: vec![(x, y)],
+            }),
+        }
+    }
+    for a in agents {
+        if !refs.iter().any(|r| &r.label == a) {
+            anyhow::bail!("{}: no agent `{a}`", path.display());
+        }
+    }
+    Ok(refs)
+}
+
+/// Draws each group's mean over seeds against emulator frames ([`mean_band_frames`]) with a
+/// band from the lowest to the highest seed, and each reference as a dashed line with points,
+/// up to the frames the groups reached (references beyond are cut there).
+pub fn plot_groups_frames(
+    groups: &[Group],
+    references: &[Reference],
+    title: &str,
+    window: usize,
+    out: &Path,
+) -> anyhow::Result<()> {
+    const STEP: f64 = 50_000.0;
+    let bands: Vec<Vec<(f64, f64, f64, f64)>> = groups
+        .iter()
+        .map(|g| mean_band_frames(&g.seeds, window, STEP))
+        .collect();
+    let max_x = bands
+        .iter()
+        .flat_map(|b| b.iter().map(|p| p.0))
+        .fold(STEP, f64::max);
+    let refs: Vec<Vec<(f64, f64)>> = references
+        .iter()
+        .map(|r| r.points.iter().copied().filter(|p| p.0 <= max_x).collect())
+        .collect();
+    let max_y = bands
+        .iter()
+        .flat_map(|b| b.iter().map(|p| p.3))
+        .chain(refs.iter().flatten().map(|p| p.1))
+        .fold(10.0, f64::max);
+    let y_desc = format!("reward per episode ({window}-episode moving average)");
+    figure(
+        out,
+        title,
+        "emulator frames",
+        &y_desc,
+        (max_x, max_y),
+        |chart| {
+            for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
+                let color = Palette99::pick(i);
+                let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
+                outline.extend(band.iter().rev().map(|p| (p.0, p.2)));
+                chart.draw_series(std::iter::once(Polygon::new(outline, color.mix(0.15))))?;
+                chart
+                    .draw_series(LineSeries::new(
+                        band.iter().map(|p| (p.0, p.1)),
+                        color.stroke_width(3),
+                    ))?
+                    .label(format!(
+                        "{} (mean of {} seeds, min-max band)",
+                        g.label,
+                        g.seeds.len()
+                    ))
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
+                    });
+            }
+            for (i, (r, pts)) in references.iter().zip(&refs).enumerate() {
+                let color = Palette99::pick(groups.len() + i);
+                chart.draw_series(DashedLineSeries::new(
+                    pts.iter().copied(),
+                    8,
+                    5,
+                    color.stroke_width(2),
+                ))?;
+                chart
+                    .draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?
+                    .label(r.label.clone())
+                    .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+            }
+            Ok(())
+        },
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Two seeds whose episodes end at different frames: the grid reads each seed's latest
+    /// average, and stops where the shorter seed stops.
+    #[test]
+    fn the_frames_band_reads_each_seed_on_one_grid() {
+        let a = vec![(40.0, 10.0), (90.0, 30.0), (160.0, 50.0)];
+        let b = vec![(45.0, 20.0), (120.0, 40.0)];
+        let band = mean_band_frames(&[a, b], 1, 50.0);
+        assert_eq!(
+            band,
+            vec![(50.0, 15.0, 10.0, 20.0), (100.0, 25.0, 20.0, 30.0)]
+        );
+    }
 }

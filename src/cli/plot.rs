@@ -5,13 +5,36 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use clap::Args;
 
-use invaders::plot::{plot_rewards, read_metrics, Curve};
+use invaders::plot::{
+    plot_groups_frames, plot_rewards, read_frame_metrics, read_metrics, read_references, Curve,
+    Group,
+};
 
 #[derive(Debug, Args)]
 pub struct PlotArgs {
-    /// Run directories (each with a metrics.csv).
-    #[arg(required = true, value_name = "RUN_DIR")]
+    /// Run directories (each with a metrics.csv), one curve each against episodes.
+    #[arg(
+        value_name = "RUN_DIR",
+        required_unless_present = "group",
+        conflicts_with = "group"
+    )]
     runs: Vec<PathBuf>,
+    /// Instead: seeds of one configuration, `LABEL=DIR,DIR,...`, drawn against emulator frames
+    /// as their mean with a min-max band (repeat for several configurations).
+    #[arg(long, value_name = "LABEL=DIRS")]
+    group: Vec<String>,
+    /// With --group: published curves to draw too, a CSV with the header `agent,frames,score`
+    /// (docs/strong/dopamine-spaceinvaders.csv).
+    #[arg(long, value_name = "FILE.csv", requires = "group")]
+    reference: Option<PathBuf>,
+    /// With --reference: the agents to draw, comma-separated [default: all].
+    #[arg(
+        long,
+        value_name = "NAMES",
+        requires = "reference",
+        value_delimiter = ','
+    )]
+    agents: Vec<String>,
     /// The PNG to write (an existing file is refused unless --force).
     #[arg(long, value_name = "FILE.png")]
     out: PathBuf,
@@ -29,6 +52,9 @@ pub struct PlotArgs {
 pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     if args.window == 0 {
         bail!("--window must be at least 1");
+    }
+    if !args.group.is_empty() {
+        return plot_frames(args);
     }
     let inputs: Vec<PathBuf> = args.runs.iter().map(|d| d.join("metrics.csv")).collect();
     let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
@@ -52,6 +78,48 @@ pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
         curves.push(Curve { label, points });
     }
     plot_rewards(&curves, &args.title, args.window, &args.out)
+        .with_context(|| format!("cannot draw {}", args.out.display()))?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// `--group`: seeds against emulator frames, with published references.
+fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
+    let mut groups = Vec::new();
+    let mut inputs = Vec::new();
+    for spec in &args.group {
+        let Some((label, dirs)) = spec.split_once('=') else {
+            bail!("--group takes LABEL=DIR,DIR,...; got `{spec}`");
+        };
+        let dirs: Vec<PathBuf> = dirs
+            .split(',')
+            .filter(|d| !d.is_empty())
+            .map(PathBuf::from)
+            .collect();
+        if label.is_empty() || dirs.is_empty() {
+            bail!("--group takes LABEL=DIR,DIR,...; got `{spec}`");
+        }
+        let mut seeds = Vec::new();
+        for d in &dirs {
+            let csv = d.join("metrics.csv");
+            seeds.push(read_frame_metrics(&csv)?);
+            inputs.push(csv);
+        }
+        groups.push(Group {
+            label: label.to_string(),
+            seeds,
+        });
+    }
+    if let Some(r) = &args.reference {
+        inputs.push(r.clone());
+    }
+    let paths: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
+    super::guard::check_output(&args.out, args.force, &paths, "--out")?;
+    let references = match &args.reference {
+        Some(r) => read_references(r, &args.agents)?,
+        None => Vec::new(),
+    };
+    plot_groups_frames(&groups, &references, &args.title, args.window, &args.out)
         .with_context(|| format!("cannot draw {}", args.out.display()))?;
     println!("wrote {}", args.out.display());
     Ok(())
