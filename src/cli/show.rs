@@ -1,7 +1,7 @@
 //! `invaders show-preprocessing`: what the network sees, drawn from one real game moment.
 //!
-//! The picture shows the raw 210x160 colour screen, the article's 88x80 grey preprocessing of it,
-//! and, for each pipeline, the frames stacked into the network's input (oldest on the left). The
+//! The picture shows the raw 210x160 colour screen, the article's 88x80 grey preprocessing of it
+//! (and the `strong` preset's, which max-pools each 2x2 block), and, for each pipeline, the frames stacked into the network's input (oldest on the left). The
 //! running max of `stack-running-max` shows as trails behind everything that moved since reset.
 
 use std::path::PathBuf;
@@ -13,7 +13,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use invaders::env::{
-    EnvConfig, EnvMode, Observer, Pipeline, SpaceInvaders, FRAME_HEIGHT, FRAME_WIDTH,
+    preprocess_rgb, Downsample, EnvConfig, EnvMode, Observer, Pipeline, SpaceInvaders,
+    FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH,
 };
 
 #[derive(Debug, Args)]
@@ -92,9 +93,14 @@ fn draw(args: &ShowArgs, env: &SpaceInvaders, observers: &[Observer]) -> anyhow:
             }
         }
     }
-    // The preprocessed last frame, 4x.
-    text("preprocessed (88x80 grey)", 400, 10).map_err(e)?;
-    grey(&root, env.observation(), 400, 40, 4)?;
+    // The last frame preprocessed both ways, 2x: a 2x2 block's top-left pixel (the article's),
+    // and its max (the `strong` preset's), which keeps the one-pixel-wide shots.
+    text("88x80 grey: pick", 400, 10).map_err(e)?;
+    grey(&root, env.observation(), 400, 40, 2)?;
+    text("2x2 max (strong)", 580, 10).map_err(e)?;
+    let mut max = vec![0u8; FRAME_LEN];
+    preprocess_rgb(env.screen_rgb(), None, Downsample::Max, &mut max);
+    grey(&root, &max, 580, 40, 2)?;
     // Each pipeline's stack, 2x, oldest on the left.
     let mut y0 = 480;
     for (o, p) in observers.iter().zip(PIPELINES) {
