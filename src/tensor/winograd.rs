@@ -52,6 +52,7 @@
 //! takes a contiguous run of images with its own scratch. Every output is computed from its own
 //! tile in a fixed order, so the results do not depend on the thread count.
 
+use super::cpu::{took, Family};
 use super::{fill_iota, Float, GatherGemm, Init};
 use rayon::prelude::*;
 
@@ -508,6 +509,7 @@ pub fn winograd_conv<T: Float>(
     // between the transforms and the products. (At least 128 tiles, 5 images and 1.2 MiB,
     // measured 3% slower on the train step; one image, 30 tiles, 1% slower.)
     let per_chunk = 48usize.div_ceil(ty * tx).min(s.n);
+    let fast = Transforms::choose::<T>(&s, s.co / pieces);
     input_offsets(&s, &mut scratch.pixels);
     let pixels = &scratch.pixels[..];
     // A contiguous run of images per thread, each with its own scratch.
@@ -527,6 +529,7 @@ pub fn winograd_conv<T: Float>(
                 let xs = &x[first * s.h * s.w * s.ci..][..images * s.h * s.w * s.ci];
                 let job = Chunk {
                     s,
+                    fast,
                     images,
                     x: xs,
                     u,
@@ -611,6 +614,7 @@ pub fn winograd_wgrad<T: Float>(
     let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
     // 4 images of conv3 per chunk: 120 tiles, V and dM 480 KiB each, in L2.
     let per_chunk = 96usize.div_ceil(ty * tx).min(s.n);
+    let fast = Transforms::choose::<T>(&s, co);
     input_offsets(&s, &mut scratch.pixels);
     if scratch.parts.is_empty() {
         scratch.parts.push(Part::default());
@@ -646,6 +650,7 @@ pub fn winograd_wgrad<T: Float>(
             .for_each(|(v, x)| {
                 let job = Chunk {
                     s,
+                    fast,
                     images: 1,
                     x,
                     u: &[],
@@ -656,7 +661,7 @@ pub fn winograd_wgrad<T: Float>(
                 };
                 job.input_by_place(v, zeros);
             });
-        output_adjoint(&s, dzs, m);
+        output_adjoint(&s, dzs, m, fast.output);
         // dU_ξ += V_ξᵀ · dM_ξ: rows are input channels, the reduction runs over the chunk's
         // tiles (gathered from V image by image; dM's rows in order).
         fill_iota(&mut part.p, ci, 1);
@@ -696,12 +701,13 @@ pub fn winograd_wgrad<T: Float>(
 /// `[ξ, tiles, O]`, zeros for outputs past the edge. In one dimension `A` maps `(y₀, y₁)` to
 /// `(y₀, y₀ + y₁, y₀ − y₁, −y₁)`: the transpose of `Aᵀ`'s rows `m₀ + m₁ + m₂` and
 /// `m₁ − m₂ − m₃`. (A few adds per value: one thread does the whole chunk.)
-fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T]) {
+///
+/// `fast`: by the AVX-512 transform ([`Transforms::output`]).
+fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T], fast: bool) {
     let (ty, tx) = s.tiles();
     let co = s.co;
     let places = s.places();
     let stride = m.len() / places;
-    let fast = fast_f32::<T>() && co.is_multiple_of(L);
     let zeros = [T::zero(); L];
     let mut t = 0;
     for img in dz.chunks_exact(s.oh * s.ow * co) {
@@ -720,9 +726,10 @@ fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T]) {
                         bytemuck::cast_slice::<T, f32>(img),
                         bytemuck::cast_slice_mut::<T, f32>(mt),
                     );
-                    // SAFETY: AVX-512F and T = f32 checked; every `Some` output holds `co`
+                    // SAFETY: AVX-512F, T = f32 and `co` a multiple of 16 checked (`Transforms::
+                    // choose`); every `Some` output holds `co`
                     // values inside the image; `mt` reaches the last place of this tile (`t`
-                    // is below the chunk's tile count, `stride / co`); `co` is a multiple of 16.
+                    // is below the chunk's tile count, `stride / co`).
                     unsafe {
                         if places == 16 {
                             avx512::adjoint_tile(img32, at, mt32, stride, co)
@@ -817,6 +824,8 @@ fn filter_adjoint_s2d<T: Float>(du: &[T], s: usize, cin: usize, cout: usize, dw:
 /// A run of whole images through the three stages.
 struct Chunk<'a, T> {
     s: WinogradShape,
+    /// Which transforms run on AVX-512, chosen once for the whole call.
+    fast: Transforms,
     images: usize,
     x: &'a [T],
     u: &'a [T],
@@ -879,7 +888,7 @@ impl<T: Float> Chunk<'_, T> {
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
             for starts in self.pixels.chunks_exact(places * blk) {
                 let vt = tiles.next().expect("one V block per tile");
-                input_tile_any(&s, img, zeros, starts, vt, s.channels());
+                input_tile_any(&s, img, zeros, starts, vt, s.channels(), self.fast.input);
             }
         }
     }
@@ -893,7 +902,8 @@ impl<T: Float> Chunk<'_, T> {
         let stride = ty * tx * ch;
         assert!(self.images == 1 && v.len() >= places * stride);
         for (t, starts) in self.pixels.chunks_exact(places * blk).enumerate() {
-            input_tile_any(&s, self.x, zeros, starts, &mut v[t * ch..], stride);
+            let vt = &mut v[t * ch..];
+            input_tile_any(&s, self.x, zeros, starts, vt, stride, self.fast.input);
         }
     }
 
@@ -904,7 +914,7 @@ impl<T: Float> Chunk<'_, T> {
         let (ty, tx) = s.tiles();
         let (pieces, places) = (s.out_pieces, s.places());
         let len = s.co / pieces;
-        let fast = fast_f32::<T>() && len.is_multiple_of(L);
+        let fast = self.fast.output;
         let mut tiles = m.chunks_exact(s.m_stride());
         // Where piece `j` of each of a tile's 2×2 outputs goes (channels `j·len ..+ len`).
         let mut at = [[None; 4]; MAX_PIECES];
@@ -932,9 +942,9 @@ impl<T: Float> Chunk<'_, T> {
                             bytemuck::cast_slice::<T, f32>(mt),
                             bytemuck::cast_slice_mut::<T, f32>(img),
                         );
-                        // SAFETY: AVX-512F and T = f32 checked; `mt` holds places·co values, the
-                        // bias `co`, each destination `len` inside the image (checked on entry),
-                        // and `len` is a multiple of 16.
+                        // SAFETY: AVX-512F, T = f32 and `len` a multiple of 16 checked
+                        // (`Transforms::choose`); `mt` holds places·co values, the bias `co`,
+                        // each destination `len` inside the image (checked on entry).
                         unsafe {
                             if places == 16 {
                                 avx512::output_tile(mt32, len, bias, self.relu, img32, at)
@@ -958,7 +968,8 @@ impl<T: Float> Chunk<'_, T> {
 /// One tile's input transform, all its block rows: `v[ξ·stride + dy·seg + c]` from the rows
 /// `starts[k·blk + dy]` of `img` (`zeros` outside it), on the AVX-512 transforms where they run.
 /// `stride` is `s²I` for the tile-major `V` of the forward pass, the image's tiles times that
-/// for the place-major `V` of the weight gradient.
+/// for the place-major `V` of the weight gradient. `fast`: by the AVX-512 transform
+/// ([`Transforms::input`]).
 fn input_tile_any<T: Float>(
     s: &WinogradShape,
     img: &[T],
@@ -966,17 +977,18 @@ fn input_tile_any<T: Float>(
     starts: &[Option<usize>],
     v: &mut [T],
     stride: usize,
+    fast: bool,
 ) {
     let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
     #[cfg(target_arch = "x86_64")]
-    if fast_f32::<T>() && seg.is_multiple_of(L) {
+    if fast {
         let img32 = bytemuck::cast_slice::<T, f32>(img);
         let z32 = bytemuck::cast_slice::<T, f32>(zeros);
         let v32 = bytemuck::cast_slice_mut::<T, f32>(v);
-        // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every start is a block row of
-        // `seg` values inside the image (checked where the table is built), `zeros` holds `seg`,
-        // `v` reaches place `places − 1` (the callers' slices run to the end of their block),
-        // and `seg` is a multiple of 16.
+        // SAFETY: `Transforms::choose` checked AVX-512F, that T is f32 and that `seg` is a
+        // multiple of 16; every start is a block row of `seg` values inside the image (checked
+        // where the table is built), `zeros` holds `seg`, `v` reaches place `places − 1` (the
+        // callers' slices run to the end of their block).
         unsafe {
             if places == 16 {
                 avx512::input_tile(img32, z32, starts, v32, stride, blk, seg)
@@ -1071,6 +1083,30 @@ fn fast_f32<T: Float>() -> bool {
     cfg!(target_arch = "x86_64")
         && std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()
         && T::simd()
+}
+
+/// Which of a call's transforms run on AVX-512: chosen once per [`winograd_conv`] or
+/// [`winograd_wgrad`], on the calling thread, where it is recorded ([`took`]); every task of
+/// the call follows it. The unsafe AVX-512 calls rely on these flags, so they are set only by
+/// [`Transforms::choose`].
+#[derive(Clone, Copy, Debug)]
+struct Transforms {
+    /// The input transform: f32 on AVX-512 ([`fast_f32`]) and block rows of whole vectors
+    /// (`s·I` a multiple of 16).
+    input: bool,
+    /// The output transform, or its adjoint: f32 on AVX-512 and whole vectors per output piece.
+    output: bool,
+}
+
+impl Transforms {
+    /// The transforms for shape `s` whose outputs come in pieces of `len` channels.
+    fn choose<T: Float>(s: &WinogradShape, len: usize) -> Self {
+        let fast = fast_f32::<T>();
+        Transforms {
+            input: took(Family::WinogradInput, fast && s.seg().is_multiple_of(L)),
+            output: took(Family::WinogradOutput, fast && len.is_multiple_of(L)),
+        }
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -1375,3 +1411,4 @@ mod avx512 {
         }
     }
 }
+
