@@ -1440,12 +1440,16 @@ mod tests {
         let has = false;
         let on = has && std::env::var_os("INVADERS_NO_SIMD").is_none();
         if !on {
-            eprintln!(
-                "skip: the AVX-512 Winograd transforms are not checked here ({}); the portable \
-                 ones are compared with themselves",
-                cpu::why_portable().unwrap_or_default()
-            );
+            static NOTE: std::sync::Once = std::sync::Once::new();
+            NOTE.call_once(|| {
+                eprintln!(
+                    "skip: the AVX-512 Winograd transforms are not checked here ({}); the \
+                     portable ones are compared with themselves",
+                    cpu::why_portable().unwrap_or_default()
+                )
+            });
         }
+        assert_eq!(cpu::avx512(), on, "the library's CPU check disagrees");
         on
     }
 
