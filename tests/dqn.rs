@@ -7,6 +7,8 @@ use invaders::dqn::checkpoint;
 use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
 use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
 use invaders::tensor::Tensor;
+use proptest::prelude::*;
+use rand::Rng;
 
 /// A corridor of `LEN` cells drawn as a bright vertical band at the agent's cell. Actions: 0 =
 /// left, 1 = right. Reaching the last cell gives reward 1 and ends the episode; every other step
@@ -523,4 +525,183 @@ fn checkpoints_round_trip_and_refuse_damage() {
         );
     }
     assert!(checkpoint::from_bytes(b"definitely not a checkpoint").is_err());
+}
+
+/// One step of the replay model: what the agent did from an entry.
+#[derive(Clone, Copy, Debug)]
+struct Step {
+    action: usize,
+    reward: f32,
+    done: bool,
+}
+
+/// A plain model of the replay memory, kept by episode: every entry ever written (its frame,
+/// its episode), each episode's first entry and its steps. Entry `g` is the `g − first`-th
+/// observation of its episode, and acted on if the episode has a step from it.
+#[derive(Default)]
+struct ReplayModel {
+    frames: Vec<u8>,
+    episode_of: Vec<usize>,
+    first: Vec<usize>,
+    steps: Vec<Vec<Step>>,
+}
+
+/// What sampling entry `g` must give: the newest-last frames of `s` and `s'`, the action, the
+/// return `R` over `m` steps, and whether it ended the episode's bootstrapping.
+#[derive(Debug, PartialEq)]
+struct Sampled {
+    s: Vec<u8>,
+    next: Vec<u8>,
+    action: usize,
+    ret: f32,
+    m: u32,
+    done: bool,
+}
+
+impl ReplayModel {
+    fn start(&mut self, frame: u8) {
+        self.first.push(self.frames.len());
+        self.steps.push(Vec::new());
+        self.episode_of.push(self.first.len() - 1);
+        self.frames.push(frame);
+    }
+
+    fn step(&mut self, step: Step, frame: u8) {
+        let e = self.first.len() - 1;
+        self.steps[e].push(step);
+        self.episode_of.push(e);
+        self.frames.push(frame);
+    }
+
+    /// The transition from entry `g` with states of `k` frames and `n`-step returns discounted
+    /// by `gamma`, for a memory of `capacity` entries; `None` if it cannot be sampled: `g` was
+    /// overwritten or not acted on, or its state reaches back past the oldest entry held.
+    fn sample(&self, g: usize, capacity: usize, k: usize, n: usize, gamma: f32) -> Option<Sampled> {
+        let oldest = self.frames.len().saturating_sub(capacity);
+        let e = self.episode_of[g];
+        let (first, steps) = (self.first[e], &self.steps[e]);
+        let i = g - first;
+        if g < oldest || i >= steps.len() || (g + 1).saturating_sub(k).max(first) < oldest {
+            return None;
+        }
+        // A state: the last k frames of the episode up to `h`, its first frame repeated
+        // before its start.
+        let state = |h: usize| -> Vec<u8> {
+            (0..k)
+                .map(|j| self.frames[(h + j + 1).saturating_sub(k).max(first)])
+                .collect()
+        };
+        let (mut ret, mut discount, mut m, mut done) = (0.0, 1.0, 0, false);
+        while m < n {
+            let st = steps[i + m];
+            ret += discount * st.reward;
+            discount *= gamma;
+            m += 1;
+            if st.done {
+                done = true;
+                break;
+            }
+            if i + m == steps.len() {
+                break; // the episode was cut there, or this is the newest entry
+            }
+        }
+        Some(Sampled {
+            s: state(g),
+            next: state(g + m),
+            action: steps[i].action,
+            ret,
+            m: m as u32,
+            done,
+        })
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: common::cases(32), ..ProptestConfig::default() })]
+
+    /// The replay memory against [`ReplayModel`], written independently from its episodes:
+    /// episodes of random lengths (a life lost now and then marked done mid-episode, each
+    /// episode ending in a game over or cut short), a small ring that wraps many times, states
+    /// of 1 and 4 frames, returns of 1 to 3 steps. At random moments (mid-episode too) every
+    /// sampled `s`, `s'`, action, return, step count and done is the model's for its entry,
+    /// no entry the model cannot sample is ever drawn, and every one it can is drawn.
+    #[test]
+    fn replay_samples_what_a_plain_model_says(
+        lengths in prop::collection::vec(1usize..8, 1..30), capacity in 5usize..20,
+        k in prop_oneof![Just(1usize), Just(4)], n in 1usize..=3, every in 2usize..9,
+        seed in any::<u64>(),
+    ) {
+        const B: usize = 2;
+        let gamma = 0.5;
+        let mut r = common::rng(seed);
+        let mut replay = Replay::new(capacity.max(k + 2), k).with_returns(n, gamma);
+        let capacity = replay.capacity();
+        let mut model = ReplayModel::default();
+        let table: [f32; 256] = std::array::from_fn(|i| i as f32);
+        let mut batch = Batch::new(B, [88, 80, k]);
+        let per = batch.states.len() / B;
+        // Entry g shows frame g mod 251: unique among the entries held.
+        let frame_of = |g: usize| (g % 251) as u8;
+        let mut pushes = 0;
+        let mut check = |replay: &mut Replay, model: &ReplayModel, r: &mut rand_chacha::ChaCha8Rng| -> Result<(), TestCaseError> {
+            let written = model.frames.len();
+            prop_assert_eq!(replay.written(), written as u64);
+            prop_assert_eq!(replay.can_sample(B), written.min(capacity) > B + k);
+            let oldest = written.saturating_sub(capacity);
+            let want: std::collections::BTreeSet<usize> = (oldest..written)
+                .filter(|&g| model.sample(g, capacity, k, n, gamma).is_some())
+                .collect();
+            if !replay.can_sample(B) || want.is_empty() {
+                return Ok(());
+            }
+            let mut seen = std::collections::BTreeSet::new();
+            for _ in 0..2000 {
+                replay.sample(r, &table, &mut batch);
+                for b in 0..B {
+                    let pixel = |t: &Tensor<f32>| -> Vec<u8> {
+                        t.data()[b * per..][..k].iter().map(|&v| v as u8).collect()
+                    };
+                    let (s, next) = (pixel(&batch.states), pixel(&batch.next_states));
+                    let g = (oldest..written).find(|&g| frame_of(g) == s[k - 1]).unwrap();
+                    let got = Sampled {
+                        s, next, action: batch.actions[b], ret: batch.rewards[b],
+                        m: batch.steps[b], done: batch.dones[b],
+                    };
+                    let expected = model.sample(g, capacity, k, n, gamma);
+                    prop_assert_eq!(Some(got), expected, "entry {} of {}", g, written);
+                    seen.insert(g);
+                }
+                if seen == want {
+                    break;
+                }
+            }
+            prop_assert_eq!(seen, want, "every sampleable entry drawn");
+            Ok(())
+        };
+        for len in lengths {
+            let g = model.frames.len();
+            replay.push_start(&frame(frame_of(g)));
+            model.start(frame_of(g));
+            pushes += 1;
+            if pushes % every == 0 {
+                check(&mut replay, &model, &mut r)?;
+            }
+            let game_over = r.random_bool(0.5);
+            for i in 0..len {
+                let step = Step {
+                    action: r.random_range(0..6),
+                    reward: [-1.0, 0.0, 0.5, 1.0, 2.0][r.random_range(0..5)],
+                    done: (i + 1 == len && game_over) || r.random_bool(0.1),
+                };
+                let g = model.frames.len();
+                replay.push_step(step.action, step.reward, step.done, &frame(frame_of(g)));
+                model.step(step, frame_of(g));
+                pushes += 1;
+                if pushes % every == 0 {
+                    check(&mut replay, &model, &mut r)?;
+                }
+            }
+        }
+        check(&mut replay, &model, &mut r)?;
+    }
 }

@@ -2,14 +2,16 @@
 
 mod common;
 
-use common::{assert_close, rng, set_params, uniform};
+use common::{assert_close, avx512_expected, on_path, rng, set_params, uniform};
 use invaders::layers::{Conv2d, Layer};
+use invaders::tensor::cpu::Family;
+use invaders::tensor::plan::{self, Kernel, Product};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
-    gemm_matrixmultiply, gemm_reference, pad_input, transpose, winograd_conv, winograd_filters,
-    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Border, ConvGeom, Float,
-    GatherGemm, Init, Op, Padding, Tensor, WinogradKind, WinogradScratch, WinogradShape,
-    SKIP_OUTPUT,
+    gemm_matrixmultiply, gemm_reference, pad_input, scatter_gemm_portable, transpose,
+    winograd_conv, winograd_filters, winograd_filters_s2d, winograd_filters_s2d_adjoint,
+    winograd_wgrad, Border, ConvGeom, Float, GatherGemm, Init, Op, Padding, ScatterGemm, Tensor,
+    WinogradKind, WinogradScratch, WinogradShape, SKIP_OUTPUT,
 };
 use proptest::prelude::*;
 
@@ -44,7 +46,8 @@ proptest! {
     /// reference GEMM, for each start (zero over NaN, accumulate, bias), at widths that cover
     /// every panel width and masked tail and heights that leave row remainders (a lone row takes
     /// 128-column panels); and bit-for-bit
-    /// against the portable loops, which sum in the same order.
+    /// against the portable loops, which sum in the same order. The AVX-512 kernel is the one
+    /// that ran where the host has it (the portable one otherwise).
     #[test]
     fn gather_gemm_matches_reference(
         // Single rows (and 7 = one 6-row tile + 1) with wide C take the 128-column GEMV panels.
@@ -90,7 +93,11 @@ proptest! {
             let init = match init { 0 => Init::Zero, 1 => Init::Accumulate, _ => Init::Bias(bias.data()) };
             let (c_rows, c) = if gap == 0 { (None, &mut cb[3..]) } else { (Some(&rows[..]), &mut cb[..]) };
             let g = GatherGemm { a: a.data(), p: &p, q: &q, b: b.data(), ldb: n, n, c, ldc: n, c_rows, init, relu };
-            if portable { gather_gemm_portable(g) } else { f32::gather_gemm(g) }
+            if portable {
+                gather_gemm_portable(g)
+            } else {
+                on_path(Family::Gather, avx512_expected(), "gather_gemm", || f32::gather_gemm(g))
+            }
             let untouched = cb.iter().enumerate().all(|(i, &v)| {
                 rows.iter().any(|&at| (at..at + n).contains(&i)) || v == 7.5
             });
@@ -902,7 +909,13 @@ proptest! {
         fn case<T: Float>(rows: usize, cols: usize, seed: u64) -> Result<(), TestCaseError> {
             let src = uniform::<T>(&[rows * cols], &mut rng(seed));
             let mut dst = vec![T::nan(); rows * cols];
-            transpose(src.data(), rows, cols, &mut dst);
+            // f32 on AVX-512 runs the register blocks; f64 (and f32 elsewhere) the plain loop.
+            let avx = T::DTYPE == "F32" && avx512_expected();
+            if rows > 0 {
+                on_path(Family::Transpose, avx, "transpose", || {
+                    transpose(src.data(), rows, cols, &mut dst)
+                });
+            }
             for r in 0..rows {
                 for c in 0..cols {
                     let (a, b) = (dst[c * rows + r], src.data()[r * cols + c]);
@@ -913,5 +926,162 @@ proptest! {
         }
         case::<f32>(rows, cols, seed)?;
         case::<f64>(rows, cols, seed)?;
+    }
+}
+
+/// `γ_N = N·u/(1 − N·u)` for f32 (`u = 2⁻²⁴`): a sum of `N` rounded additions (or fused
+/// multiply-adds) is within `γ_N·Σ|terms|` of the exact sum (Higham, Accuracy and Stability of
+/// Numerical Algorithms, §3.1), whatever the order.
+fn gamma(n: usize) -> f64 {
+    let nu = n as f64 * f64::powi(2.0, -24);
+    nu / (1.0 - nu)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: common::cases(64), ..ProptestConfig::default() })]
+
+    /// `scatter_gemm` (AVX-512 where the host has it, asserted) against
+    /// `scatter_gemm_portable`, on tables like a convolution's input gradient: rows added onto
+    /// overlapping places of their group's part of the output, through columns that are
+    /// consecutive (added in place) or scattered (added through a buffer). With one panel of
+    /// columns (n ≤ 64) and one block of steps (≤ 128) both sum each row from zero by fused
+    /// multiply-adds in step order and add the rows into the output in row order: bit for bit.
+    /// Wider, the AVX-512 kernel adds panel by panel; longer, block by block; those sums are
+    /// grouped differently, so there the two agree within twice either one's rounding bound,
+    /// `2·γ_N·Σ|terms|` with `N` the additions into one value.
+    #[test]
+    fn scatter_gemm_matches_its_portable_twin(
+        groups in 1usize..4, grows in 1usize..30,
+        steps in prop_oneof![0usize..20, Just(128usize), 120usize..140, 250usize..260],
+        n in prop_oneof![1usize..=64, 60usize..140], ld_extra in 0usize..3,
+        contiguous in any::<bool>(), seed in any::<u64>(),
+    ) {
+        use rand::Rng;
+        let mut r = rng(seed);
+        let rows = groups * grows;
+        let (ldb, lda) = (n + ld_extra, steps + ld_extra);
+        let a = uniform::<f32>(&[(rows * lda).max(1)], &mut r);
+        let b = uniform::<f32>(&[(steps * ldb).max(1)], &mut r);
+        let mut p = Vec::new();
+        fill_iota(&mut p, rows, lda);
+        let q: Vec<usize> = (0..steps).collect();
+        // The columns' places: consecutive from an offset, or apart by gaps of 1 to 3.
+        let out_cols: Vec<usize> = if contiguous {
+            let off = r.random_range(0..3);
+            (off..off + n).collect()
+        } else {
+            (0..n).scan(0, |at, _| { *at += r.random_range(1..4); Some(*at) }).collect()
+        };
+        let span = out_cols[n - 1] + 1;
+        let glen = span + 2 * grows;
+        let out_rows: Vec<usize> = (0..rows)
+            .map(|row| row / grows * glen + r.random_range(0..=glen - span))
+            .collect();
+        let out0 = uniform::<f32>(&[groups * glen], &mut r);
+        let run = |fast: bool| {
+            let mut out = out0.data().to_vec();
+            let g = ScatterGemm {
+                a: a.data(), p: &p, q: &q, b: b.data(), ldb, n, out: &mut out,
+                out_rows: &out_rows, out_cols: &out_cols, groups,
+            };
+            if fast {
+                on_path(Family::Scatter, avx512_expected(), "scatter_gemm", || f32::scatter_gemm(g));
+            } else {
+                scatter_gemm_portable(g);
+            }
+            out
+        };
+        let (fast, slow) = (run(true), run(false));
+        if n <= 64 && steps <= 128 {
+            let same = fast.iter().zip(&slow).all(|(x, y)| x.to_bits() == y.to_bits());
+            prop_assert!(same, "one panel, one block: bit for bit");
+        }
+        // Σ|terms| per output value: the same scatter in f64 on absolute values.
+        let abs = |v: &[f32]| v.iter().map(|x| x.abs() as f64).collect::<Vec<f64>>();
+        let (aa, ba) = (abs(a.data()), abs(b.data()));
+        let mut bound = abs(out0.data());
+        scatter_gemm_portable(ScatterGemm {
+            a: &aa, p: &p, q: &q, b: &ba, ldb, n, out: &mut bound,
+            out_rows: &out_rows, out_cols: &out_cols, groups,
+        });
+        let mut hits = vec![0usize; groups * glen];
+        for &o in &out_rows {
+            for &c in &out_cols {
+                hits[o + c] += 1;
+            }
+        }
+        let adds = steps + steps.div_ceil(128) + hits.iter().max().unwrap() + 1;
+        for (i, ((&x, &y), &s)) in fast.iter().zip(&slow).zip(&bound).enumerate() {
+            let d = (x as f64 - y as f64).abs();
+            prop_assert!(d <= 2.0 * gamma(adds) * s, "out[{}]: {} vs {} (bound {})", i, x, y, s);
+        }
+    }
+}
+
+/// The plan's Winograd thresholds, on each side: a 3×3 layer (F(2×2, 3×3)) and a 4×4 stride-2
+/// one (F(2×2, 2×2) over 2×2 blocks), built as the network builds them
+/// (`with_winograd(plan::winograd_pays(g))`), run Winograd at `WINOGRAD_MIN_BATCH` images with
+/// `WINOGRAD_MIN_INPUT_CHANNELS` input channels, on the AVX-512 transforms (forward, weight and
+/// input gradients), and the gather GEMM one image or one channel under either: f32 on an
+/// AVX-512 host. Elsewhere every case takes im2col and no transform runs. The products at
+/// either side of the batch threshold agree to rounding. A threshold that always fell back to
+/// the direct product, or one off by one, fails here.
+#[test]
+fn winograd_thresholds_choose_the_kernel() {
+    let avx = avx512_expected();
+    let (batch, chans) = (plan::WINOGRAD_MIN_BATCH, plan::WINOGRAD_MIN_INPUT_CHANNELS);
+    let mut r = rng(5);
+    for (k, s, kind) in [(3, 1, WinogradKind::F2x3), (4, 2, WinogradKind::S2d(2))] {
+        for cin in [chans - 1, chans] {
+            let g = ConvGeom::new(8, 8, cin, 16, k, k, (s, s), Padding::Valid).unwrap();
+            assert_eq!(plan::winograd_pays(&g), cin >= chans, "{cin} channels");
+            let mut layer = Conv2d::<f32>::new("w", g).with_winograd(plan::winograd_pays(&g));
+            for p in layer.params_mut() {
+                let t = uniform::<f32>(p.value.shape(), &mut r);
+                p.value.data_mut().copy_from_slice(t.data());
+            }
+            let x = uniform::<f32>(&[batch, 8, 8, cin], &mut r);
+            let fewer = Tensor::from_vec(
+                &[batch - 1, 8, 8, cin],
+                x.data()[..(batch - 1) * 64 * cin].to_vec(),
+            );
+            let mut outputs = Vec::new();
+            for x in [&fewer, &x] {
+                let n = x.batch();
+                let wino = avx && cin >= chans && n >= batch;
+                let want = match (avx, wino) {
+                    (false, _) => Kernel::Im2col,
+                    (true, true) => Kernel::Winograd(kind),
+                    (true, false) => Kernel::Gather,
+                };
+                let what = format!("{k}×{k}/{s}, {cin} channels, batch {n}");
+                let dy = uniform::<f32>(&[n, g.oh, g.ow, 16], &mut r);
+                let run = |layer: &mut Conv2d<f32>| {
+                    layer.forward(x);
+                    let y = layer.output().data().to_vec();
+                    layer.backward(x, &dy, true);
+                    y
+                };
+                let y = if wino {
+                    on_path(Family::WinogradOutput, true, &what, || {
+                        on_path(Family::WinogradInput, true, &what, || run(&mut layer))
+                    })
+                } else {
+                    let before = invaders::tensor::cpu::paths(Family::WinogradInput);
+                    let y = run(&mut layer);
+                    let after = invaders::tensor::cpu::paths(Family::WinogradInput);
+                    assert_eq!(after, before, "{what}: no Winograd transform");
+                    y
+                };
+                assert_eq!(plan::last(Product::ConvForward), Some(want), "{what}");
+                assert_eq!(plan::last(Product::ConvWeightGrad), Some(want), "{what}");
+                outputs.push(y);
+            }
+            let (few, all) = (&outputs[0], &outputs[1]);
+            let scale = 1.0 + all.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            for (i, (a, b)) in few.iter().zip(all).enumerate() {
+                assert!((a - b).abs() <= 1e-5 * scale, "[{i}]: {a} vs {b}");
+            }
+        }
     }
 }

@@ -4,10 +4,12 @@
 
 mod common;
 
-use common::{assert_close, rng, set_params, uniform};
+use common::{assert_close, avx512_expected, on_path, rng, set_params, uniform};
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::tensor::cpu::Family;
+use invaders::tensor::plan::{self, Kernel, Product};
 use invaders::tensor::{
     conv2d_reference, pad_input, Background, Border, ConvGeom, Float, Nonzeros, Padding, Tensor,
 };
@@ -190,9 +192,11 @@ proptest! {
             x.data_mut()[2] = f32::NAN; // not a zero: kept
         }
         let mut nz = Nonzeros::default();
-        // Twice: the second call reuses the buffers of the first.
+        // Twice: the second call reuses the buffers of the first. AVX-512 (a compress per 16
+        // channels) where the host has it and the pixels are whole vectors.
         nz.collect(sparse::<f32>(&[pixels + 1, c], 0.5, &mut r).data(), c);
-        nz.collect(x.data(), c);
+        let avx = avx512_expected() && c % 16 == 0;
+        on_path(Family::Nonzeros, avx, "Nonzeros::collect", || nz.collect(x.data(), c));
         let mut total = 0;
         for (p, px) in x.data().chunks_exact(c).enumerate() {
             let (index, value) = nz.pixel(p);
@@ -408,4 +412,317 @@ fn backward_after_infer_is_refused() {
 fn backward_after_background_infer_is_refused() {
     let g = ConvGeom::new(8, 8, 4, 16, 4, 4, (2, 2), Padding::Same).unwrap();
     backward_after_infer(Conv2d::new("c", g).with_background_inference(true));
+}
+
+/// `γ_N = N·u/(1 − N·u)` for f32 (`u = 2⁻²⁴`): a sum of `N` rounded additions (or fused
+/// multiply-adds) is within `γ_N·Σ|terms|` of the exact sum, in any order (Higham, Accuracy and
+/// Stability of Numerical Algorithms, §3.1).
+fn gamma(n: usize) -> f64 {
+    let nu = n as f64 * f64::powi(2.0, -24);
+    nu / (1.0 - nu)
+}
+
+/// The output channel counts the sparse and background products' AVX-512 kernels take (a
+/// multiple of 16 up to 128, one register per 16: every arm of their dispatch), and two they
+/// leave to the portable loops.
+const COUTS: [usize; 10] = [16, 32, 48, 64, 80, 96, 112, 128, 40, 144];
+
+/// Whether a sparse or background product of `cout` channels must run its AVX-512 kernel here.
+fn takes_avx(cout: usize) -> bool {
+    avx512_expected() && cout.is_multiple_of(16) && cout <= 128
+}
+
+fn f64s(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| x as f64).collect()
+}
+
+fn abs64(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| x.abs() as f64).collect()
+}
+
+/// Asserts `|got − want| ≤ γ_n·bound` value by value.
+fn within(what: &str, got: &[f32], want: &[f64], bound: &[f64], n: usize) {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    for (i, ((&g, &w), &b)) in got.iter().zip(want).zip(bound).enumerate() {
+        assert!(
+            (g as f64 - w).abs() <= gamma(n) * b,
+            "{what}[{i}]: {g} vs {w} (bound {b})"
+        );
+    }
+}
+
+/// The sparse product at every output channel count its dispatch knows (16 to 128 by 16: the
+/// AVX-512 kernels of 3, 5, 6 and 7 registers included, which the network never reaches) and
+/// at two it leaves to the portable loop (40, 144), for a convolution and a dense layer acting
+/// on one image: `infer` takes the sparse product (the plan's record), by the AVX-512 kernel
+/// where the host has it (the kernel's record), and gives the forward pass's bits there (the
+/// same fused multiply-adds in the same order, zero terms left out). On every path it is
+/// within the rounding bound of the f64 reference, `γ_{K+1}·(|b| + Σ|x||w|)` over its `K`
+/// terms: the portable loop rounds each product, so it matches no other kernel's bits.
+#[test]
+fn sparse_products_at_every_channel_count() {
+    let mut r = rng(21);
+    for cout in COUTS {
+        let avx = takes_avx(cout);
+        // A 3×3 SAME convolution of 16 channels: 1024 padded values, about 58 nonzero.
+        let g = ConvGeom::new(6, 6, 16, cout, 3, 3, (1, 1), Padding::Same).unwrap();
+        let mut conv = Conv2d::<f32>::new("c", g).with_sparse_inference(true);
+        let (w, b) = (
+            uniform::<f32>(&[3, 3, 16, cout], &mut r),
+            uniform::<f32>(&[cout], &mut r),
+        );
+        set_params(&mut conv, &[&w, &b]);
+        let x = sparse::<f32>(&[1, 6, 6, 16], 0.9, &mut r);
+        let what = format!("conv, {cout} channels");
+        let got = on_path(Family::Sparse, avx, &what, || {
+            conv.infer(&x);
+            conv.output().data().to_vec()
+        });
+        assert_eq!(
+            plan::last(Product::ConvInfer),
+            Some(Kernel::Sparse),
+            "{what}"
+        );
+        if avx {
+            conv.forward(&x);
+            assert_eq!(got, conv.output().data(), "{what}: the forward pass's bits");
+        }
+        let mut want = vec![0.0; g.oh * g.ow * cout];
+        conv2d_reference(
+            &g,
+            1,
+            &f64s(x.data()),
+            &f64s(w.data()),
+            &f64s(b.data()),
+            &mut want,
+        );
+        let mut bound = vec![0.0; want.len()];
+        let (xa, wa, ba) = (abs64(x.data()), abs64(w.data()), abs64(b.data()));
+        conv2d_reference(&g, 1, &xa, &wa, &ba, &mut bound);
+        within(&what, &got, &want, &bound, g.patch_len() + 1);
+
+        // dense1's shape, small: 200 inputs, half of them zero.
+        let mut dense = Dense::<f32>::new("d", 200, cout).with_sparse_inference(true);
+        let (w, b) = (
+            uniform::<f32>(&[200, cout], &mut r),
+            uniform::<f32>(&[cout], &mut r),
+        );
+        set_params(&mut dense, &[&w, &b]);
+        let x = sparse::<f32>(&[1, 200], 0.5, &mut r);
+        let what = format!("dense, {cout} outputs");
+        let got = on_path(Family::Sparse, avx, &what, || {
+            dense.infer(&x);
+            dense.output().data().to_vec()
+        });
+        assert_eq!(
+            plan::last(Product::DenseInfer),
+            Some(Kernel::Sparse),
+            "{what}"
+        );
+        if avx {
+            dense.forward(&x);
+            assert_eq!(
+                got,
+                dense.output().data(),
+                "{what}: the forward pass's bits"
+            );
+        }
+        let (want, bound): (Vec<f64>, Vec<f64>) = (0..cout)
+            .map(|j| {
+                (0..200).fold(
+                    (b.data()[j] as f64, b.data()[j].abs() as f64),
+                    |(s, a), i| {
+                        let t = x.data()[i] as f64 * w.data()[i * cout + j] as f64;
+                        (s + t, a + t.abs())
+                    },
+                )
+            })
+            .unzip();
+        within(&what, &got, &want, &bound, 201);
+    }
+}
+
+/// conv1's background split at every output channel count of [`COUTS`], on a frame with a
+/// few differing pixels: `infer` takes the split (the plan's record), scans by the AVX-512
+/// comparison where the host has it and sums by the AVX-512 kernel for the counts its dispatch
+/// takes (the kernels' records). The split groups the sum differently from the direct product
+/// (`b + conv(B) + conv(x − B)`, with `x − β` rounded), so it is checked against the f64
+/// reference within `γ_N·(|b| + Σ(|x| + 2|β|)|w|)`, `N = 2K + KH + KW + 2`: the
+/// background's sums (`Cin`, then `KW` and `KH` terms), the differences' products (`Cin` each)
+/// and one addition per tap.
+#[test]
+fn background_products_at_every_channel_count() {
+    let mut r = rng(22);
+    for cout in COUTS {
+        let g = ConvGeom::new(16, 16, 4, cout, 8, 8, (4, 4), Padding::Same).unwrap();
+        let mut conv = Conv2d::<f32>::new("c1", g).with_background_inference(true);
+        let (w, b) = (
+            uniform::<f32>(&[8, 8, 4, cout], &mut r),
+            uniform::<f32>(&[cout], &mut r),
+        );
+        set_params(&mut conv, &[&w, &b]);
+        let x = frame::<f32>(&[1, 16, 16, 4], 0.95, &mut r);
+        let what = format!("background, {cout} channels");
+        let got = on_path(Family::BackgroundSplit, avx512_expected(), &what, || {
+            on_path(Family::Background, takes_avx(cout), &what, || {
+                conv.infer(&x);
+                conv.output().data().to_vec()
+            })
+        });
+        assert_eq!(
+            plan::last(Product::ConvInfer),
+            Some(Kernel::Background),
+            "{what}"
+        );
+        let mut want = vec![0.0; g.oh * g.ow * cout];
+        conv2d_reference(
+            &g,
+            1,
+            &f64s(x.data()),
+            &f64s(w.data()),
+            &f64s(b.data()),
+            &mut want,
+        );
+        let beta = abs64(&x.data()[..4]);
+        let xa: Vec<f64> = x
+            .data()
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v.abs() as f64 + 2.0 * beta[i % 4])
+            .collect();
+        let mut bound = vec![0.0; want.len()];
+        conv2d_reference(&g, 1, &xa, &abs64(w.data()), &abs64(b.data()), &mut bound);
+        within(&what, &got, &want, &bound, 2 * g.patch_len() + 8 + 8 + 2);
+    }
+}
+
+/// Places `count` nonzero values at distinct random places of `x` (zeros elsewhere), among
+/// `places` (the values of each image that may be nonzero).
+fn with_nonzeros(x: &mut [f32], places: &[usize], count: usize, r: &mut impl Rng) {
+    x.fill(0.0);
+    let mut free = places.to_vec();
+    for _ in 0..count {
+        let at = free.swap_remove(r.random_range(0..free.len()));
+        x[at] = r.random_range(0.5..1.0);
+    }
+}
+
+/// Acting's choice of algorithm at each side of each threshold, for inputs built with an
+/// exact count of nonzero values or differing pixels: a convolution acts by the sparse
+/// product up to `1/sparse_share(n)` of its padded input nonzero (a batch judged by its first
+/// image, then as a whole) and by its forward pass one value above; conv1's split takes up to
+/// `1/BACKGROUND_MAX_DIFFERING` of the pixels differing and one image only; a dense layer acts
+/// sparse on any single sample and on a batch up to `1/dense_sparse_share(n)` nonzero. What
+/// ran is the plan's record; a threshold that always fell back to the dense product, or one off
+/// by one, fails here.
+#[test]
+fn infer_takes_each_algorithm_on_its_side_of_each_threshold() {
+    let avx = avx512_expected();
+    let dense_kernel = if avx { Kernel::Gather } else { Kernel::Gemm };
+    let conv_kernel = if avx { Kernel::Gather } else { Kernel::Im2col };
+    let mut r = rng(23);
+
+    // Sparse convolution: a 3×3 SAME layer over 6×6×16, padded to 8×8×16 = 1024 values.
+    let g = ConvGeom::new(6, 6, 16, 16, 3, 3, (1, 1), Padding::Same).unwrap();
+    let (hp, wp) = g.padded();
+    let image = hp * wp * g.cin;
+    let mut conv = Conv2d::<f32>::new("c", g).with_sparse_inference(true);
+    let interior: Vec<usize> = (0..g.h * g.w * g.cin).collect();
+    let mut infer_conv = |conv: &mut Conv2d<f32>, counts: &[usize]| {
+        let mut x = Tensor::<f32>::zeros(&[counts.len(), 6, 6, 16]);
+        for (img, &c) in x.data_mut().chunks_exact_mut(interior.len()).zip(counts) {
+            with_nonzeros(img, &interior, c, &mut r);
+        }
+        conv.infer(&x);
+        plan::last(Product::ConvInfer)
+    };
+    let one = image / plan::sparse_share(1);
+    assert_eq!(plan::sparse_share(1), plan::SPARSE_MAX_NONZERO_ONE);
+    assert_eq!(
+        infer_conv(&mut conv, &[one]),
+        Some(Kernel::Sparse),
+        "{one} of {image}"
+    );
+    assert_eq!(
+        infer_conv(&mut conv, &[one + 1]),
+        Some(conv_kernel),
+        "{}",
+        one + 1
+    );
+    // A batch of 3: at most a tenth of the first image, then of the whole batch.
+    let (first, all) = (
+        image / plan::sparse_share(3),
+        3 * image / plan::sparse_share(3),
+    );
+    assert_eq!(plan::sparse_share(3), plan::SPARSE_MAX_NONZERO_BATCH);
+    let rest = all - first;
+    for (counts, want) in [
+        ([first, rest / 2, rest - rest / 2], Kernel::Sparse),
+        ([first, rest / 2, rest - rest / 2 + 1], conv_kernel),
+        ([first + 1, 0, 0], conv_kernel),
+    ] {
+        assert_eq!(
+            infer_conv(&mut conv, &counts),
+            Some(want),
+            "batch {counts:?}"
+        );
+    }
+
+    // conv1's split: 16×16 pixels, at most 32 differing.
+    let g = ConvGeom::new(16, 16, 4, 32, 8, 8, (4, 4), Padding::Same).unwrap();
+    let limit = g.h * g.w / plan::BACKGROUND_MAX_DIFFERING;
+    for sparse_too in [false, true] {
+        let mut conv1 = Conv2d::<f32>::new("c1", g)
+            .with_background_inference(true)
+            .with_sparse_inference(sparse_too);
+        for (differing, n, want) in [
+            (limit, 1, Kernel::Background),
+            (limit + 1, 1, conv_kernel),
+            (0, 2, conv_kernel),
+        ] {
+            // Background -1 (nonzero: the sparse product does not take it either); the
+            // differing pixels differ in one channel.
+            let mut x = Tensor::from_vec(&[n, 16, 16, 4], vec![-1.0f32; n * 16 * 16 * 4]);
+            let mut pixels: Vec<usize> = (1..256).collect();
+            for _ in 0..differing {
+                let p = pixels.swap_remove(r.random_range(0..pixels.len()));
+                x.data_mut()[p * 4 + r.random_range(0..4)] = r.random_range(0.0..1.0);
+            }
+            conv1.infer(&x);
+            assert_eq!(
+                plan::last(Product::ConvInfer),
+                Some(want),
+                "{differing} of 256 pixels differing, batch {n}, sparse inference {sparse_too}"
+            );
+        }
+    }
+
+    // Dense: 100 inputs; one sample acts sparse however dense, a batch of 3 up to a tenth.
+    let mut dense = Dense::<f32>::new("d", 100, 16).with_sparse_inference(true);
+    let places: Vec<usize> = (0..100).collect();
+    let mut infer_dense = |counts: &[usize]| {
+        let mut x = Tensor::<f32>::zeros(&[counts.len(), 100]);
+        for (s, &c) in x.data_mut().chunks_exact_mut(100).zip(counts) {
+            with_nonzeros(s, &places, c, &mut r);
+        }
+        dense.infer(&x);
+        plan::last(Product::DenseInfer)
+    };
+    assert_eq!(plan::dense_sparse_share(1), 1);
+    assert_eq!(
+        infer_dense(&[100]),
+        Some(Kernel::Sparse),
+        "one dense sample"
+    );
+    let (first, all) = (
+        100 / plan::dense_sparse_share(3),
+        300 / plan::dense_sparse_share(3),
+    );
+    for (counts, want) in [
+        ([first, all - first, 0], Kernel::Sparse),
+        ([first, all - first, 1], dense_kernel),
+        ([first + 1, 0, 0], dense_kernel),
+    ] {
+        assert_eq!(infer_dense(&counts), Some(want), "batch {counts:?}");
+    }
 }

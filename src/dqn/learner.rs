@@ -181,6 +181,12 @@ impl Learner {
         self.n_actions
     }
 
+    /// The TD targets `y` of the last [`Learner::train_step`], one per transition of its batch
+    /// (empty before the first): what the online network's `Q(s, a)` was regressed towards.
+    pub fn targets(&self) -> &[f32] {
+        &self.y
+    }
+
     /// The first online-network parameter holding a NaN or an infinity, as `name[index]`.
     /// (The target network only ever copies the online one.)
     pub fn non_finite_param(&self) -> Option<String> {

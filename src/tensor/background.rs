@@ -27,6 +27,7 @@
 //! grouped differently. (On AVX-512 each pixel's sum is taken by fused multiply-adds, and the
 //! portable loops round each product, so the two also differ by rounding; each is deterministic.)
 
+use super::cpu::{took, Family};
 use super::{ConvGeom, Float};
 use std::ops::Range;
 
@@ -91,8 +92,9 @@ impl<T: Float> Background<T> {
         self.at.clear();
         self.diff.resize(g.h * g.w * c, T::zero());
         let rows = (0..g.h).map(|iy| &x[first + iy * row..][..g.w * c]);
+        let fast = took(Family::BackgroundSplit, T::simd());
         #[cfg(target_arch = "x86_64")]
-        if T::simd() {
+        if fast {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
             self.complete = unsafe { avx512::split(self, g, rows, limit) };
             return self.complete;
@@ -169,8 +171,12 @@ impl<T: Float> Background<T> {
         );
         assert_eq!(rows.len(), g.oh * g.ow, "Background: output rows");
         assert!(self.complete, "Background: conv after a split that gave up");
+        let fast = took(
+            Family::Background,
+            T::simd() && cout.is_multiple_of(16) && cout <= 128,
+        );
         #[cfg(target_arch = "x86_64")]
-        if T::simd() && cout.is_multiple_of(16) && cout <= 128 {
+        if fast {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
             return unsafe { avx512::conv(self, g, w, bias, relu, y, rows) };
         }

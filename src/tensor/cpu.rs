@@ -9,7 +9,13 @@
 //! read once, at the first call, so a process runs one way throughout.
 //!
 //! The kernels are selected by [`crate::tensor::plan`]; nothing else asks the CPU.
+//!
+//! Each hand-written kernel family records which of its two loops ran ([`took`], read back by
+//! [`paths`]), per thread, on the thread that called it: a test can then prove that the
+//! AVX-512 kernel it meant to check is the one that ran, and not the portable twin (or the
+//! reverse with `INVADERS_NO_SIMD=1`). The record is one thread-local increment per call.
 
+use std::cell::Cell;
 use std::sync::OnceLock;
 
 /// The CPU features the kernels use, as detected once per process.
@@ -41,6 +47,104 @@ fn detect_avx512() -> bool {
 #[inline]
 pub fn avx512() -> bool {
     features().avx512
+}
+
+/// Why the AVX-512 kernels do not run on this host, or `None` if they do: the missing CPU
+/// feature (`avx512f`, `fma`), another architecture, or `INVADERS_NO_SIMD`.
+pub fn why_portable() -> Option<String> {
+    if avx512() {
+        return None;
+    }
+    if std::env::var_os("INVADERS_NO_SIMD").is_some() {
+        return Some("INVADERS_NO_SIMD is set".into());
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        let missing: Vec<&str> = [
+            ("avx512f", is_x86_feature_detected!("avx512f")),
+            ("fma", is_x86_feature_detected!("fma")),
+        ]
+        .into_iter()
+        .filter_map(|(name, has)| (!has).then_some(name))
+        .collect();
+        Some(format!("this CPU lacks {}", missing.join(" and ")))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    Some(format!("{} is not x86_64", std::env::consts::ARCH))
+}
+
+/// A kernel family that picks, call by call, between an AVX-512 loop and a portable one.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Family {
+    /// The gather GEMM ([`crate::tensor::Float::gather_gemm`]).
+    Gather,
+    /// The scatter GEMM ([`crate::tensor::Float::scatter_gemm`]).
+    Scatter,
+    /// Winograd's input transform (forward pass, input gradient and weight gradient).
+    WinogradInput,
+    /// Winograd's output transform (forward pass, input gradient) and its adjoint (weight
+    /// gradient).
+    WinogradOutput,
+    /// The list of an image's nonzero values ([`crate::tensor::Nonzeros::collect`]).
+    Nonzeros,
+    /// The sparse product ([`crate::tensor::SparseConv`]): convolutions' and dense layers'
+    /// acting.
+    Sparse,
+    /// The scan for pixels that differ from the background ([`crate::tensor::Background::split`]).
+    BackgroundSplit,
+    /// The background split's product ([`crate::tensor::Background::conv`]).
+    Background,
+    /// [`crate::tensor::transpose`].
+    Transpose,
+}
+
+const FAMILIES: usize = 9;
+
+/// How many calls of a family ran each loop on this thread.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Paths {
+    /// Calls that ran the AVX-512 loop.
+    pub avx512: u64,
+    /// Calls that ran the portable loop.
+    pub portable: u64,
+}
+
+impl Paths {
+    /// The calls counted since `before` (an earlier [`paths`] of the same family and thread).
+    pub fn since(self, before: Paths) -> Paths {
+        Paths {
+            avx512: self.avx512 - before.avx512,
+            portable: self.portable - before.portable,
+        }
+    }
+}
+
+thread_local! {
+    static TAKEN: [[Cell<u64>; 2]; FAMILIES] =
+        const { [const { [const { Cell::new(0) }, const { Cell::new(0) }] }; FAMILIES] };
+}
+
+/// Records that a call of `family` runs its AVX-512 loop (`avx512`) or its portable one, on
+/// this thread, and returns `avx512`: the kernels branch on what this returns, so the record
+/// cannot disagree with what ran.
+#[inline]
+pub fn took(family: Family, avx512: bool) -> bool {
+    TAKEN.with(|t| {
+        let c = &t[family as usize][usize::from(!avx512)];
+        c.set(c.get() + 1);
+    });
+    avx512
+}
+
+/// How many calls of `family` ran each loop on this thread so far.
+pub fn paths(family: Family) -> Paths {
+    TAKEN.with(|t| {
+        let [a, p] = &t[family as usize];
+        Paths {
+            avx512: a.get(),
+            portable: p.get(),
+        }
+    })
 }
 
 /// Defines a function whose body is compiled for AVX-512 where [`avx512`] holds, else as built:

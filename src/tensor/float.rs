@@ -4,6 +4,7 @@
 //! checks run the very same code in `f64`, where central finite differences are accurate to
 //! about 1e-9, so a tolerance can be tight enough to catch a single wrong index.
 
+use super::cpu::{took, Family};
 use super::gather::{gather_gemm_portable, scatter_gemm_portable, GatherGemm, ScatterGemm};
 use std::fmt::{Debug, Display};
 use std::iter::Sum;
@@ -40,12 +41,14 @@ pub trait Float:
     /// The gather GEMM of [`crate::tensor::GatherGemm`]: the SIMD kernel where [`Float::simd`],
     /// else the portable loops.
     fn gather_gemm(g: GatherGemm<'_, Self>) {
+        took(Family::Gather, false);
         gather_gemm_portable(g)
     }
 
     /// The scatter GEMM of [`crate::tensor::ScatterGemm`]: SIMD where [`Float::simd`], else the
     /// portable loops.
     fn scatter_gemm(g: ScatterGemm<'_, Self>) {
+        took(Family::Scatter, false);
         scatter_gemm_portable(g)
     }
 
@@ -143,7 +146,7 @@ impl Float for f32 {
     }
     #[cfg(target_arch = "x86_64")]
     fn gather_gemm(g: GatherGemm<'_, f32>) {
-        if Self::simd() {
+        if took(Family::Gather, Self::simd()) {
             super::gather::avx512::gather_gemm(g)
         } else {
             gather_gemm_portable(g)
@@ -151,7 +154,7 @@ impl Float for f32 {
     }
     #[cfg(target_arch = "x86_64")]
     fn scatter_gemm(g: ScatterGemm<'_, f32>) {
-        if Self::simd() {
+        if took(Family::Scatter, Self::simd()) {
             super::gather::avx512::scatter_gemm(g)
         } else {
             scatter_gemm_portable(g)

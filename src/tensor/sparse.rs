@@ -24,6 +24,7 @@
 //! conv1 reads frames, which have no zeros but a constant background: acting splits that off
 //! instead ([`super::Background`]), and agrees with the forward pass up to rounding.
 
+use super::cpu::{took, Family};
 use super::Float;
 
 /// The nonzero values of an image `[P, C]` (pixels, channels), pixel by pixel: pixel `p`'s are
@@ -54,8 +55,9 @@ impl<T: Float> Nonzeros<T> {
         // even when zero.
         self.index.resize(x.len() + 16, 0);
         self.value.resize(x.len() + 16, T::zero());
+        let fast = took(Family::Nonzeros, T::simd() && c.is_multiple_of(16));
         #[cfg(target_arch = "x86_64")]
-        if T::simd() && c.is_multiple_of(16) {
+        if fast {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
             return unsafe { avx512::collect(self, x, c) };
         }
@@ -137,12 +139,14 @@ impl<T: Float> SparseConv<'_, T> {
         if cout == 0 || self.windows.is_empty() {
             return;
         }
-        if T::simd() && cout.is_multiple_of(16) && cout <= 128 {
-            #[cfg(target_arch = "x86_64")]
-            {
-                // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
-                return unsafe { avx512::run(self, cin, cout) };
-            }
+        let fast = took(
+            Family::Sparse,
+            T::simd() && cout.is_multiple_of(16) && cout <= 128,
+        );
+        #[cfg(target_arch = "x86_64")]
+        if fast {
+            // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
+            return unsafe { avx512::run(self, cin, cout) };
         }
         // Each row is summed in place in `y`: no scratch, nothing allocated per call.
         for (&p, &r) in self.windows.iter().zip(self.rows) {

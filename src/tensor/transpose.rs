@@ -8,6 +8,7 @@
 //! shuffles and 16 stores each. (Gathering each 16 values with `vgatherdps` measured slower than
 //! the plain loop on this machine.)
 
+use super::cpu::{took, Family};
 use super::Float;
 
 /// Writes `src` (`rows × cols`, row-major) transposed into `dst` (`cols × rows`).
@@ -20,8 +21,9 @@ pub fn transpose<T: Float>(src: &[T], rows: usize, cols: usize, dst: &mut [T]) {
     if rows == 0 || cols == 0 {
         return;
     }
+    let fast = took(Family::Transpose, T::simd());
     #[cfg(target_arch = "x86_64")]
-    if T::simd() {
+    if fast {
         // SAFETY: `simd` holds only where the CPU runs AVX-512F, and `T` is f32 there; every
         // load and store goes through a bounds-checked 16-value slice.
         return unsafe {

@@ -52,6 +52,7 @@
 //! takes a contiguous run of images with its own scratch. Every output is computed from its own
 //! tile in a fixed order, so the results do not depend on the thread count.
 
+use super::cpu::{took, Family};
 use super::{fill_iota, Float, GatherGemm, Init};
 use rayon::prelude::*;
 
@@ -508,6 +509,7 @@ pub fn winograd_conv<T: Float>(
     // between the transforms and the products. (At least 128 tiles, 5 images and 1.2 MiB,
     // measured 3% slower on the train step; one image, 30 tiles, 1% slower.)
     let per_chunk = 48usize.div_ceil(ty * tx).min(s.n);
+    let fast = Transforms::choose::<T>(&s, s.co / pieces);
     input_offsets(&s, &mut scratch.pixels);
     let pixels = &scratch.pixels[..];
     // A contiguous run of images per thread, each with its own scratch.
@@ -527,6 +529,7 @@ pub fn winograd_conv<T: Float>(
                 let xs = &x[first * s.h * s.w * s.ci..][..images * s.h * s.w * s.ci];
                 let job = Chunk {
                     s,
+                    fast,
                     images,
                     x: xs,
                     u,
@@ -611,6 +614,7 @@ pub fn winograd_wgrad<T: Float>(
     let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
     // 4 images of conv3 per chunk: 120 tiles, V and dM 480 KiB each, in L2.
     let per_chunk = 96usize.div_ceil(ty * tx).min(s.n);
+    let fast = Transforms::choose::<T>(&s, co);
     input_offsets(&s, &mut scratch.pixels);
     if scratch.parts.is_empty() {
         scratch.parts.push(Part::default());
@@ -646,6 +650,7 @@ pub fn winograd_wgrad<T: Float>(
             .for_each(|(v, x)| {
                 let job = Chunk {
                     s,
+                    fast,
                     images: 1,
                     x,
                     u: &[],
@@ -656,7 +661,7 @@ pub fn winograd_wgrad<T: Float>(
                 };
                 job.input_by_place(v, zeros);
             });
-        output_adjoint(&s, dzs, m);
+        output_adjoint(&s, dzs, m, fast.output);
         // dU_ξ += V_ξᵀ · dM_ξ: rows are input channels, the reduction runs over the chunk's
         // tiles (gathered from V image by image; dM's rows in order).
         fill_iota(&mut part.p, ci, 1);
@@ -696,12 +701,13 @@ pub fn winograd_wgrad<T: Float>(
 /// `[ξ, tiles, O]`, zeros for outputs past the edge. In one dimension `A` maps `(y₀, y₁)` to
 /// `(y₀, y₀ + y₁, y₀ − y₁, −y₁)`: the transpose of `Aᵀ`'s rows `m₀ + m₁ + m₂` and
 /// `m₁ − m₂ − m₃`. (A few adds per value: one thread does the whole chunk.)
-fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T]) {
+///
+/// `fast`: by the AVX-512 transform ([`Transforms::output`]).
+fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T], fast: bool) {
     let (ty, tx) = s.tiles();
     let co = s.co;
     let places = s.places();
     let stride = m.len() / places;
-    let fast = fast_f32::<T>() && co.is_multiple_of(L);
     let zeros = [T::zero(); L];
     let mut t = 0;
     for img in dz.chunks_exact(s.oh * s.ow * co) {
@@ -720,9 +726,10 @@ fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T]) {
                         bytemuck::cast_slice::<T, f32>(img),
                         bytemuck::cast_slice_mut::<T, f32>(mt),
                     );
-                    // SAFETY: AVX-512F and T = f32 checked; every `Some` output holds `co`
+                    // SAFETY: AVX-512F, T = f32 and `co` a multiple of 16 checked (`Transforms::
+                    // choose`); every `Some` output holds `co`
                     // values inside the image; `mt` reaches the last place of this tile (`t`
-                    // is below the chunk's tile count, `stride / co`); `co` is a multiple of 16.
+                    // is below the chunk's tile count, `stride / co`).
                     unsafe {
                         if places == 16 {
                             avx512::adjoint_tile(img32, at, mt32, stride, co)
@@ -817,6 +824,8 @@ fn filter_adjoint_s2d<T: Float>(du: &[T], s: usize, cin: usize, cout: usize, dw:
 /// A run of whole images through the three stages.
 struct Chunk<'a, T> {
     s: WinogradShape,
+    /// Which transforms run on AVX-512, chosen once for the whole call.
+    fast: Transforms,
     images: usize,
     x: &'a [T],
     u: &'a [T],
@@ -879,7 +888,7 @@ impl<T: Float> Chunk<'_, T> {
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
             for starts in self.pixels.chunks_exact(places * blk) {
                 let vt = tiles.next().expect("one V block per tile");
-                input_tile_any(&s, img, zeros, starts, vt, s.channels());
+                input_tile_any(&s, img, zeros, starts, vt, s.channels(), self.fast.input);
             }
         }
     }
@@ -893,7 +902,8 @@ impl<T: Float> Chunk<'_, T> {
         let stride = ty * tx * ch;
         assert!(self.images == 1 && v.len() >= places * stride);
         for (t, starts) in self.pixels.chunks_exact(places * blk).enumerate() {
-            input_tile_any(&s, self.x, zeros, starts, &mut v[t * ch..], stride);
+            let vt = &mut v[t * ch..];
+            input_tile_any(&s, self.x, zeros, starts, vt, stride, self.fast.input);
         }
     }
 
@@ -904,7 +914,7 @@ impl<T: Float> Chunk<'_, T> {
         let (ty, tx) = s.tiles();
         let (pieces, places) = (s.out_pieces, s.places());
         let len = s.co / pieces;
-        let fast = fast_f32::<T>() && len.is_multiple_of(L);
+        let fast = self.fast.output;
         let mut tiles = m.chunks_exact(s.m_stride());
         // Where piece `j` of each of a tile's 2×2 outputs goes (channels `j·len ..+ len`).
         let mut at = [[None; 4]; MAX_PIECES];
@@ -932,9 +942,9 @@ impl<T: Float> Chunk<'_, T> {
                             bytemuck::cast_slice::<T, f32>(mt),
                             bytemuck::cast_slice_mut::<T, f32>(img),
                         );
-                        // SAFETY: AVX-512F and T = f32 checked; `mt` holds places·co values, the
-                        // bias `co`, each destination `len` inside the image (checked on entry),
-                        // and `len` is a multiple of 16.
+                        // SAFETY: AVX-512F, T = f32 and `len` a multiple of 16 checked
+                        // (`Transforms::choose`); `mt` holds places·co values, the bias `co`,
+                        // each destination `len` inside the image (checked on entry).
                         unsafe {
                             if places == 16 {
                                 avx512::output_tile(mt32, len, bias, self.relu, img32, at)
@@ -958,7 +968,8 @@ impl<T: Float> Chunk<'_, T> {
 /// One tile's input transform, all its block rows: `v[ξ·stride + dy·seg + c]` from the rows
 /// `starts[k·blk + dy]` of `img` (`zeros` outside it), on the AVX-512 transforms where they run.
 /// `stride` is `s²I` for the tile-major `V` of the forward pass, the image's tiles times that
-/// for the place-major `V` of the weight gradient.
+/// for the place-major `V` of the weight gradient. `fast`: by the AVX-512 transform
+/// ([`Transforms::input`]).
 fn input_tile_any<T: Float>(
     s: &WinogradShape,
     img: &[T],
@@ -966,17 +977,18 @@ fn input_tile_any<T: Float>(
     starts: &[Option<usize>],
     v: &mut [T],
     stride: usize,
+    fast: bool,
 ) {
     let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
     #[cfg(target_arch = "x86_64")]
-    if fast_f32::<T>() && seg.is_multiple_of(L) {
+    if fast {
         let img32 = bytemuck::cast_slice::<T, f32>(img);
         let z32 = bytemuck::cast_slice::<T, f32>(zeros);
         let v32 = bytemuck::cast_slice_mut::<T, f32>(v);
-        // SAFETY: `fast_f32` checked AVX-512F (and that T is f32); every start is a block row of
-        // `seg` values inside the image (checked where the table is built), `zeros` holds `seg`,
-        // `v` reaches place `places − 1` (the callers' slices run to the end of their block),
-        // and `seg` is a multiple of 16.
+        // SAFETY: `Transforms::choose` checked AVX-512F, that T is f32 and that `seg` is a
+        // multiple of 16; every start is a block row of `seg` values inside the image (checked
+        // where the table is built), `zeros` holds `seg`, `v` reaches place `places − 1` (the
+        // callers' slices run to the end of their block).
         unsafe {
             if places == 16 {
                 avx512::input_tile(img32, z32, starts, v32, stride, blk, seg)
@@ -1071,6 +1083,39 @@ fn fast_f32<T: Float>() -> bool {
     cfg!(target_arch = "x86_64")
         && std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()
         && T::simd()
+}
+
+/// Which of a call's transforms run on AVX-512: chosen once per [`winograd_conv`] or
+/// [`winograd_wgrad`], on the calling thread, where it is recorded ([`took`]); every task of
+/// the call follows it. The unsafe AVX-512 calls rely on these flags, so they are set only by
+/// [`Transforms::choose`].
+#[derive(Clone, Copy, Debug)]
+struct Transforms {
+    /// The input transform: f32 on AVX-512 ([`fast_f32`]) and block rows of whole vectors
+    /// (`s·I` a multiple of 16).
+    input: bool,
+    /// The output transform, or its adjoint: f32 on AVX-512 and whole vectors per output piece.
+    output: bool,
+}
+
+impl Transforms {
+    /// The transforms for shape `s` whose outputs come in pieces of `len` channels.
+    fn choose<T: Float>(s: &WinogradShape, len: usize) -> Self {
+        let fast = fast_f32::<T>();
+        Transforms {
+            input: took(Family::WinogradInput, fast && s.seg().is_multiple_of(L)),
+            output: took(Family::WinogradOutput, fast && len.is_multiple_of(L)),
+        }
+    }
+
+    /// The portable transforms, whatever the CPU (the AVX-512 ones' oracle in the tests).
+    #[cfg(test)]
+    fn portable() -> Self {
+        Transforms {
+            input: false,
+            output: false,
+        }
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -1372,6 +1417,240 @@ mod avx512 {
                 y[2 * r + 1] = _mm512_add_ps(s[3 * r + 1], s[3 * r + 2]);
             }
             finish(y, bias, relu, ip, at[j], c0, c0 - j * len);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The AVX-512 transforms against their portable twins, bit for bit: each is the same
+    //! additions and subtractions in the same order, lane by lane (no multiplication, no fused
+    //! operation), so any difference is a wrong index or a wrong sign.
+    use super::*;
+    use crate::tensor::cpu;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Whether this host must run the AVX-512 transforms, judged without the library's check:
+    /// x86-64 with AVX-512F and FMA, and `INVADERS_NO_SIMD` unset. Says once why not.
+    fn host_runs_avx512() -> bool {
+        #[cfg(target_arch = "x86_64")]
+        let has = is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("fma");
+        #[cfg(not(target_arch = "x86_64"))]
+        let has = false;
+        let on = has && std::env::var_os("INVADERS_NO_SIMD").is_none();
+        if !on {
+            static NOTE: std::sync::Once = std::sync::Once::new();
+            NOTE.call_once(|| {
+                eprintln!(
+                    "skip: the AVX-512 Winograd transforms are not checked here ({}); the \
+                     portable ones are compared with themselves",
+                    cpu::why_portable().unwrap_or_default()
+                )
+            });
+        }
+        assert_eq!(cpu::avx512(), on, "the library's CPU check disagrees");
+        on
+    }
+
+    fn values(n: usize, rng: &mut ChaCha8Rng) -> Vec<f32> {
+        (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect()
+    }
+
+    fn same_bits(what: &str, a: &[f32], b: &[f32]) {
+        assert_eq!(a.len(), b.len(), "{what}: lengths");
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!(x.to_bits() == y.to_bits(), "{what}[{i}]: {x} vs {y}");
+        }
+    }
+
+    /// The shapes the layers run, small: F(2×2, 3×3) with odd output edges (a tile's second
+    /// row and column dropped) and padding; F(2×2, 2×2) over 2×2 blocks (conv2) and 4×4 blocks
+    /// of 4 channels (conv1's, 16 values per block row); over blocks of one pixel with the
+    /// output in 4 pieces (conv2's input gradient).
+    fn shapes() -> Vec<WinogradShape> {
+        let shape = |h, w, ci, oh, ow, pad, co, pieces, kind| WinogradShape {
+            n: 3,
+            h,
+            w,
+            ci,
+            oh,
+            ow,
+            pad_top: pad,
+            pad_left: pad,
+            co,
+            out_image: oh * ow * co,
+            out_pieces: pieces,
+            kind,
+        };
+        vec![
+            shape(9, 7, 16, 9, 7, 1, 32, 1, WinogradKind::F2x3),
+            shape(6, 6, 64, 4, 4, 0, 64, 1, WinogradKind::F2x3),
+            shape(12, 12, 32, 5, 5, 0, 64, 1, WinogradKind::S2d(2)),
+            shape(16, 16, 4, 3, 3, 0, 32, 1, WinogradKind::S2d(4)),
+            shape(5, 5, 64, 6, 6, 1, 128, 4, WinogradKind::S2d(1)),
+        ]
+    }
+
+    /// Each shape's transforms as chosen for f32 (recorded on this thread) and as the portable
+    /// loops, with the path asserted: AVX-512 on a host that runs it, else portable.
+    fn twins(s: &WinogradShape, len: usize) -> (Transforms, Transforms) {
+        let before = (
+            cpu::paths(Family::WinogradInput),
+            cpu::paths(Family::WinogradOutput),
+        );
+        let fast = Transforms::choose::<f32>(s, len);
+        let avx = host_runs_avx512();
+        assert_eq!((fast.input, fast.output), (avx, avx), "{s:?}");
+        let ran = (
+            cpu::paths(Family::WinogradInput).since(before.0),
+            cpu::paths(Family::WinogradOutput).since(before.1),
+        );
+        let one = |on: bool| cpu::Paths {
+            avx512: on as u64,
+            portable: !on as u64,
+        };
+        assert_eq!(ran, (one(avx), one(avx)), "recorded paths");
+        let f64s = Transforms::choose::<f64>(s, len);
+        assert!(!f64s.input && !f64s.output, "f64 runs the portable loops");
+        (fast, Transforms::portable())
+    }
+
+    /// The transforms take their AVX-512 loops only for whole vectors: block rows of 8 input
+    /// values and pieces of 24 output channels stay portable on any host.
+    #[test]
+    fn transforms_need_whole_vectors() {
+        let avx = host_runs_avx512();
+        let shape = |ci, co| WinogradShape {
+            n: 1,
+            h: 4,
+            w: 4,
+            ci,
+            oh: 2,
+            ow: 2,
+            pad_top: 0,
+            pad_left: 0,
+            co,
+            out_image: 4 * co,
+            out_pieces: 1,
+            kind: WinogradKind::F2x3,
+        };
+        for (ci, co, input, output) in [
+            (8, 24, false, false),
+            (16, 24, avx, false),
+            (8, 48, false, avx),
+            (48, 48, avx, avx),
+        ] {
+            let before = cpu::paths(Family::WinogradInput);
+            let t = Transforms::choose::<f32>(&shape(ci, co), co);
+            assert_eq!((t.input, t.output), (input, output), "{ci} → {co} channels");
+            let ran = cpu::paths(Family::WinogradInput).since(before);
+            assert_eq!((ran.avx512, ran.portable), (input as u64, !input as u64));
+        }
+    }
+
+    /// The input transform, tile-major (the forward pass) and place-major (the weight
+    /// gradient), over images whose tiles reach past their edges (zeros read there).
+    #[test]
+    fn input_transforms_match_their_portable_twins() {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        for s in shapes() {
+            let (fast, portable) = twins(&s, s.co / s.out_pieces);
+            let x = values(s.n * s.h * s.w * s.ci, &mut rng);
+            let mut pixels = Vec::new();
+            input_offsets(&s, &mut pixels);
+            let zeros = vec![0.0f32; s.seg()];
+            let (ty, tx) = s.tiles();
+            let run = |t: Transforms, by_place: bool| {
+                let chunk = Chunk {
+                    s,
+                    fast: t,
+                    images: if by_place { 1 } else { s.n },
+                    x: if by_place { &x[..s.h * s.w * s.ci] } else { &x },
+                    u: &[],
+                    bias: None,
+                    relu: false,
+                    pixels: &pixels,
+                    out_pixels: &[],
+                };
+                // NaN where nothing is written: the same places must stay untouched.
+                let mut v = vec![f32::NAN; s.n * ty * tx * s.v_stride()];
+                if by_place {
+                    chunk.input_by_place(&mut v, &zeros);
+                } else {
+                    chunk.input(&mut v, &zeros);
+                }
+                v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>()
+            };
+            for by_place in [false, true] {
+                assert!(
+                    run(fast, by_place) == run(portable, by_place),
+                    "{s:?}, place-major {by_place}"
+                );
+            }
+        }
+    }
+
+    /// The output transform with and without bias and ReLU, into pieces, some skipped.
+    #[test]
+    fn output_transforms_match_their_portable_twins() {
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        for s in shapes() {
+            let len = s.co / s.out_pieces;
+            let (fast, portable) = twins(&s, len);
+            let (ty, tx) = s.tiles();
+            let m = values(s.n * ty * tx * s.m_stride(), &mut rng);
+            let bias = values(s.co, &mut rng);
+            let out_pixels: Vec<usize> = (0..s.oh * s.ow * s.out_pieces)
+                .map(|i| {
+                    if i % 7 == 3 {
+                        SKIP_OUTPUT
+                    } else {
+                        (i / s.out_pieces) * s.co + (i % s.out_pieces) * len
+                    }
+                })
+                .collect();
+            for (with_bias, relu) in [(false, false), (true, false), (true, true)] {
+                let run = |t: Transforms| {
+                    let chunk = Chunk {
+                        s,
+                        fast: t,
+                        images: s.n,
+                        x: &[],
+                        u: &[],
+                        bias: with_bias.then_some(&bias[..]),
+                        relu,
+                        pixels: &[],
+                        out_pixels: &out_pixels,
+                    };
+                    let mut out = vec![f32::NAN; s.n * s.out_image];
+                    chunk.output(&m, &mut out);
+                    out
+                };
+                same_bits(
+                    &format!("{s:?} bias {with_bias} relu {relu}"),
+                    &run(fast),
+                    &run(portable),
+                );
+            }
+        }
+    }
+
+    /// The output transform's adjoint (the weight gradient's `dM = A·dY·Aᵀ`), zeros past the
+    /// odd edges.
+    #[test]
+    fn output_adjoints_match_their_portable_twins() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for s in shapes().into_iter().filter(|s| s.out_pieces == 1) {
+            let (fast, portable) = twins(&s, s.co);
+            let (ty, tx) = s.tiles();
+            let dz = values(s.n * s.oh * s.ow * s.co, &mut rng);
+            let run = |t: Transforms| {
+                let mut m = vec![f32::NAN; s.places() * s.n * ty * tx * s.co];
+                output_adjoint(&s, &dz, &mut m, t.output);
+                m
+            };
+            same_bits(&format!("{s:?}"), &run(fast), &run(portable));
         }
     }
 }

@@ -4,6 +4,7 @@
 pub mod cli;
 
 use invaders::layers::Layer;
+use invaders::tensor::cpu::{self, Family};
 use invaders::tensor::{Float, Tensor};
 use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
@@ -186,4 +187,63 @@ pub fn set_params<T: Float>(layer: &mut dyn Layer<T>, values: &[&Tensor<T>]) {
     for (p, v) in layer.params_mut().iter_mut().zip(values) {
         p.value.data_mut().copy_from_slice(v.data());
     }
+}
+
+/// Whether this host must run the f32 kernels' AVX-512 loops, judged without the library's own
+/// check: x86-64 with AVX-512F and FMA, and `INVADERS_NO_SIMD` unset. Where not, says once on
+/// stderr which feature is missing: the tests then prove that the portable loops ran, and the
+/// AVX-512 ones go unchecked on this host.
+pub fn avx512_expected() -> bool {
+    static NOTE: std::sync::Once = std::sync::Once::new();
+    #[cfg(target_arch = "x86_64")]
+    let (f, fma) = (
+        is_x86_feature_detected!("avx512f"),
+        is_x86_feature_detected!("fma"),
+    );
+    #[cfg(not(target_arch = "x86_64"))]
+    let (f, fma) = (false, false);
+    let off = std::env::var_os("INVADERS_NO_SIMD").is_some();
+    let on = f && fma && !off;
+    if !on {
+        NOTE.call_once(|| {
+            let why = if off {
+                "INVADERS_NO_SIMD is set".to_string()
+            } else {
+                let missing: Vec<&str> = [("avx512f", f), ("fma", fma)]
+                    .into_iter()
+                    .filter_map(|(n, has)| (!has).then_some(n))
+                    .collect();
+                format!("this CPU lacks {}", missing.join(" and "))
+            };
+            eprintln!(
+                "skip: AVX-512 kernels not checked on this host ({why}); asserting the \
+                 portable loops ran instead"
+            );
+        });
+    }
+    assert_eq!(
+        cpu::avx512(),
+        on,
+        "the library's CPU check disagrees with the host"
+    );
+    on
+}
+
+/// Runs `f` and asserts that every call of `family` in it, on this thread, ran the AVX-512 loop
+/// (`avx512`) or every one the portable loop, and that there was at least one.
+pub fn on_path<R>(family: Family, avx512: bool, what: &str, f: impl FnOnce() -> R) -> R {
+    let before = cpu::paths(family);
+    let out = f();
+    let p = cpu::paths(family).since(before);
+    let path = if avx512 { "AVX-512" } else { "portable" };
+    assert!(
+        p.avx512 + p.portable > 0,
+        "{what}: no {family:?} kernel ran"
+    );
+    assert_eq!(
+        (p.avx512 > 0, p.portable > 0),
+        (avx512, !avx512),
+        "{what}: the {family:?} kernels ran {p:?}, expected only the {path} loop"
+    );
+    out
 }
