@@ -426,11 +426,11 @@ impl Replay {
     /// `p = (|δ| + ε)^α` ([`PRIORITY_EPSILON`]). Entries no longer held are skipped; without
     /// prioritized sampling this does nothing.
     pub fn update_priorities(&mut self, entries: &[u64], td: &[f32]) {
-        assert_eq!(entries.len(), td.len(), "one TD error per entry");
         let oldest = self.oldest();
         let Some(p) = &mut self.priorities else {
             return;
         };
+        assert_eq!(entries.len(), td.len(), "one TD error per entry");
         for (&g, &d) in entries.iter().zip(td) {
             let s = (g % self.capacity as u64) as usize;
             if g >= oldest && g < self.written && self.acted[s] {
