@@ -3,6 +3,13 @@
 //! Each case draws a random shape, input, parameters and upstream gradient `dY`, and compares
 //! `backward` with the numerical derivative of `S = Σ f(x)·dY` for the input and for every weight
 //! and bias (see `common::check_layer` for the tolerance and why it is tight).
+//!
+//! In f64 the kernel plan runs the portable path (`Kernel::Im2col`, `Kernel::Gemm`), so these
+//! checks prove the maths of each layer. The fast f32 paths (gather, scatter, phases, Winograd)
+//! are proved equal to that maths by `tests/kernels.rs`: against the reference convolution within
+//! 1e-5 of the largest value (Winograd: a bound derived from its f32 rounding), and against their
+//! portable twins bit for bit. An index error in a fast kernel moves a result by the size of a whole term, thousands
+//! of times that tolerance, so the two steps together catch it.
 
 mod common;
 

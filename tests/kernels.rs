@@ -1,4 +1,9 @@
 //! The fast kernels against the plain reference kernels, on random shapes, in f32.
+//!
+//! The reference kernels are the ones `tests/gradcheck.rs` checks in f64 against finite
+//! differences; here each fast path (gather, scatter, phases, Winograd) meets them in f32, to a
+//! tolerance derived from f32 rounding, and meets its portable twin bit for bit where the sums
+//! run in the same order. Tests also assert which loop ran (`common::on_path`).
 
 mod common;
 
