@@ -111,7 +111,7 @@ fn dqn_learns_a_toy_corridor() {
     observer.reset(&game);
     let (mut ret, mut steps) = (0.0, 0);
     loop {
-        let a = greedy(&mut agent.learner.online, &observer, &table, &mut input);
+        let a = greedy(&mut agent.learner.online, &observer, &table, &mut input, 2);
         let r = game.step(a);
         observer.step(&game);
         ret += r.reward;

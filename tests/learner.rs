@@ -5,7 +5,9 @@
 
 mod common;
 
-use invaders::dqn::{Agent, Batch, Config, Learner, Preset, FLAG_ACTED, FLAG_DONE};
+use invaders::dqn::{
+    greedy_atoms, Agent, Batch, Config, Head, Learner, Preset, FLAG_ACTED, FLAG_DONE,
+};
 use invaders::env::{Game, Pipeline, StepResult, FRAME_LEN};
 use invaders::layers::loss::LossKind;
 use invaders::layers::Sequential;
@@ -549,4 +551,62 @@ fn the_fake_terminal_transition_repeats_the_last_state() {
             assert_eq!(flags[3] & FLAG_ACTED, 0, "the last frame is not acted on");
         }
     }
+}
+
+/// A learner with a quantile head of 2 quantiles per action whose outputs are constants (dense2's
+/// biases; every weight zero): `online` and `target` are `[A, 2]` quantiles, action by action.
+fn quantile_learner(double: bool, online: [f32; 6], target: [f32; 6]) -> Learner {
+    let head = Head {
+        hidden: 8,
+        dueling: false,
+        atoms: 2,
+    };
+    let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
+    l.double = double;
+    for (net, b) in [(&mut l.online, online), (&mut l.target, target)] {
+        for p in net.params_mut() {
+            p.value.data_mut().fill(0.0);
+            if p.name == "dense2.bias" {
+                p.value.data_mut().copy_from_slice(&b);
+            }
+        }
+    }
+    l
+}
+
+/// QR-DQN by hand. Online quantiles (τ = 1/4, 3/4) per action: [0, 2], [1, 1], [−1, 5] (means
+/// 1, 1, 2); the target's: [4, 8], [0, 0], [1, 3] (means 6, 0, 2). Transition: action 0, R = 1,
+/// γ = 0.5, one step. Double DQN bootstraps the online network's best mean (action 2) with the
+/// target's quantiles: T = 1 + 0.5·[1, 3] = [1.5, 2.5]; without it, the target's best mean
+/// (action 0): T = [3, 5]; a terminal transition: T = [1, 1]. The loss of θ = [0, 2] against
+/// T = [1.5, 2.5]: θ_0 is below both samples (weight τ_0 = 1/4; Huber 1 and 2), θ_1 is above
+/// 1.5 (weight 1/4, Huber 1/8) and below 2.5 (weight 3/4, Huber 1/8): L = (1/2)(0.75 + 0.125)
+/// = 0.4375. The TD error (for priorities) is mean θ − mean T = 1 − 2. Acting picks the best
+/// mean, action 2.
+#[test]
+fn quantile_targets_and_loss_match_a_hand_computation() {
+    let online = [0.0, 2.0, 1.0, 1.0, -1.0, 5.0];
+    let target = [4.0, 8.0, 0.0, 0.0, 1.0, 3.0];
+    let t = T {
+        s: 1.0,
+        a: 0,
+        r: 1.0,
+        next: 2.0,
+        done: false,
+        m: 1,
+    };
+    let mut l = quantile_learner(true, online, target);
+    let stats = l.train_step(&batch(&[t]));
+    assert_eq!(l.targets(), [1.5, 2.5]);
+    assert_eq!(stats.loss, 0.4375);
+    assert_eq!(stats.mean_max_q, 2.0);
+    assert_eq!(l.td_errors(), [-1.0]);
+    let mut l = quantile_learner(false, online, target);
+    l.train_step(&batch(&[t]));
+    assert_eq!(l.targets(), [3.0, 5.0]);
+    let mut l = quantile_learner(true, online, target);
+    l.train_step(&batch(&[T { done: true, ..t }]));
+    assert_eq!(l.targets(), [1.0, 1.0]);
+    assert_eq!(greedy_atoms(&online, 2), 2);
+    assert_eq!(greedy_atoms(&target, 2), 0);
 }

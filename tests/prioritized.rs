@@ -199,15 +199,17 @@ fn the_learner_weights_each_transition_loss() {
     assert_ne!(step(1.0, -1.0), step(1.0, 7.0), "a weight of 1");
 }
 
-/// A prioritized run stopped after 2 episodes and resumed to 4 ends with the same weights,
-/// replay memory, priorities and metrics as 4 episodes straight.
+/// A prioritized run (with a dueling quantile head, 4 quantiles, and a narrow dense layer) stopped
+/// after 2 episodes and resumed to 4 ends with the same weights, replay memory, priorities and
+/// metrics as 4 episodes straight; its checkpoint evaluates (the action count read back from a
+/// quantile head).
 #[test]
 fn prioritized_run_resumes_exactly() {
     let root = tmp_dir("invaders-per", "resume");
     let cfg = root.join("config.toml");
     std::fs::write(
         &cfg,
-        "prioritized = true\nn_step = 3\nlearning_starts = 40\nreplay_capacity = 150\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\n[env]\nmax_episode_steps = 60\n",
+        "prioritized = true\nquantiles = 4\ndueling = true\nhidden = 16\nn_step = 3\nlearning_starts = 40\nreplay_capacity = 150\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\n[env]\nmax_episode_steps = 60\n",
     )
     .unwrap();
     let run = |out: &std::path::Path, episodes: &str| {
@@ -262,5 +264,15 @@ fn prioritized_run_resumes_exactly() {
             .collect()
     };
     assert_eq!(metrics(&straight), metrics(&split));
+    let out = ok(&invaders(&[
+        "eval",
+        "--checkpoint",
+        straight.to_str().unwrap(),
+        "--episodes",
+        "1",
+        "--threads",
+        "1",
+    ]));
+    assert!(out.contains("mean"), "{out}");
     let _ = std::fs::remove_dir_all(&root);
 }

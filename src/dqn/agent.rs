@@ -18,7 +18,8 @@
 //! The code marks these lines `ALGO 1` … `ALGO 8`.
 
 use super::checkpoint::{AgentState, Checkpoint, Counters};
-use super::{argmax, Batch, Config, Learner, Replay, StepStats};
+use super::learner::greedy_atoms;
+use super::{Batch, Config, Learner, Replay, StepStats};
 use crate::env::{Game, Observer, StepResult, FRAME_LEN};
 use crate::layers::Sequential;
 use crate::tensor::Tensor;
@@ -72,16 +73,20 @@ impl EpisodeRow {
     }
 }
 
-/// `argmax_a Q(s, a)` for the observer's current stack `s`: writes the normalised stack into
-/// `input` (`[1, 88, 80, k]`) and runs a batch-1 forward pass ([`Sequential::infer`]).
+/// `argmax_a Q(s, a)` over `n_actions` actions for the observer's current stack `s`: writes the
+/// normalised stack into `input` (`[1, 88, 80, k]`) and runs a batch-1 forward pass
+/// ([`Sequential::infer`]). A quantile head's `Q` is the mean of its quantiles
+/// ([`greedy_atoms`]).
 pub fn greedy(
     net: &mut Sequential<f32>,
     observer: &Observer,
     table: &[f32; 256],
     input: &mut Tensor<f32>,
+    n_actions: usize,
 ) -> usize {
     observer.write_input(table, input.data_mut());
-    argmax(net.infer(input).data())
+    let out = net.infer(input).data();
+    greedy_atoms(out, out.len() / n_actions)
 }
 
 /// `n` inputs of `config`'s network (`[1, H, W, k]`, as the agent writes them), every `every`th
@@ -138,7 +143,7 @@ pub fn play_evaluation_episode<G: Game>(
         let action = if rng.random::<f32>() < epsilon {
             rng.random_range(0..game.n_actions())
         } else {
-            greedy(net, observer, table, input)
+            greedy(net, observer, table, input, game.n_actions())
         };
         let r = game.step(action);
         observer.step(game);
@@ -281,7 +286,13 @@ impl<G: Game> Agent<G> {
         } else {
             &mut self.learner.online
         };
-        greedy(net, &self.observer, &self.table, &mut self.input)
+        greedy(
+            net,
+            &self.observer,
+            &self.table,
+            &mut self.input,
+            self.game.n_actions(),
+        )
     }
 
     /// Plays one episode, learning as it goes, and returns its metrics row. The lines marked

@@ -425,7 +425,8 @@ fn header(
         o.remove("adam_steps");
     }
     let counters: Counters = serde_json::from_value(json).context("checkpoint counters")?;
-    // The action count is the last layer's bias length, less the value row of a dueling head.
+    // The action count is the last layer's bias length (over the values per action), less the
+    // value row of a dueling head.
     let bias = st
         .tensor("online.dense2.bias")
         .map_err(|_| anyhow!("no tensor `online.dense2.bias`"))?
@@ -433,7 +434,7 @@ fn header(
         .first()
         .copied()
         .unwrap_or(0);
-    let n_actions = bias.saturating_sub(config.dueling as usize);
+    let n_actions = (bias / config.atoms()).saturating_sub(config.dueling as usize);
     if n_actions == 0 || n_actions > 18 {
         bail!("checkpoint has {n_actions} actions");
     }
@@ -606,8 +607,7 @@ pub fn model_from_bytes(bytes: &[u8]) -> anyhow::Result<Model> {
     let mut online = super::qnet(
         config.input_shape(),
         n_actions,
-        config.hidden,
-        config.dueling,
+        super::Head::of(&config),
         &crate::layers::init::VarianceScaling::HE,
         &mut rng,
     );

@@ -74,6 +74,9 @@ pub const PRIORITY_EXPONENT: f64 = 0.5;
 /// Prioritized replay's `β`: loss weights `(N · P)^(−β)` (Dopamine's Rainbow: 0.5, fixed).
 pub const IMPORTANCE_EXPONENT: f64 = 0.5;
 
+/// The most quantiles a quantile head may have (`quantiles`; QR-DQN used 200).
+pub const MAX_QUANTILES: usize = 1024;
+
 /// The widest dense layer a configuration may ask for (`hidden`).
 pub const MAX_HIDDEN: usize = 4096;
 
@@ -135,6 +138,11 @@ pub struct Config {
     /// Units of the dense layer after the convolutions (the article: 128; the Nature DQN: 512).
     #[serde(default = "article_hidden")]
     pub hidden: usize,
+    /// A quantile head (QR-DQN, Dabney et al. 2018) with this many quantiles per action, trained
+    /// with the quantile Huber loss (then `loss` is not used); 0: one Q-value per action (the
+    /// article).
+    #[serde(default)]
+    pub quantiles: usize,
     /// A dueling head: Q = V + A − mean A ([`crate::layers::Dueling`]).
     #[serde(default)]
     pub dueling: bool,
@@ -200,6 +208,7 @@ impl Config {
             loss: LossKind::Mse,
             double_dqn: false,
             hidden: ARTICLE_HIDDEN,
+            quantiles: 0,
             dueling: false,
             n_step: 1,
             life_loss_terminal: false,
@@ -257,6 +266,11 @@ impl Config {
                 ..article
             },
         }
+    }
+
+    /// Values per action of the network's output: 1, or the quantile head's `quantiles`.
+    pub fn atoms(&self) -> usize {
+        self.quantiles.max(1)
     }
 
     /// An empty replay memory as this configuration asks for: its capacity, frames per state,
@@ -388,6 +402,12 @@ impl Config {
             if !(0.0..=1.0).contains(&e) {
                 bail!("{name} must be in [0, 1], got {e}");
             }
+        }
+        if c.quantiles > MAX_QUANTILES {
+            bail!(
+                "quantiles must be at most {MAX_QUANTILES}, got {}",
+                c.quantiles
+            );
         }
         if !(1..=MAX_HIDDEN).contains(&c.hidden) {
             bail!("hidden must be in 1..={MAX_HIDDEN}, got {}", c.hidden);

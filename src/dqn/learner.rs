@@ -1,9 +1,8 @@
 //! The learning half of DQN: one gradient step on a minibatch of transitions.
 
-use super::config::ARTICLE_HIDDEN;
-use super::{input_border, qnet};
+use super::{input_border, qnet, Head};
 use crate::layers::init::VarianceScaling;
-use crate::layers::loss::LossKind;
+use crate::layers::loss::{quantile_huber, LossKind};
 use crate::layers::Sequential;
 use crate::optim::{clip_grad_norm, Adam};
 use crate::tensor::{Border, Tensor};
@@ -110,6 +109,10 @@ pub struct Learner {
     next_greedy: Vec<usize>,
     /// `[B]`: the TD errors `Q(s, a) − y` of the last step.
     td: Vec<f32>,
+    /// Values per action: 1, or a quantile head's `N` (the buffers above then hold `[B, N]`).
+    atoms: usize,
+    /// `[B]`: each sample's quantile Huber loss (quantile heads only).
+    per_sample: Vec<f32>,
     /// `[B, n_actions]`: the upstream gradient, non-zero only at the taken actions.
     dq: Tensor<f32>,
 }
@@ -124,21 +127,21 @@ impl Learner {
         gamma: f32,
         rng: &mut impl Rng,
     ) -> Self {
-        Learner::with_head(input, n_actions, ARTICLE_HIDDEN, false, lr, gamma, rng)
+        Learner::with_head(input, n_actions, Head::ARTICLE, lr, gamma, rng)
     }
 
-    /// [`Learner::new`] with `hidden` units in dense1 and a dueling head if `dueling` ([`qnet`]).
+    /// [`Learner::new`] with another head ([`qnet`]): dense1's width, a dueling combine, and a
+    /// quantile head's `N` values per action (QR-DQN: the loss is then the quantile Huber loss).
     pub fn with_head(
         input: [usize; 3],
         n_actions: usize,
-        hidden: usize,
-        dueling: bool,
+        head: Head,
         lr: f32,
         gamma: f32,
         rng: &mut impl Rng,
     ) -> Self {
-        let online = qnet(input, n_actions, hidden, dueling, &VarianceScaling::HE, rng);
-        let mut target = qnet(input, n_actions, hidden, dueling, &VarianceScaling::HE, rng);
+        let online = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
+        let mut target = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
         target.copy_params_from(&online);
         Learner {
             online,
@@ -154,6 +157,8 @@ impl Learner {
             dq_taken: Vec::new(),
             next_greedy: Vec::new(),
             td: Vec::new(),
+            atoms: head.atoms,
+            per_sample: Vec::new(),
             dq: Tensor::empty(),
         }
     }
@@ -163,8 +168,7 @@ impl Learner {
         let mut l = Learner::with_head(
             config.input_shape(),
             n_actions,
-            config.hidden,
-            config.dueling,
+            Head::of(config),
             config.learning_rate as f32,
             config.gamma as f32,
             rng,
@@ -183,6 +187,7 @@ impl Learner {
 
     /// The TD targets `y` of the last [`Learner::train_step`], one per transition of its batch
     /// (empty before the first): what the online network's `Q(s, a)` was regressed towards.
+    /// With a quantile head, `N` target samples per transition (`[B, N]`).
     pub fn targets(&self) -> &[f32] {
         &self.y
     }
@@ -221,13 +226,18 @@ impl Learner {
     ///    at `a = a_b`, so the upstream gradient `dQ[B, A]` is zero except one entry per row.
     ///    With prioritized sampling each term is weighted: `L = mean_b w_b ℓ(…)`
     ///    (`batch.weights`), and so is its gradient.
+    ///
+    /// With a quantile head (QR-DQN, `atoms = N > 1`) each action has `N` outputs `θ_1..N`, the
+    /// `τ_i = (2i − 1)/2N` quantiles of its return, and `Q` is their mean: `a'` maximises that
+    /// mean, the target is the `N` samples `T_j = R + γ^m·(1 − done)·θ_j,target(s', a')`, and the
+    /// loss is the quantile Huber loss of `θ(s, a)` against them ([`quantile_huber`]).
     /// 4. Backward through the online network (the first layer skips its input gradient), then
     ///    one Adam step.
     pub fn train_step(&mut self, batch: &Batch) -> StepStats {
-        let (b, na) = (batch.len(), self.n_actions);
-        self.q_taken.resize(b, 0.0);
-        self.y.resize(b, 0.0);
-        self.dq_taken.resize(b, 0.0);
+        let (b, na, k) = (batch.len(), self.n_actions, self.atoms);
+        self.q_taken.resize(b * k, 0.0);
+        self.y.resize(b * k, 0.0);
+        self.dq_taken.resize(b * k, 0.0);
         self.next_greedy.resize(b, 0);
         // The passes over s' are inference (no backward follows): `infer`, which skips the
         // zeros the ReLUs leave where they are most of the activations (a trained network).
@@ -236,9 +246,9 @@ impl Learner {
             for (g, row) in self
                 .next_greedy
                 .iter_mut()
-                .zip(q_next.data().chunks_exact(na))
+                .zip(q_next.data().chunks_exact(na * k))
             {
-                *g = argmax(row);
+                *g = greedy_atoms(row, k);
             }
         }
         // The target network's pass over s' and the online network's over s are independent:
@@ -249,42 +259,83 @@ impl Learner {
             || target.infer(&batch.next_states),
             || online.forward(&batch.states),
         );
-        for (i, row) in q_next.data().chunks_exact(na).enumerate() {
-            let future = if self.double {
-                row[self.next_greedy[i]]
+        // y: one TD target per sample, or with a quantile head K target samples per sample:
+        // `T_j = R + γ^m·(1 − done)·θ_j(s', a')`, each quantile of the bootstrapped action.
+        for (i, row) in q_next.data().chunks_exact(na * k).enumerate() {
+            let a_next = if self.double {
+                self.next_greedy[i]
             } else {
-                row[argmax(row)]
+                greedy_atoms(row, k)
             };
             let cont = if batch.dones[i] { 0.0 } else { 1.0 };
             let discount = self.gamma.powi(batch.steps[i] as i32);
-            self.y[i] = batch.rewards[i] + discount * cont * future;
+            for (y, &future) in self.y[i * k..(i + 1) * k]
+                .iter_mut()
+                .zip(&row[a_next * k..(a_next + 1) * k])
+            {
+                *y = batch.rewards[i] + discount * cont * future;
+            }
         }
         let mut max_q_sum = 0.0;
-        for (i, row) in q.data().chunks_exact(na).enumerate() {
-            self.q_taken[i] = row[batch.actions[i]];
-            max_q_sum += row[argmax(row)];
+        for (i, row) in q.data().chunks_exact(na * k).enumerate() {
+            let a = batch.actions[i];
+            self.q_taken[i * k..(i + 1) * k].copy_from_slice(&row[a * k..(a + 1) * k]);
+            max_q_sum += if k == 1 {
+                row[argmax(row)]
+            } else {
+                let best = greedy_atoms(row, k);
+                mean(&row[best * k..(best + 1) * k])
+            };
         }
-        let mut loss = self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken);
+        let mut loss = if k == 1 {
+            self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken)
+        } else {
+            self.per_sample.resize(b, 0.0);
+            quantile_huber(
+                &self.q_taken,
+                &self.y,
+                k,
+                &mut self.dq_taken,
+                &mut self.per_sample,
+            )
+        };
+        // The TD errors (of the means, with a quantile head), for prioritized replay.
         self.td.clear();
-        self.td
-            .extend(self.q_taken.iter().zip(&self.y).map(|(q, y)| q - y));
+        self.td.extend(
+            self.q_taken
+                .chunks_exact(k)
+                .zip(self.y.chunks_exact(k))
+                .map(|(q, y)| {
+                    if k == 1 {
+                        q[0] - y[0]
+                    } else {
+                        mean(q) - mean(y)
+                    }
+                }),
+        );
         if !batch.weights.is_empty() {
             // The weighted mean: each term's share of the mean loss and its gradient scaled by
             // its weight (one-term losses recomputed from the same function).
             let mut one = [0.0f32];
             loss = 0.0;
             for (i, &w) in batch.weights.iter().enumerate() {
-                let l = self
-                    .loss
-                    .eval(&self.q_taken[i..=i], &self.y[i..=i], &mut one);
+                let l = if k == 1 {
+                    self.loss
+                        .eval(&self.q_taken[i..=i], &self.y[i..=i], &mut one)
+                } else {
+                    self.per_sample[i]
+                };
                 loss += w * l / b as f32;
-                self.dq_taken[i] *= w;
+                for d in &mut self.dq_taken[i * k..(i + 1) * k] {
+                    *d *= w;
+                }
             }
         }
-        self.dq.set_shape(&[b, na]);
+        self.dq.set_shape(&[b, na * k]);
         self.dq.fill_zero();
-        for (i, row) in self.dq.data_mut().chunks_exact_mut(na).enumerate() {
-            row[batch.actions[i]] = self.dq_taken[i];
+        for (i, row) in self.dq.data_mut().chunks_exact_mut(na * k).enumerate() {
+            let a = batch.actions[i];
+            row[a * k..(a + 1) * k].copy_from_slice(&self.dq_taken[i * k..(i + 1) * k]);
         }
         self.online.zero_grad();
         self.online.backward(&batch.states, &self.dq, false);
@@ -299,6 +350,21 @@ impl Learner {
             grad_norm,
         }
     }
+}
+
+/// The mean of a slice.
+fn mean(x: &[f32]) -> f32 {
+    x.iter().sum::<f32>() / x.len() as f32
+}
+
+/// The greedy action of one sample's outputs `[A, K]`: the largest Q-value (`K = 1`), or with a
+/// quantile head the largest mean of its `K` quantiles (the expected return).
+pub fn greedy_atoms(row: &[f32], k: usize) -> usize {
+    if k == 1 {
+        return argmax(row);
+    }
+    let means: Vec<f32> = row.chunks_exact(k).map(mean).collect();
+    argmax(&means)
 }
 
 /// Index of the largest value (the first one on ties).

@@ -40,18 +40,49 @@ pub fn article_qnet<T: Float>(
     init: &VarianceScaling,
     rng: &mut impl Rng,
 ) -> Sequential<T> {
-    qnet(input, n_actions, ARTICLE_HIDDEN, false, init, rng)
+    qnet(input, n_actions, Head::ARTICLE, init, rng)
 }
 
-/// The article's Q-network ([`article_qnet`]) with `hidden` units in dense1 (the article: 128),
-/// and a dueling head if `dueling`: dense2 then has `1 + n_actions` outputs, the state value and
-/// one advantage per action, which [`Dueling`] combines into `n_actions` Q-values
-/// (`Q = V + A − mean A`).
+/// What follows the convolutions: dense1's width, whether a dueling combine follows dense2, and
+/// how many values (atoms) each action's output has.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Head {
+    /// Units of dense1 (the article: 128).
+    pub hidden: usize,
+    /// A dueling combine after dense2 ([`Dueling`]).
+    pub dueling: bool,
+    /// Values per action: 1 for a Q-value, `N` for a quantile head's `N` quantiles (QR-DQN), laid
+    /// out action by action (`[A, N]` per sample).
+    pub atoms: usize,
+}
+
+impl Head {
+    /// The article's: 128 units, one Q-value per action.
+    pub const ARTICLE: Head = Head {
+        hidden: ARTICLE_HIDDEN,
+        dueling: false,
+        atoms: 1,
+    };
+
+    /// The head a configuration asks for.
+    pub fn of(config: &super::Config) -> Head {
+        Head {
+            hidden: config.hidden,
+            dueling: config.dueling,
+            atoms: config.atoms(),
+        }
+    }
+}
+
+/// The article's Q-network ([`article_qnet`]) with `head.hidden` units in dense1 (the article:
+/// 128) and `head.atoms` outputs per action (1; a quantile head's `N`), and a dueling head if
+/// `head.dueling`: dense2 then has `(1 + n_actions)·atoms` outputs, the state value and one
+/// advantage per action, which [`Dueling`] combines into `n_actions·atoms` outputs
+/// (`Q = V + A − mean A`, atom by atom).
 pub fn qnet<T: Float>(
     input: [usize; 3],
     n_actions: usize,
-    hidden: usize,
-    dueling: bool,
+    head: Head,
     init: &VarianceScaling,
     rng: &mut impl Rng,
 ) -> Sequential<T> {
@@ -101,13 +132,18 @@ pub fn qnet<T: Float>(
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
     let flat = shape.iter().product();
+    let Head {
+        hidden,
+        dueling,
+        atoms,
+    } = head;
     net.push(Dense::new("dense1", flat, hidden).with_sparse_inference(true));
     net.push(Relu::new("relu4", &[hidden]));
     if dueling {
-        net.push(Dense::new("dense2", hidden, 1 + n_actions));
-        net.push(Dueling::new("dueling", n_actions));
+        net.push(Dense::new("dense2", hidden, (1 + n_actions) * atoms));
+        net.push(Dueling::with_atoms("dueling", n_actions, atoms));
     } else {
-        net.push(Dense::new("dense2", hidden, n_actions));
+        net.push(Dense::new("dense2", hidden, n_actions * atoms));
     }
     for p in net.params_mut() {
         if p.name.ends_with(".weight") {

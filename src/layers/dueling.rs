@@ -23,9 +23,14 @@ use crate::tensor::{Float, Tensor};
 /// dA_b = dY_b − S/A
 /// ```
 /// No parameters.
+///
+/// With `K` atoms per action ([`Dueling::with_atoms`]: a quantile head's `K` quantiles) the same
+/// is done atom by atom: `x [N, (1 + A)·K]` holds the value's `K` atoms, then each action's,
+/// and `y [N, A·K]` holds `Q_{a,k} = V_k + A_{a,k} − (1/A)·Σ_b A_{b,k}`.
 pub struct Dueling<T> {
     name: String,
     actions: usize,
+    atoms: usize,
     y: Tensor<T>,
     dx: Tensor<T>,
 }
@@ -33,10 +38,18 @@ pub struct Dueling<T> {
 impl<T: Float> Dueling<T> {
     /// A head for `actions` actions; its input has `1 + actions` columns.
     pub fn new(name: &str, actions: usize) -> Self {
+        Dueling::with_atoms(name, actions, 1)
+    }
+
+    /// A head for `actions` actions of `atoms` values each; its input has
+    /// `(1 + actions)·atoms` columns.
+    pub fn with_atoms(name: &str, actions: usize, atoms: usize) -> Self {
         assert!(actions > 0, "a dueling head needs at least one action");
+        assert!(atoms > 0, "a dueling head needs at least one atom");
         Dueling {
             name: name.to_string(),
             actions,
+            atoms,
             y: Tensor::empty(),
             dx: Tensor::empty(),
         }
@@ -49,30 +62,32 @@ impl<T: Float> Layer<T> for Dueling<T> {
     }
 
     fn output_shape(&self) -> Vec<usize> {
-        vec![self.actions]
+        vec![self.actions * self.atoms]
     }
 
-    /// `Q_a = V + A_a − mean_b A_b`, row by row.
+    /// `Q_{a,k} = V_k + A_{a,k} − mean_b A_{b,k}`, row by row.
     fn forward(&mut self, x: &Tensor<T>) {
-        let a = self.actions;
-        let n = x.len() / (a + 1);
+        let (a, k) = (self.actions, self.atoms);
+        let n = x.len() / ((a + 1) * k);
         assert_eq!(
             x.len(),
-            n * (a + 1),
-            "dueling head: input is not [N, 1 + A]"
+            n * (a + 1) * k,
+            "dueling head: input is not [N, (1 + A)·K]"
         );
-        self.y.set_shape(&[n, a]);
+        self.y.set_shape(&[n, a * k]);
         let inv = T::one() / T::of(a as f64);
         for (y, x) in self
             .y
             .data_mut()
-            .chunks_exact_mut(a)
-            .zip(x.data().chunks_exact(a + 1))
+            .chunks_exact_mut(a * k)
+            .zip(x.data().chunks_exact((a + 1) * k))
         {
-            let (v, adv) = (x[0], &x[1..]);
-            let mean = adv.iter().fold(T::zero(), |s, &v| s + v) * inv;
-            for (y, &adv) in y.iter_mut().zip(adv) {
-                *y = v + adv - mean;
+            let (v, adv) = x.split_at(k);
+            for j in 0..k {
+                let mean = (0..a).fold(T::zero(), |s, b| s + adv[b * k + j]) * inv;
+                for b in 0..a {
+                    y[b * k + j] = v[j] + adv[b * k + j] - mean;
+                }
             }
         }
     }
@@ -81,25 +96,28 @@ impl<T: Float> Layer<T> for Dueling<T> {
         &self.y
     }
 
-    /// `dV = Σ_a dY_a`, `dA_b = dY_b − (1/A)·Σ_a dY_a`.
+    /// `dV_k = Σ_a dY_{a,k}`, `dA_{b,k} = dY_{b,k} − (1/A)·Σ_a dY_{a,k}`.
     fn backward(&mut self, _x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         if !need_dx {
             return;
         }
-        let a = self.actions;
-        let n = dy.len() / a;
-        self.dx.set_shape(&[n, a + 1]);
+        let (a, k) = (self.actions, self.atoms);
+        let n = dy.len() / (a * k);
+        self.dx.set_shape(&[n, (a + 1) * k]);
         let inv = T::one() / T::of(a as f64);
         for (dx, dy) in self
             .dx
             .data_mut()
-            .chunks_exact_mut(a + 1)
-            .zip(dy.data().chunks_exact(a))
+            .chunks_exact_mut((a + 1) * k)
+            .zip(dy.data().chunks_exact(a * k))
         {
-            let sum = dy.iter().fold(T::zero(), |s, &v| s + v);
-            dx[0] = sum;
-            for (dx, &dy) in dx[1..].iter_mut().zip(dy) {
-                *dx = dy - sum * inv;
+            let (dv, da) = dx.split_at_mut(k);
+            for j in 0..k {
+                let sum = (0..a).fold(T::zero(), |s, b| s + dy[b * k + j]);
+                dv[j] = sum;
+                for b in 0..a {
+                    da[b * k + j] = dy[b * k + j] - sum * inv;
+                }
             }
         }
     }
