@@ -413,11 +413,10 @@ pub fn plot_groups_frames(
                         band.iter().map(|p| (p.0, p.1)),
                         color.stroke_width(3),
                     ))?
-                    .label(format!(
-                        "{} (mean of {} seeds, min-max band)",
-                        g.label,
-                        g.seeds.len()
-                    ))
+                    .label(match g.seeds.len() {
+                        1 => g.label.clone(),
+                        n => format!("{} (mean of {n} seeds, min-max band)", g.label),
+                    })
                     .legend(move |(x, y)| {
                         PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
                     });
