@@ -23,14 +23,36 @@ use std::sync::OnceLock;
 pub struct Features {
     /// AVX-512F and FMA, and `INVADERS_NO_SIMD` unset: the AVX-512 kernels run.
     pub avx512: bool,
+    /// That, and AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later).
+    pub avx512_bf16: bool,
 }
 
 /// The features of this CPU (detected on the first call, then cached).
 pub fn features() -> Features {
     static FEATURES: OnceLock<Features> = OnceLock::new();
-    *FEATURES.get_or_init(|| Features {
-        avx512: detect_avx512() && std::env::var_os("INVADERS_NO_SIMD").is_none(),
+    *FEATURES.get_or_init(|| {
+        let avx512 = detect_avx512() && std::env::var_os("INVADERS_NO_SIMD").is_none();
+        Features {
+            avx512,
+            avx512_bf16: avx512 && detect_avx512_bf16(),
+        }
     })
+}
+
+#[cfg(target_arch = "x86_64")]
+fn detect_avx512_bf16() -> bool {
+    is_x86_feature_detected!("avx512bf16")
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn detect_avx512_bf16() -> bool {
+    false
+}
+
+/// Whether the AVX512-BF16 kernels may run (AVX-512 as [`avx512`], and AVX512-BF16).
+#[inline]
+pub fn avx512_bf16() -> bool {
+    features().avx512_bf16
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -96,9 +118,12 @@ pub enum Family {
     Background,
     /// [`crate::tensor::transpose`].
     Transpose,
+    /// The bf16 products ([`crate::tensor::bf16`]): AVX512-BF16's `vdpbf16ps`, or the rounded
+    /// operands multiplied in f32.
+    Bf16,
 }
 
-const FAMILIES: usize = 9;
+const FAMILIES: usize = 10;
 
 /// How many calls of a family ran each loop on this thread.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

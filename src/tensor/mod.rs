@@ -13,6 +13,7 @@
 
 mod align;
 mod background;
+pub mod bf16;
 mod conv;
 pub mod cpu;
 mod float;
