@@ -363,8 +363,15 @@ pub fn greedy_atoms(row: &[f32], k: usize) -> usize {
     if k == 1 {
         return argmax(row);
     }
-    let means: Vec<f32> = row.chunks_exact(k).map(mean).collect();
-    argmax(&means)
+    // As `argmax` over the means (the first on ties), without collecting them.
+    let mut best = (0, f32::NEG_INFINITY);
+    for (a, quantiles) in row.chunks_exact(k).enumerate() {
+        let m = mean(quantiles);
+        if a == 0 || m > best.1 {
+            best = (a, m);
+        }
+    }
+    best.0
 }
 
 /// Index of the largest value (the first one on ties).

@@ -122,11 +122,6 @@ impl Replay {
         self
     }
 
-    /// Whether sampling is prioritized.
-    pub fn is_prioritized(&self) -> bool {
-        self.priorities.is_some()
-    }
-
     /// The same memory sampling `n`-step returns discounted by `gamma` ([`Replay::sample`]).
     pub fn with_returns(mut self, n: usize, gamma: f32) -> Self {
         assert!(n >= 1, "returns of at least one step");

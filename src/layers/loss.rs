@@ -65,14 +65,6 @@ pub fn huber<T: Float>(pred: &[T], target: &[T], delta: T, grad: &mut [T]) -> T 
     sum / n
 }
 
-/// The quantile midpoints `τ_i = (2i + 1) / (2N)`, `i = 0..N`: the probability levels the `N`
-/// outputs of a quantile head estimate (QR-DQN, Dabney et al. 2018).
-pub fn quantile_midpoints(n: usize) -> Vec<f64> {
-    (0..n)
-        .map(|i| (2 * i + 1) as f64 / (2 * n) as f64)
-        .collect()
-}
-
 /// The quantile Huber loss of QR-DQN (Dabney et al. 2018) with κ = 1, for `B` samples of `N`
 /// predicted quantiles `θ` against `N` target samples `T` each (both `[B, N]`, row-major):
 ///
@@ -84,7 +76,8 @@ pub fn quantile_midpoints(n: usize) -> Vec<f64> {
 /// ```
 ///
 /// Minimising it over `θ_i` moves `θ_i` to the `τ_i`-quantile of the targets: below a target
-/// sample the pull is weighted `τ_i`, above it `1 − τ_i`. `τ`: [`quantile_midpoints`]. Writes
+/// sample the pull is weighted `τ_i`, above it `1 − τ_i`, with the midpoints
+/// `τ_i = (2i + 1)/(2N)`, `i = 0..N`, the probability levels the head's outputs estimate. Writes
 /// `∂L/∂θ` into `grad` and each sample's share of `L` (before the `1/B`) into `per_sample`.
 pub fn quantile_huber<T: Float>(
     pred: &[T],
@@ -100,8 +93,8 @@ pub fn quantile_huber<T: Float>(
     let b = pred.len() / n;
     assert_eq!(b * n, pred.len(), "quantile_huber: not [B, N]");
     assert_eq!(per_sample.len(), b, "quantile_huber: one loss per sample");
-    let tau: Vec<T> = quantile_midpoints(n).into_iter().map(T::of).collect();
     let (one, half) = (T::one(), T::of(0.5));
+    let tau = |i: usize| T::of((2 * i + 1) as f64 / (2 * n) as f64);
     let scale = T::one() / (T::of(b as f64) * T::of(n as f64));
     let inv_n = T::one() / T::of(n as f64);
     let mut total = T::zero();
@@ -113,10 +106,10 @@ pub fn quantile_huber<T: Float>(
     {
         let mut sample = T::zero();
         for i in 0..n {
-            let mut gi = T::zero();
+            let (mut gi, tau_i) = (T::zero(), tau(i));
             for &tj in t {
                 let u = tj - theta[i];
-                let w = if u < T::zero() { one - tau[i] } else { tau[i] };
+                let w = if u < T::zero() { one - tau_i } else { tau_i };
                 let (h, dh) = if u.abs() <= one {
                     (half * u * u, u)
                 } else {
