@@ -259,22 +259,32 @@ pub fn plot_groups(groups: &[Group], title: &str, window: usize, out: &Path) -> 
     let y_desc = format!("reward per episode ({window}-episode moving average)");
     figure(out, title, "episode", &y_desc, (max_x, max_y), |chart| {
         for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
-            let color = Palette99::pick(i);
-            let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
-            outline.extend(band.iter().rev().map(|p| (p.0, p.2)));
-            chart.draw_series(std::iter::once(Polygon::new(outline, color.mix(0.15))))?;
-            chart
-                .draw_series(LineSeries::new(
-                    band.iter().map(|p| (p.0, p.1)),
-                    color.stroke_width(3),
-                ))?
-                .label(format!("{} (mean of {} seeds)", g.label, g.seeds.len()))
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
-                });
+            let label = format!("{} (mean of {} seeds)", g.label, g.seeds.len());
+            draw_band(chart, band, Palette99::pick(i), label)?;
         }
         Ok(())
     })
+}
+
+/// Draws one group's `(x, mean, low, high)` points: the mean as a bold line with `label` in the
+/// legend, over a shaded band from the lowest to the highest seed.
+fn draw_band(
+    chart: &mut Chart<'_, '_>,
+    band: &[(f64, f64, f64, f64)],
+    color: PaletteColor<Palette99>,
+    label: String,
+) -> DrawResult {
+    let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
+    outline.extend(band.iter().rev().map(|p| (p.0, p.2)));
+    chart.draw_series(std::iter::once(Polygon::new(outline, color.mix(0.15))))?;
+    chart
+        .draw_series(LineSeries::new(
+            band.iter().map(|p| (p.0, p.1)),
+            color.stroke_width(3),
+        ))?
+        .label(label)
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3)));
+    Ok(())
 }
 
 /// Each seed's `window`-episode moving average against emulator frames, read on a grid of
@@ -404,22 +414,11 @@ pub fn plot_groups_frames(
         (max_x, max_y),
         |chart| {
             for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
-                let color = Palette99::pick(i);
-                let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
-                outline.extend(band.iter().rev().map(|p| (p.0, p.2)));
-                chart.draw_series(std::iter::once(Polygon::new(outline, color.mix(0.15))))?;
-                chart
-                    .draw_series(LineSeries::new(
-                        band.iter().map(|p| (p.0, p.1)),
-                        color.stroke_width(3),
-                    ))?
-                    .label(match g.seeds.len() {
-                        1 => g.label.clone(),
-                        n => format!("{} (mean of {n} seeds, min-max band)", g.label),
-                    })
-                    .legend(move |(x, y)| {
-                        PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
-                    });
+                let label = match g.seeds.len() {
+                    1 => g.label.clone(),
+                    n => format!("{} (mean of {n} seeds, min-max band)", g.label),
+                };
+                draw_band(chart, band, Palette99::pick(i), label)?;
             }
             for (i, (r, pts)) in references.iter().zip(&refs).enumerate() {
                 let color = Palette99::pick(groups.len() + i);
