@@ -7,6 +7,8 @@ mod common;
 use common::{avx512_expected, on_path, rng};
 use invaders::tensor::bf16::{dot_bf16, dot_bf16_reference, dot_error_bound, round_bf16};
 use invaders::tensor::cpu::Family;
+use invaders::tensor::gather_bf16::{pack_pairs, to_bf16_vec};
+use invaders::tensor::{gather_gemm_bf16, gather_gemm_bf16_portable, GatherGemmBf16, Init};
 use proptest::prelude::*;
 use rand::Rng;
 
@@ -82,4 +84,153 @@ fn exact_operands_give_exact_sums() {
     assert_eq!(got, want);
     // Rounding reaches the operands: 1 + 2^-8 becomes 1, so the product is 1, not 1 + 2^-8.
     assert_eq!(dot_bf16(&[1.0 + 2f32.powi(-8)], &[1.0]), 1.0);
+}
+
+/// A random bf16 gather GEMM: a convolution-like gather (rows start at scattered offsets, pair
+/// steps in runs) with a bordered `C` through `c_rows`, one of the three starts and the ReLU.
+struct Case {
+    a: Vec<f32>,
+    p: Vec<usize>,
+    q: Vec<usize>,
+    w: Vec<f32>,
+    pairs: usize,
+    n: usize,
+    bias: Vec<f32>,
+    c0: Vec<f32>,
+    c_rows: Vec<usize>,
+    init: u8,
+    relu: bool,
+}
+
+impl Case {
+    fn draw(rows: usize, pairs: usize, n: usize, seed: u64) -> Case {
+        let mut r = rng(seed);
+        let p: Vec<usize> = (0..rows).map(|i| i * 3 + r.random_range(0..4)).collect();
+        // Pair offsets: runs of consecutive pairs with gaps, as a convolution's patch rows.
+        let q: Vec<usize> = (0..pairs).map(|u| 2 * u + 4 * (u / 5)).collect();
+        // Room for the farthest pair's second value, and a little more.
+        let len = p.iter().max().unwrap() + q.iter().max().unwrap() + 2 + r.random_range(0..3);
+        let a: Vec<f32> = (0..len).map(|_| draw(&mut r)).collect();
+        let w: Vec<f32> = (0..2 * pairs * n).map(|_| draw(&mut r)).collect();
+        let bias: Vec<f32> = (0..n).map(|_| draw(&mut r)).collect();
+        // Rows of C with a gap of 3 between them (a border).
+        let c_rows: Vec<usize> = (0..rows).map(|i| i * (n + 3) + 1).collect();
+        let c0: Vec<f32> = (0..rows * (n + 3) + 2).map(|_| draw(&mut r)).collect();
+        Case {
+            a,
+            p,
+            q,
+            w,
+            pairs,
+            n,
+            bias,
+            c0,
+            c_rows,
+            init: r.random_range(0..3),
+            relu: r.random_range(0..2) == 1,
+        }
+    }
+
+    /// Runs the product with `f` (the kernel under test or the portable loops).
+    fn run(&self, f: impl FnOnce(GatherGemmBf16<'_>)) -> Vec<f32> {
+        let mut a16 = Vec::new();
+        to_bf16_vec(&self.a, &mut a16);
+        let mut b16 = Vec::new();
+        pack_pairs(&self.w, 2 * self.pairs, self.n, self.n, &mut b16);
+        let mut c = self.c0.clone();
+        f(GatherGemmBf16 {
+            a: &a16,
+            p: &self.p,
+            q: &self.q,
+            b: &b16,
+            ldb: self.n,
+            n: self.n,
+            c: &mut c,
+            ldc: 0,
+            c_rows: Some(&self.c_rows),
+            init: match self.init {
+                0 => Init::Zero,
+                1 => Init::Accumulate,
+                _ => Init::Bias(&self.bias),
+            },
+            relu: self.relu,
+        });
+        c
+    }
+
+    /// The exact product of the unrounded operands (f64) and its bound per element, in the
+    /// layout of `c`; places outside the rows keep `c0`.
+    fn exact(&self) -> (Vec<f64>, Vec<f64>) {
+        let mut want: Vec<f64> = self.c0.iter().map(|&v| f64::from(v)).collect();
+        let mut bound = vec![0.0; want.len()];
+        let k = 2 * self.pairs;
+        for (r, &pr) in self.p.iter().enumerate() {
+            for j in 0..self.n {
+                let start = match self.init {
+                    0 => 0.0,
+                    1 => f64::from(self.c0[self.c_rows[r] + j]),
+                    _ => f64::from(self.bias[j]),
+                };
+                let (mut s, mut abs) = (start, start.abs());
+                for (u, &qu) in self.q.iter().enumerate() {
+                    for e in 0..2 {
+                        let t = f64::from(self.a[pr + qu + e])
+                            * f64::from(self.w[(2 * u + e) * self.n + j]);
+                        s += t;
+                        abs += t.abs();
+                    }
+                }
+                let at = self.c_rows[r] + j;
+                want[at] = if self.relu { s.max(0.0) } else { s };
+                bound[at] = dot_error_bound(k + 1, abs);
+            }
+        }
+        (want, bound)
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(common::cases(64)))]
+
+    /// The bf16 gather GEMM on random shapes (1 to 40 rows, so full and partial row tiles; 1 to
+    /// 150 columns, so one to three 64-column panels with masked tails; 1 to 150 pairs, so
+    /// one to three 64-pair blocks), with the path asserted:
+    /// - against the exact f64 product of the unrounded operands, to the derived bound
+    ///   (`dot_error_bound` with the start counted as one more term);
+    /// - against the portable loops: bit for bit where AVX512-BF16 ran (the same additions in
+    ///   the same order, `vdpbf16ps`'s).
+    #[test]
+    fn gather_gemm_bf16_matches_its_references(
+        rows in 1usize..40, pairs in 1usize..150, n in 1usize..150, seed in any::<u64>()
+    ) {
+        let case = Case::draw(rows, pairs, n, seed);
+        let fast = case.run(|g| {
+            on_path(Family::Bf16, bf16_expected(), "gather_gemm_bf16", || gather_gemm_bf16(g))
+        });
+        let (want, bound) = case.exact();
+        for (i, ((&f, &w), &b)) in fast.iter().zip(&want).zip(&bound).enumerate() {
+            prop_assert!((f64::from(f) - w).abs() <= b, "at {}: {} vs exact {} (bound {})", i, f, w, b);
+        }
+        let slow = case.run(gather_gemm_bf16_portable);
+        if bf16_expected() {
+            let same = fast.iter().zip(&slow).all(|(x, y)| x.to_bits() == y.to_bits());
+            prop_assert!(same, "AVX512-BF16 and the portable loops differ in bits");
+        }
+    }
+}
+
+/// The same bits on 1, 2 and 3 threads (each element summed in pair order, whatever the split).
+#[test]
+fn gather_gemm_bf16_is_the_same_on_any_thread_count() {
+    let case = Case::draw(301, 150, 70, 5);
+    let on = |t: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(t)
+            .build()
+            .unwrap()
+            .install(|| case.run(gather_gemm_bf16))
+    };
+    let one = on(1);
+    assert_eq!(one, on(2));
+    assert_eq!(one, on(3));
 }

@@ -58,7 +58,7 @@ pub struct GatherGemm<'a, T> {
 
 /// Whether `start + plus < limit`, with `start` `None` when computing it overflowed: no sum in
 /// a bounds check may wrap around.
-fn within(start: Option<usize>, plus: usize, limit: usize) -> bool {
+pub(crate) fn within(start: Option<usize>, plus: usize, limit: usize) -> bool {
     start
         .and_then(|s| s.checked_add(plus))
         .is_some_and(|end| end < limit)
@@ -70,7 +70,7 @@ avx512_twin! {
     /// A branch-free fold, so that compiled for AVX-512 it runs 8 lanes wide: the checks scan
     /// every offset table of every product (over 20 000 rows for conv1), and as baseline SSE2,
     /// which has no 64-bit max, they took 1.5% of a train step.
-    fn largest(v: &[usize]) -> usize {
+    pub(crate) fn largest(v: &[usize]) -> usize {
         v.iter().fold(0, |m, &x| m.max(x))
     }
 }
@@ -78,7 +78,7 @@ avx512_twin! {
 avx512_twin! {
     /// Whether each row start is at least `n` past the one before (rows increase, never
     /// overlap), written without a sum that could wrap.
-    fn rows_apart(starts: &[usize], n: usize) -> bool {
+    pub(crate) fn rows_apart(starts: &[usize], n: usize) -> bool {
         starts.windows(2).fold(true, |ok, w| {
             ok & (w[1] >= w[0]) & (w[1].wrapping_sub(w[0]) >= n)
         })
@@ -87,7 +87,7 @@ avx512_twin! {
 
 /// Where row `r` of `C` starts in `c`: `c_rows[r]`, or `r·ldc` without a table.
 #[inline]
-fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize {
+pub(crate) fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize {
     c_rows.map_or(r * ldc, |cr| cr[r])
 }
 
@@ -531,7 +531,7 @@ pub(crate) mod avx512 {
 
     /// Lane masks of the 64-column panel starting at `j0` of an `n`-column product, and its
     /// width in vectors.
-    fn panel_masks(n: usize, j0: usize) -> ([u16; 4], usize) {
+    pub(crate) fn panel_masks(n: usize, j0: usize) -> ([u16; 4], usize) {
         let w = (n - j0).min(64);
         let nv = w.div_ceil(16);
         let mut m = [0u16; 4];
@@ -549,16 +549,16 @@ pub(crate) mod avx512 {
     /// Where a task's rows go: row `r0 + i` of `C` starts at `dest(i)` of the task's part of `c`
     /// (which begins at index `base` of the whole `c`).
     #[derive(Clone, Copy)]
-    struct Dest<'a> {
-        c_rows: Option<&'a [usize]>,
-        ldc: usize,
-        r0: usize,
-        base: usize,
+    pub(crate) struct Dest<'a> {
+        pub(crate) c_rows: Option<&'a [usize]>,
+        pub(crate) ldc: usize,
+        pub(crate) r0: usize,
+        pub(crate) base: usize,
     }
 
     impl Dest<'_> {
         #[inline]
-        fn at(&self, i: usize) -> usize {
+        pub(crate) fn at(&self, i: usize) -> usize {
             row_start(self.c_rows, self.ldc, self.r0 + i) - self.base
         }
     }
@@ -686,7 +686,7 @@ pub(crate) mod avx512 {
 
     /// Register-tile height for an `n`-column product: `MR·NV ≤ 24` accumulators. (12 × 2 for
     /// conv1's 32 columns spilled: LLVM hoists all 12 broadcasts, 38 live zmm.)
-    fn tile_rows(n: usize) -> usize {
+    pub(crate) fn tile_rows(n: usize) -> usize {
         match n.min(64).div_ceil(16) {
             1 | 2 => 10,
             3 => 8,
@@ -907,7 +907,7 @@ pub(crate) mod avx512 {
 
     /// Runs tasks `t0..t1` on their disjoint parts of `c` (which starts at index `base` of the
     /// whole `C`; task `t`'s part starts at `start(t)`), halving the range with `rayon::join`.
-    fn split_tasks(
+    pub(crate) fn split_tasks(
         c: &mut [f32],
         base: usize,
         t0: usize,

@@ -18,6 +18,7 @@ mod conv;
 pub mod cpu;
 mod float;
 mod gather;
+pub mod gather_bf16;
 mod gemm;
 pub mod plan;
 mod sparse;
@@ -35,6 +36,7 @@ pub use float::Float;
 pub use gather::{
     fill_iota, gather_gemm_portable, scatter_gemm_portable, GatherGemm, Init, ScatterGemm,
 };
+pub use gather_bf16::{gather_gemm_bf16, gather_gemm_bf16_portable, GatherGemmBf16};
 pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 pub use sparse::{Nonzeros, SparseConv};
 pub use transpose::transpose;

@@ -1,0 +1,554 @@
+//! The gather GEMM in mixed precision: bf16 operands, f32 sums (issue 19).
+//!
+//! ```text
+//! C[r, j] (= init[r, j]) + Σ_u  a[p[r] + q[u]] · b[u, j, 0]  +  a[p[r] + q[u] + 1] · b[u, j, 1]
+//! ```
+//!
+//! The same product as [`super::GatherGemm`], with its reduction steps taken two at a time: each
+//! `u` is a *pair* of steps, whose two `a` values sit next to each other in memory (a
+//! convolution's patch runs over a pixel's channels, a dense layer's over a row) and whose two
+//! `b` values are packed next to each other ([`pack_pairs`]). That is the operand layout of
+//! AVX512-BF16's `vdpbf16ps`, which adds the two products of 16 such pairs into 16 f32 sums in
+//! one instruction: twice the multiply-adds of an f32 FMA.
+//!
+//! `a` and `b` hold bf16 bits ([`super::bf16`]); `c`, the bias and every sum are f32. A product
+//! of two bf16 values is exact in f32 (8 + 8 significant bits), so the only roundings are the
+//! operands' (at most `2^−8` relative each, [`super::bf16::round_bf16`]) and the f32 additions.
+//! The error bound this gives ([`super::bf16::dot_error_bound`]) is what the tests hold the
+//! kernel to against the exact product of the unrounded operands.
+//!
+//! The portable loop [`gather_gemm_bf16_portable`] is the oracle: it adds each pair's products
+//! in the order `vdpbf16ps` does (the odd element's first, each addition rounded to f32), so on
+//! data without subnormals the AVX512-BF16 kernel matches it bit for bit, and every element of
+//! `C` is summed in the order `u = 0, 1, …` whatever the tiling and the thread count.
+//! The layers never run the portable loop for speed: without AVX512-BF16 the plan keeps f32
+//! ([`super::plan`]).
+
+use super::bf16::{from_bf16, to_bf16};
+use super::cpu::{avx512_twin, took, Family};
+use super::gather::{largest, row_start, rows_apart, within, Init};
+
+/// The operands of one bf16 gather GEMM (see the module documentation).
+pub struct GatherGemmBf16<'a> {
+    /// The gathered operand, bf16 bits.
+    pub a: &'a [u16],
+    /// One offset into `a` per row of `C`.
+    pub p: &'a [usize],
+    /// One offset into `a` per pair of reduction steps: the pair is `a[p[r] + q[u]]` and the
+    /// value after it.
+    pub q: &'a [usize],
+    /// The right operand in pairs: pair `u` of column `j` is `b[2·(u·ldb + j)..][..2]`.
+    pub b: &'a [u16],
+    /// Pairs per row of `b` (at least `n`).
+    pub ldb: usize,
+    /// Columns of `C`.
+    pub n: usize,
+    /// The result: row `r` is `c[r·ldc ..][..n]`, or `c[c_rows[r] ..][..n]` if given.
+    pub c: &'a mut [f32],
+    pub ldc: usize,
+    /// Where each row of `C` starts in `c`, strictly increasing by at least `n`.
+    pub c_rows: Option<&'a [usize]>,
+    pub init: Init<'a, f32>,
+    /// Store `max(C, 0)` instead of `C` (a fused ReLU).
+    pub relu: bool,
+}
+
+impl GatherGemmBf16<'_> {
+    /// Panics unless every index the product reaches is inside its slice.
+    pub fn check(&self) {
+        let (rows, pairs) = (self.p.len(), self.q.len());
+        if rows == 0 || self.n == 0 {
+            return;
+        }
+        match self.c_rows {
+            None => assert!(self.n <= self.ldc, "gather_gemm_bf16: n > ldc"),
+            Some(cr) => {
+                assert_eq!(cr.len(), rows, "gather_gemm_bf16: c_rows length");
+                assert!(
+                    rows_apart(cr, self.n),
+                    "gather_gemm_bf16: c_rows overlap or decrease"
+                );
+            }
+        }
+        let last = match self.c_rows {
+            Some(cr) => Some(cr[rows - 1]),
+            None => (rows - 1).checked_mul(self.ldc),
+        };
+        assert!(
+            within(last, self.n, self.c.len() + 1),
+            "gather_gemm_bf16: C too short"
+        );
+        if let Init::Bias(bias) = self.init {
+            assert!(bias.len() >= self.n, "gather_gemm_bf16: bias too short");
+        }
+        if pairs > 0 {
+            assert!(self.n <= self.ldb, "gather_gemm_bf16: n > ldb");
+            // The last pair of the last row of `b` ends at 2·((pairs − 1)·ldb + n).
+            let b_end = (pairs - 1)
+                .checked_mul(self.ldb)
+                .and_then(|x| x.checked_add(self.n))
+                .and_then(|x| x.checked_mul(2));
+            assert!(
+                within(b_end, 0, self.b.len() + 1),
+                "gather_gemm_bf16: B too short"
+            );
+            // The second value of the farthest pair: p + q + 1 < a.len().
+            assert!(
+                within(
+                    largest(self.p).checked_add(1),
+                    largest(self.q),
+                    self.a.len()
+                ),
+                "gather_gemm_bf16: A index out of range"
+            );
+        }
+    }
+}
+
+/// `acc + a₁·b₁ + a₀·b₀` as one lane of `vdpbf16ps` computes it: the odd element's product
+/// first, each addition rounded to f32 (the products of bf16 values are exact in f32).
+#[inline]
+pub fn dot_pair(acc: f32, a: [u16; 2], b: [u16; 2]) -> f32 {
+    let s = acc + from_bf16(a[1]) * from_bf16(b[1]);
+    s + from_bf16(a[0]) * from_bf16(b[0])
+}
+
+/// The portable loops (the oracle of the AVX512-BF16 kernel; see the module documentation).
+pub fn gather_gemm_bf16_portable(g: GatherGemmBf16<'_>) {
+    g.check();
+    let GatherGemmBf16 {
+        a,
+        p,
+        q,
+        b,
+        ldb,
+        n,
+        c,
+        ldc,
+        c_rows,
+        init,
+        relu,
+    } = g;
+    for (r, &pr) in p.iter().enumerate() {
+        let row = &mut c[row_start(c_rows, ldc, r)..][..n];
+        match init {
+            Init::Zero => row.fill(0.0),
+            Init::Accumulate => {}
+            Init::Bias(bias) => row.copy_from_slice(&bias[..n]),
+        }
+        for (u, &qu) in q.iter().enumerate() {
+            let av = [a[pr + qu], a[pr + qu + 1]];
+            for (j, cv) in row.iter_mut().enumerate() {
+                let at = 2 * (u * ldb + j);
+                *cv = dot_pair(*cv, av, [b[at], b[at + 1]]);
+            }
+        }
+        if relu {
+            for v in row.iter_mut() {
+                *v = v.max(0.0);
+            }
+        }
+    }
+}
+
+/// The bf16 gather GEMM: AVX512-BF16 where the CPU has it, else the portable loops. Recorded
+/// as [`Family::Bf16`].
+pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
+    #[cfg(target_arch = "x86_64")]
+    if took(Family::Bf16, super::cpu::avx512_bf16()) {
+        return avx512::gather_gemm_bf16(g);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    took(Family::Bf16, false);
+    gather_gemm_bf16_portable(g)
+}
+
+avx512_twin! {
+    /// `dst = bf16(src)`, element by element, rounded to nearest even ([`to_bf16`]); written as
+    /// a plain loop so that it runs 16 lanes wide, with the same bits as the scalar rounding.
+    pub fn round_into(src: &[f32], dst: &mut [u16]) {
+        for (d, &s) in dst.iter_mut().zip(src) {
+            *d = to_bf16(s);
+        }
+    }
+}
+
+/// `dst = bf16(src)`, resized to `src`'s length (its buffer reused).
+pub fn to_bf16_vec(src: &[f32], dst: &mut Vec<u16>) {
+    dst.resize(src.len(), 0);
+    round_into(src, dst);
+}
+
+avx512_twin! {
+    /// Packs rows `2u` and `2u + 1` of a row-major `rows × cols` matrix (row stride `ld`) into
+    /// pair row `u`: `dst[2·(u·cols + j) + k] = bf16(src[(2u + k)·ld + j])`, with a zero for the
+    /// missing row of an odd count. `dst` holds `2·⌈rows/2⌉·cols` values.
+    fn pack_rows(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut [u16]) {
+        for (u, out) in dst.chunks_exact_mut(2 * cols).enumerate() {
+            let r0 = &src[2 * u * ld..][..cols];
+            if 2 * u + 1 < rows {
+                let r1 = &src[(2 * u + 1) * ld..][..cols];
+                for ((o, &x0), &x1) in out.chunks_exact_mut(2).zip(r0).zip(r1) {
+                    o[0] = to_bf16(x0);
+                    o[1] = to_bf16(x1);
+                }
+            } else {
+                for (o, &x0) in out.chunks_exact_mut(2).zip(r0) {
+                    o[0] = to_bf16(x0);
+                    o[1] = 0;
+                }
+            }
+        }
+    }
+}
+
+/// The right operand of a product whose reduction runs over the `rows` rows of a row-major
+/// matrix (row stride `ld`, `cols` columns): pairs of rows interleaved, as
+/// [`GatherGemmBf16::b`] reads them with `ldb = cols`. Returns the number of pairs.
+pub fn pack_pairs(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut Vec<u16>) -> usize {
+    assert!(cols <= ld || rows <= 1, "pack_pairs: cols > ld");
+    assert!(
+        rows == 0 || src.len() >= (rows - 1) * ld + cols,
+        "pack_pairs: source too short"
+    );
+    let pairs = rows.div_ceil(2);
+    dst.resize(2 * pairs * cols, 0);
+    pack_rows(src, rows, cols, ld, dst);
+    pairs
+}
+
+/// The pair table of a reduction whose steps `q` come two by two next to each other
+/// (`q[2u + 1] = q[2u] + 1`, an even count): `q[0], q[2], …`, into `pairs`. `false` (and
+/// `pairs` unspecified) otherwise, e.g. a convolution's patch with an odd row length.
+pub fn pair_steps(q: &[usize], pairs: &mut Vec<usize>) -> bool {
+    pairs.clear();
+    if !q.len().is_multiple_of(2) {
+        return false;
+    }
+    for s in q.chunks_exact(2) {
+        if s[0].checked_add(1) != Some(s[1]) {
+            return false;
+        }
+        pairs.push(s[0]);
+    }
+    true
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    //! The AVX512-BF16 kernel: an `MR × 16·NV` block of `C` in `MR·NV ≤ 24` zmm accumulators,
+    //! as the f32 kernel's tiles ([`super::super::gather`]). Each pair step loads `NV` vectors
+    //! of `b` (16 columns × 2 bf16 each), broadcasts each row's pair (one 32-bit load), and
+    //! issues `MR·NV` `vdpbf16ps`: `MR + NV` loads per `2·16·MR·NV` multiply-adds.
+    use super::GatherGemmBf16;
+    use crate::tensor::gather::avx512::{panel_masks, split_tasks, tile_rows, Dest};
+    use crate::tensor::gather::Init;
+    use std::arch::x86_64::*;
+
+    /// Pairs per block: the block's `b` (64 pairs × 64 columns × 4 bytes, 16 KiB) stays in L1
+    /// while the task's row tiles run over it.
+    const TP: usize = 64;
+
+    /// The operands every task reads.
+    #[derive(Clone, Copy)]
+    struct Operands<'a> {
+        a: &'a [u16],
+        q: &'a [usize],
+        b: &'a [u16],
+        ldb: usize,
+        n: usize,
+        relu: bool,
+    }
+
+    #[derive(Clone, Copy)]
+    enum Start {
+        Zero,
+        Load,
+        Bias(*const f32),
+    }
+
+    /// One `MR × 16·NV` tile over the pairs `q` of one block.
+    ///
+    /// # Safety
+    /// AVX-512F and AVX512-BF16; every `a` pair `p[r] + q[u]` (two u16) readable, `b` pair rows
+    /// `u` readable over the masked columns, `c` rows `crow[r]` readable and writable likewise,
+    /// a `Bias` pointer readable likewise.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
+        a: *const u16,
+        p: &[usize],
+        q: &[usize],
+        b: *const u16,
+        ldb: usize,
+        c: *mut f32,
+        crow: &[usize],
+        masks: [u16; NV],
+        start: Start,
+        relu: bool,
+    ) {
+        let mut acc = [[_mm512_setzero_ps(); NV]; MR];
+        for r in 0..MR {
+            for v in 0..NV {
+                acc[r][v] = match start {
+                    Start::Zero => _mm512_setzero_ps(),
+                    Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
+                    Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
+                };
+            }
+        }
+        let mut rows = [a; MR];
+        for r in 0..MR {
+            rows[r] = a.add(p[r]);
+        }
+        let mut brow = b;
+        for &qu in q {
+            let mut bv = [_mm512_setzero_si512(); NV];
+            for v in 0..NV {
+                // Column j's pair is one 32-bit lane: the column mask is the lane mask.
+                let at = brow.add(32 * v) as *const i32;
+                bv[v] = if FULL {
+                    _mm512_loadu_si512(at as *const __m512i)
+                } else {
+                    _mm512_maskz_loadu_epi32(masks[v], at)
+                };
+            }
+            for r in 0..MR {
+                let pair = (rows[r].add(qu) as *const i32).read_unaligned();
+                let av: __m512bh = std::mem::transmute(_mm512_set1_epi32(pair));
+                for v in 0..NV {
+                    let bh: __m512bh = std::mem::transmute(bv[v]);
+                    acc[r][v] = _mm512_dpbf16_ps(acc[r][v], av, bh);
+                }
+            }
+            brow = brow.add(2 * ldb);
+        }
+        for r in 0..MR {
+            for v in 0..NV {
+                let val = if relu {
+                    _mm512_max_ps(acc[r][v], _mm512_setzero_ps())
+                } else {
+                    acc[r][v]
+                };
+                _mm512_mask_storeu_ps(c.add(crow[r] + 16 * v), masks[v], val);
+            }
+        }
+    }
+
+    /// Dispatches one tile on the panel width (in vectors) and whether it is full.
+    ///
+    /// # Safety
+    /// As [`tile`], with `nv` in `1..=4` and `m[..nv]` the panel's lane masks.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile_nv<const MR: usize>(
+        nv: usize,
+        a: *const u16,
+        p: &[usize],
+        q: &[usize],
+        b: *const u16,
+        ldb: usize,
+        c: *mut f32,
+        crow: &[usize],
+        m: [u16; 4],
+        start: Start,
+        relu: bool,
+    ) {
+        let full = m[..nv].iter().all(|&x| x == u16::MAX);
+        match (nv, full) {
+            (1, true) => tile::<MR, 1, true>(a, p, q, b, ldb, c, crow, [m[0]], start, relu),
+            (1, false) => tile::<MR, 1, false>(a, p, q, b, ldb, c, crow, [m[0]], start, relu),
+            (2, true) => tile::<MR, 2, true>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, relu),
+            (2, false) => tile::<MR, 2, false>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, relu),
+            (3, true) => {
+                tile::<MR, 3, true>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, relu)
+            }
+            (3, false) => {
+                tile::<MR, 3, false>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, relu)
+            }
+            (_, true) => tile::<MR, 4, true>(a, p, q, b, ldb, c, crow, m, start, relu),
+            (_, false) => tile::<MR, 4, false>(a, p, q, b, ldb, c, crow, m, start, relu),
+        }
+    }
+
+    /// A tile of any height `h < 10` (the rows left over after the full tiles).
+    ///
+    /// # Safety
+    /// As [`tile_nv`] for `h` rows.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn tile_any(
+        h: usize,
+        nv: usize,
+        a: *const u16,
+        p: &[usize],
+        q: &[usize],
+        b: *const u16,
+        ldb: usize,
+        c: *mut f32,
+        crow: &[usize],
+        m: [u16; 4],
+        start: Start,
+        relu: bool,
+    ) {
+        match h {
+            1 => tile_nv::<1>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            2 => tile_nv::<2>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            3 => tile_nv::<3>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            4 => tile_nv::<4>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            5 => tile_nv::<5>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            6 => tile_nv::<6>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            7 => tile_nv::<7>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            8 => tile_nv::<8>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+            _ => tile_nv::<9>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
+        }
+    }
+
+    /// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part):
+    /// blocks of [`TP`] pairs outer, 64-column panels, then row tiles.
+    ///
+    /// # Safety
+    /// AVX-512F and AVX512-BF16; the bounds of [`GatherGemmBf16::check`] hold for these rows.
+    #[target_feature(enable = "avx512f,avx512bf16")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn task(
+        mr: usize,
+        op: Operands<'_>,
+        p: &[usize],
+        c: *mut f32,
+        dest: Dest<'_>,
+        init: Start,
+    ) {
+        let Operands {
+            a,
+            q,
+            b,
+            ldb,
+            n,
+            relu,
+        } = op;
+        let (nr, pairs) = (p.len(), q.len());
+        let nblocks = pairs.div_ceil(TP).max(1);
+        for blk in 0..nblocks {
+            let u0 = blk * TP;
+            let qb = &q[u0.min(pairs)..(u0 + TP).min(pairs)];
+            let bb = if qb.is_empty() {
+                b.as_ptr()
+            } else {
+                b.as_ptr().add(2 * u0 * ldb)
+            };
+            let start = if blk == 0 { init } else { Start::Load };
+            let relu = relu && blk + 1 == nblocks;
+            for j0 in (0..n).step_by(64) {
+                let (m, nv) = panel_masks(n, j0);
+                let mut r = 0;
+                while r < nr {
+                    let h = (nr - r).min(mr);
+                    let d0 = dest.at(r);
+                    let pr = &p[r..r + h];
+                    let crow: [usize; 10] =
+                        std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
+                    let st = match start {
+                        Start::Bias(bias) => Start::Bias(bias.add(j0)),
+                        s => s,
+                    };
+                    let (ap, cp, bp) = (a.as_ptr(), c.add(d0 + j0), bb.add(2 * j0));
+                    if h == mr {
+                        match mr {
+                            10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
+                            8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
+                            _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
+                        }
+                    } else {
+                        tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu);
+                    }
+                    r += mr;
+                }
+            }
+        }
+    }
+
+    /// The product by AVX512-BF16, split over rayon by blocks of rows whose size depends only
+    /// on the shape (the same split as the f32 kernel). Call only if the CPU has it.
+    pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
+        assert!(
+            crate::tensor::cpu::avx512_bf16(),
+            "gather_gemm_bf16: AVX512-BF16 needed"
+        );
+        g.check();
+        let rows = g.p.len();
+        if rows == 0 || g.n == 0 {
+            return;
+        }
+        let mr = tile_rows(g.n);
+        let flops = 4 * rows * g.q.len().max(1) * g.n;
+        let threads = rayon::current_num_threads();
+        let most = if 16 * rows < g.q.len() {
+            threads
+        } else {
+            4 * threads
+        };
+        let tasks = flops.div_ceil(1 << 22).clamp(1, most);
+        let rpt = rows.div_ceil(tasks).div_ceil(mr) * mr;
+        let tasks = rows.div_ceil(rpt);
+        let (c_rows, ldc) = (g.c_rows, g.ldc);
+        let end = super::row_start(c_rows, ldc, rows - 1) + g.n;
+        let start = move |t: usize| super::row_start(c_rows, ldc, t * rpt);
+        let op = Operands {
+            a: g.a,
+            q: g.q,
+            b: g.b,
+            ldb: g.ldb,
+            n: g.n,
+            relu: g.relu,
+        };
+        let (p, init) = (g.p, g.init);
+        let run = |t: usize, cc: &mut [f32], base: usize| {
+            let r0 = t * rpt;
+            let pr = &p[r0..(r0 + rpt).min(rows)];
+            let dest = Dest {
+                c_rows,
+                ldc,
+                r0,
+                base,
+            };
+            let st = match init {
+                Init::Zero => Start::Zero,
+                Init::Accumulate => Start::Load,
+                Init::Bias(bias) => Start::Bias(bias.as_ptr()),
+            };
+            // SAFETY: AVX512-BF16 checked above; `check` proved every `a`, `b` and bias index
+            // in bounds, and this task's rows of C lie inside `cc` (rows increase and the next
+            // task's part starts where its first row does), which no other task touches.
+            unsafe { task(mr, op, pr, cc.as_mut_ptr(), dest, st) }
+        };
+        split_tasks(&mut g.c[..end], 0, 0, tasks, &start, &run);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pairs_are_found_only_where_steps_come_two_by_two() {
+        let mut v = Vec::new();
+        assert!(pair_steps(&[4, 5, 10, 11], &mut v));
+        assert_eq!(v, [4, 10]);
+        assert!(!pair_steps(&[4, 5, 10], &mut v));
+        assert!(!pair_steps(&[4, 6], &mut v));
+        assert!(!pair_steps(&[usize::MAX, 0], &mut v));
+    }
+
+    #[test]
+    fn rows_are_packed_in_pairs_with_a_zero_after_an_odd_count() {
+        // 3 rows × 2 columns, row stride 3.
+        let src = [1.0, 2.0, 9.0, 3.0, 4.0, 9.0, 5.0, 6.0];
+        let mut dst = Vec::new();
+        assert_eq!(pack_pairs(&src, 3, 2, 3, &mut dst), 2);
+        let f: Vec<f32> = dst.iter().map(|&b| from_bf16(b)).collect();
+        assert_eq!(f, [1.0, 3.0, 2.0, 4.0, 5.0, 0.0, 6.0, 0.0]);
+    }
+}
