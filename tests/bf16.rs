@@ -4,10 +4,15 @@
 
 mod common;
 
-use common::{avx512_expected, on_path, rng};
+use common::{avx512_expected, on_path, rng, set_params, uniform};
+use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::tensor::bf16::{dot_bf16, dot_bf16_reference, dot_error_bound, round_bf16};
 use invaders::tensor::cpu::Family;
 use invaders::tensor::gather_bf16::{pack_pairs, to_bf16_vec};
+use invaders::tensor::plan::{self, Kernel, Precision, Product};
+use invaders::tensor::{
+    conv2d_reference, conv2d_reference_backward, pad_input, ConvGeom, Padding, Tensor,
+};
 use invaders::tensor::{gather_gemm_bf16, gather_gemm_bf16_portable, GatherGemmBf16, Init};
 use proptest::prelude::*;
 use rand::Rng;
@@ -233,4 +238,197 @@ fn gather_gemm_bf16_is_the_same_on_any_thread_count() {
     let one = on(1);
     assert_eq!(one, on(2));
     assert_eq!(one, on(3));
+}
+
+/// `|got − want| ≤ bound` element by element, naming the first that fails.
+fn within_bounds(
+    what: &str,
+    got: &[f32],
+    want: &[f64],
+    bound: &[f64],
+) -> Result<(), TestCaseError> {
+    prop_assert_eq!(got.len(), want.len(), "{}: lengths", what);
+    for (i, ((&g, &w), &b)) in got.iter().zip(want).zip(bound).enumerate() {
+        prop_assert!(
+            (f64::from(g) - w).abs() <= b,
+            "{}[{}]: {} vs exact {} (bound {})",
+            what,
+            i,
+            g,
+            w,
+            b
+        );
+    }
+    Ok(())
+}
+
+fn f64s(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x)).collect()
+}
+
+fn abs64(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x).abs()).collect()
+}
+
+/// A convolution in bf16 on an input that arrives padded (read in place, as conv2 and conv3
+/// read theirs): forward, weight gradient and input gradient against the exact products of the
+/// unrounded operands (f64), each element to `dot_error_bound` of its own `Σ|terms|` (the same
+/// products of absolute values), with the kernels asserted.
+fn conv_case(
+    k: usize,
+    s: usize,
+    h: usize,
+    w: usize,
+    cin: usize,
+    cout: usize,
+    n: usize,
+    seed: u64,
+) -> Result<(), TestCaseError> {
+    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+    let mut r = rng(seed);
+    let mut layer = Conv2d::<f32>::new("c", g);
+    layer.set_precision(Precision::Bf16);
+    let wt = uniform::<f32>(&[k, k, cin, cout], &mut r);
+    let bt = uniform::<f32>(&[cout], &mut r);
+    set_params(&mut layer, &[&wt, &bt]);
+    let x = uniform::<f32>(&[n, h, w, cin], &mut r);
+    let (hp, wp) = g.padded();
+    let mut xp = Vec::new();
+    pad_input(&g, n, x.data(), &mut xp);
+    let xp = Tensor::from_vec(&[n, hp, wp, cin], xp);
+    let valid = g.as_valid().0;
+    let dy = uniform::<f32>(&[n, g.oh, g.ow, cout], &mut r);
+    let bf16 = bf16_expected();
+    layer.forward(&xp);
+    layer.backward(&xp, &dy, true);
+    let expect = |p: Product, k: Kernel| {
+        if bf16 {
+            prop_assert_eq!(plan::last(p), Some(k), "{:?}", p);
+        } else {
+            prop_assert_ne!(plan::last(p), Some(k), "{:?} without AVX512-BF16", p);
+        }
+        Ok(())
+    };
+    if (k * cin) % 2 == 0 {
+        expect(Product::ConvForward, Kernel::GatherBf16)?;
+    }
+    if g.ow % 2 == 0 {
+        expect(Product::ConvWeightGrad, Kernel::GatherBf16)?;
+    }
+    if cout % 2 == 0 {
+        expect(Product::ConvInputGrad, Kernel::PhasesBf16)?;
+    }
+    // The exact products, and the same over absolute values (the bounds' Σ|terms|).
+    let (x64, w64, b64, dy64) = (
+        f64s(xp.data()),
+        f64s(wt.data()),
+        f64s(bt.data()),
+        f64s(dy.data()),
+    );
+    let (xa, wa, ba, dya) = (
+        abs64(xp.data()),
+        abs64(wt.data()),
+        abs64(bt.data()),
+        abs64(dy.data()),
+    );
+    let mut y = vec![0.0; dy.len()];
+    let mut ya = y.clone();
+    conv2d_reference(&valid, n, &x64, &w64, &b64, &mut y);
+    conv2d_reference(&valid, n, &xa, &wa, &ba, &mut ya);
+    let terms = (k * k * cin).max(n * g.oh * g.ow).max(k * k * cout) + 1;
+    let bound = |abs: &[f64]| {
+        abs.iter()
+            .map(|&a| dot_error_bound(terms, a))
+            .collect::<Vec<_>>()
+    };
+    within_bounds("y", layer.output().data(), &y, &bound(&ya))?;
+    let (mut dx, mut dw, mut db) = (vec![0.0; xp.len()], vec![0.0; wt.len()], vec![0.0; cout]);
+    conv2d_reference_backward(&valid, n, &x64, &w64, &dy64, &mut dx, &mut dw, &mut db);
+    let (mut dxa, mut dwa, mut dba) = (vec![0.0; xp.len()], vec![0.0; wt.len()], vec![0.0; cout]);
+    conv2d_reference_backward(&valid, n, &xa, &wa, &dya, &mut dxa, &mut dwa, &mut dba);
+    within_bounds("dw", layer.params()[0].grad.data(), &dw, &bound(&dwa))?;
+    within_bounds("dx", layer.input_grad().data(), &dx, &bound(&dxa))?;
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(common::cases(24)))]
+
+    /// Random convolutions in bf16 (filters 1–4, strides 1–2, odd and even channel counts and
+    /// widths, so that each product takes bf16 where its pairs exist and f32 where not).
+    #[test]
+    fn conv_in_bf16_matches_the_exact_products(
+        k in 1usize..5, s in 1usize..3, h in 3usize..12, w in 3usize..12,
+        cin in 1usize..9, cout in 1usize..40, n in 1usize..4, seed in any::<u64>()
+    ) {
+        conv_case(k, s, h, w, cin, cout, n, seed)?;
+    }
+}
+
+/// The article's three convolutions at their shapes, in bf16.
+#[test]
+fn article_convolutions_in_bf16_match_the_exact_products() {
+    for (i, (h, w, cin, cout, k, s)) in [
+        (88, 80, 4, 32, 8, 4),
+        (22, 20, 32, 64, 4, 2),
+        (11, 10, 64, 64, 3, 1),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        conv_case(k, s, h, w, cin, cout, 3, i as u64).unwrap();
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(common::cases(32)))]
+
+    /// A dense layer in bf16 (even and odd widths and batches): `y`, `dW` and `dX` against the
+    /// exact products, to the derived bound.
+    #[test]
+    fn dense_in_bf16_matches_the_exact_products(
+        ni in 1usize..200, no in 1usize..80, n in 1usize..9, seed in any::<u64>()
+    ) {
+        let mut r = rng(seed);
+        let mut layer = Dense::<f32>::new("d", ni, no);
+        layer.set_precision(Precision::Bf16);
+        let wt = uniform::<f32>(&[ni, no], &mut r);
+        let bt = uniform::<f32>(&[no], &mut r);
+        set_params(&mut layer, &[&wt, &bt]);
+        let x = uniform::<f32>(&[n, ni], &mut r);
+        let dy = uniform::<f32>(&[n, no], &mut r);
+        layer.forward(&x);
+        layer.backward(&x, &dy, true);
+        let even = ni % 2 == 0 && no % 2 == 0;
+        let want = if bf16_expected() && even { Some(Kernel::GatherBf16) } else { plan::last(Product::DenseForward).filter(|&k| k != Kernel::GatherBf16) };
+        prop_assert_eq!(plan::last(Product::DenseForward), want);
+        prop_assert_eq!(plan::last(Product::DenseBackward), want);
+        let (xs, ws, dys) = (x.data(), wt.data(), dy.data());
+        let terms = ni.max(no).max(n) + 1;
+        let (mut y, mut ya) = (vec![0.0; n * no], vec![0.0; n * no]);
+        let (mut dw, mut dwa) = (vec![0.0; ni * no], vec![0.0; ni * no]);
+        let (mut dx, mut dxa) = (vec![0.0; n * ni], vec![0.0; n * ni]);
+        for s in 0..n {
+            for j in 0..no {
+                let (mut t, mut ta) = (f64::from(bt.data()[j]), f64::from(bt.data()[j]).abs());
+                for i in 0..ni {
+                    let v = f64::from(xs[s * ni + i]) * f64::from(ws[i * no + j]);
+                    t += v;
+                    ta += v.abs();
+                    let g = f64::from(xs[s * ni + i]) * f64::from(dys[s * no + j]);
+                    dw[i * no + j] += g;
+                    dwa[i * no + j] += g.abs();
+                    let d = f64::from(dys[s * no + j]) * f64::from(ws[i * no + j]);
+                    dx[s * ni + i] += d;
+                    dxa[s * ni + i] += d.abs();
+                }
+                y[s * no + j] = t;
+                ya[s * no + j] = ta;
+            }
+        }
+        let bound = |abs: &[f64]| abs.iter().map(|&a| dot_error_bound(terms, a)).collect::<Vec<_>>();
+        within_bounds("y", layer.output().data(), &y, &bound(&ya))?;
+        within_bounds("dw", layer.params()[0].grad.data(), &dw, &bound(&dwa))?;
+        within_bounds("dx", layer.input_grad().data(), &dx, &bound(&dxa))?;
+    }
 }

@@ -17,6 +17,8 @@ use rand_chacha::ChaCha8Rng;
 use invaders::dqn::{checkpoint, random_play_inputs, Agent, Batch, Config, Learner, Preset};
 use invaders::env::{Observer, SpaceInvaders};
 use invaders::layers::Sequential;
+use invaders::tensor::cpu::{self, Family};
+use invaders::tensor::plan::{self, Precision, Product};
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {
@@ -26,6 +28,10 @@ pub struct BenchArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
+    /// The products' arithmetic: f32, or bf16 operands with f32 sums (on CPUs with
+    /// AVX512-BF16; elsewhere f32, and the report says so).
+    #[arg(long, value_enum, default_value_t = Precision::F32)]
+    precision: Precision,
     /// Train steps to time.
     #[arg(long, default_value_t = 30)]
     steps: usize,
@@ -64,7 +70,9 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let input = config.input_shape();
 
     // The train step on a random batch.
+    super::note_precision(args.precision);
     let mut learner = Learner::from_config(&config, 6, &mut rng);
+    learner.set_precision(args.precision);
     // Laid out as the agent's batches are: inside conv1's padding, a zero border.
     let mut batch = Batch::padded(config.batch_size, input);
     for states in [&mut batch.states, &mut batch.next_states] {
@@ -81,9 +89,29 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         batch.rewards[i] = rng.random_range(0.0..10.0);
         batch.dones[i] = rng.random_bool(0.05);
     }
+    let bf16_before = cpu::paths(Family::Bf16);
     for _ in 0..3 {
         learner.train_step(&batch);
     }
+    // What ran: the kernel family, and the kernel of each product (the last layer's to run it).
+    let bf16_calls = cpu::paths(Family::Bf16).since(bf16_before);
+    let family = if bf16_calls.avx512 > 0 {
+        "avx512-bf16"
+    } else if cpu::avx512() {
+        "avx512-f32"
+    } else {
+        "portable-f32"
+    };
+    let kernels: Vec<(&str, String)> = [
+        ("conv_forward", Product::ConvForward),
+        ("conv_weight_grad", Product::ConvWeightGrad),
+        ("conv_input_grad", Product::ConvInputGrad),
+        ("dense_forward", Product::DenseForward),
+        ("dense_backward", Product::DenseBackward),
+    ]
+    .into_iter()
+    .map(|(name, p)| (name, format!("{:?}", plan::last(p))))
+    .collect();
     let step_ms = median(
         (0..args.steps.max(1))
             .map(|_| {
@@ -139,6 +167,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
 
     // End to end: the article preset with learning on from step 500.
     let mut e2e = Config::preset(Preset::Article);
+    e2e.precision = args.precision;
     e2e.learning_starts = 500;
     e2e.replay_capacity = 5_000;
     let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
@@ -158,6 +187,9 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             "{}",
             serde_json::json!({
                 "threads": threads,
+                "precision": args.precision,
+                "kernel_family": family,
+                "kernels": kernels.iter().cloned().collect::<std::collections::BTreeMap<_, _>>(),
                 "train_step_ms": step_ms,
                 "train_step_gflops": gflops,
                 "act_ms": act_ms,
@@ -170,6 +202,10 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         );
     } else {
         println!("threads                 {threads}");
+        println!("precision               {:?} ({family})", args.precision);
+        for (name, k) in &kernels {
+            println!("  {name:<21} {k}");
+        }
         println!("train step (batch 48)   {step_ms:.2} ms  ({gflops:.1} GFLOP/s)");
         println!("act (batch-1 forward)   {act_ms:.3} ms  (an initial network, game frames)");
         if let (Some(ms), Some(p)) = (act_trained_ms, &args.checkpoint) {

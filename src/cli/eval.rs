@@ -47,6 +47,9 @@ pub struct EvalArgs {
     /// Worker threads for the kernels (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// The products' arithmetic while acting (default: the checkpoint's).
+    #[arg(long, value_enum, requires = "checkpoint")]
+    precision: Option<invaders::tensor::plan::Precision>,
     /// Number of episodes [default: 30; 100 with --protocol].
     #[arg(long)]
     episodes: Option<u32>,
@@ -212,6 +215,9 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         );
     }
     let mut net = model.online;
+    let precision = args.precision.unwrap_or(config.precision);
+    super::note_precision(precision);
+    net.set_precision(precision);
     let mut observer = Observer::new(config.pipeline);
     let table = config.normalization.table();
     let [h, w, c] = config.input_shape();

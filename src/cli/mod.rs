@@ -64,6 +64,20 @@ pub fn in_pool<R: Send>(
     pool.install(body)
 }
 
+/// Says once, on stderr, when `precision` asks for bf16 on a CPU that cannot run it (its
+/// products then run in f32: [`invaders::tensor::plan::bf16_runs`]).
+pub fn note_precision(precision: invaders::tensor::plan::Precision) {
+    use invaders::tensor::plan::{bf16_runs, Precision};
+    static NOTE: std::sync::Once = std::sync::Once::new();
+    if precision == Precision::Bf16 && !bf16_runs(precision) {
+        NOTE.call_once(|| {
+            let why = invaders::tensor::cpu::why_portable()
+                .unwrap_or_else(|| "this CPU has no AVX512-BF16".to_string());
+            eprintln!("note: bf16 asked for, but {why}: the products run in f32");
+        });
+    }
+}
+
 /// Runs the chosen subcommand.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {

@@ -29,6 +29,7 @@ use super::guard;
 use invaders::dqn::{Agent, Config, EpisodeRow, Preset, NO_EPISODE_LIMIT};
 use invaders::env::SpaceInvaders;
 use invaders::plot::{plot_rewards, Curve};
+use invaders::tensor::plan::Precision;
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {
@@ -48,6 +49,10 @@ pub struct TrainArgs {
     /// Seed of every random generator.
     #[arg(long)]
     seed: Option<u64>,
+    /// The training products' arithmetic (default: the preset's, f32): bf16 rounds their
+    /// operands to bfloat16 and keeps f32 sums, on CPUs with AVX512-BF16.
+    #[arg(long, value_enum, conflicts_with = "resume")]
+    precision: Option<Precision>,
     /// Worker threads for the kernels (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -151,6 +156,9 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
             if let Some(s) = args.seed {
                 config.seed = s;
             }
+            if let Some(p) = args.precision {
+                config.precision = p;
+            }
             let dir = args.out.clone().unwrap_or_else(|| default_out(&config));
             (config, dir, None)
         }
@@ -164,6 +172,7 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         config.episodes = NO_EPISODE_LIMIT;
     }
     config.validate()?;
+    super::note_precision(config.precision);
     if let Some((ckpt, _)) = &resumed {
         let c = &ckpt.counters;
         if c.episodes >= config.episodes || (config.max_frames > 0 && c.frames >= config.max_frames)

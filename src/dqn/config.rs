@@ -7,6 +7,7 @@
 use super::Replay;
 use crate::env::{Downsample, EnvConfig, EnvMode, Normalization, Pipeline};
 use crate::layers::loss::LossKind;
+use crate::tensor::plan::Precision;
 use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 
@@ -166,6 +167,11 @@ pub struct Config {
     pub adam_epsilon: f64,
     /// Clip gradients to this global norm (0: no clipping).
     pub clip_grad_norm: f64,
+    /// The training products' arithmetic: `f32`, or `bf16` operands with f32 sums where the CPU
+    /// has AVX512-BF16 (elsewhere f32; [`crate::tensor::plan::Precision`]). Weights, gradients,
+    /// Adam's state and checkpoints stay f32.
+    #[serde(default)]
+    pub precision: Precision,
     /// Clip rewards to [-1, 1] (the Nature DQN; the article does not).
     pub clip_rewards: bool,
     /// The notebook's swap: pick actions with the lagged (target) network.
@@ -214,6 +220,7 @@ impl Config {
             life_loss_terminal: false,
             prioritized: false,
             adam_epsilon: ADAM_EPSILON,
+            precision: Precision::F32,
             clip_grad_norm: 0.0,
             clip_rewards: false,
             act_with_target_network: false,

@@ -177,7 +177,14 @@ impl Learner {
         l.loss = config.loss;
         l.double = config.double_dqn;
         l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm as f32);
+        l.set_precision(config.precision);
         l
+    }
+
+    /// Both networks' training arithmetic ([`crate::tensor::plan::Precision`]).
+    pub fn set_precision(&mut self, precision: crate::tensor::plan::Precision) {
+        self.online.set_precision(precision);
+        self.target.set_precision(precision);
     }
 
     /// The number of actions.

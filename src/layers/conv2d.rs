@@ -11,7 +11,7 @@ mod fast;
 
 use super::{Layer, Param};
 use crate::tensor::cpu::avx512_twin;
-use crate::tensor::plan::{self, Kernel, Product};
+use crate::tensor::plan::{self, Kernel, Precision, Product};
 use crate::tensor::{col2im, gemm, im2col, Border, ConvGeom, Float, Op, Tensor};
 use rayon::prelude::*;
 
@@ -48,6 +48,8 @@ pub struct Conv2d<T> {
     winograd: bool,
     sparse: bool,
     background: bool,
+    /// The training products' arithmetic ([`Layer::set_precision`]).
+    precision: Precision,
     /// `[N·OH·OW, KH·KW·Cin]`, from the last forward pass.
     cols: Vec<T>,
     /// `[N·OH·OW, KH·KW·Cin]`, scratch for the input gradient.
@@ -87,6 +89,7 @@ impl<T: Float> Conv2d<T> {
             winograd: false,
             sparse: false,
             background: false,
+            precision: Precision::F32,
             cols: Vec::new(),
             dcols: Vec::new(),
             z: Vec::new(),
@@ -353,7 +356,7 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         );
         let n = x.batch();
         self.y.set_shape(&self.out_shape(n));
-        match plan::conv::<T>(&g, n, self.winograd, self.in_border).forward() {
+        match plan::conv::<T>(&g, n, self.winograd, self.in_border, self.precision).forward() {
             Kernel::Im2col => self.forward_im2col(g, x),
             fast => self.forward_fast(g, x, fast),
         }
@@ -414,7 +417,7 @@ impl<T: Float> Layer<T> for Conv2d<T> {
                 *g += d;
             }
         }
-        let plan = plan::conv::<T>(&g, n, self.winograd, self.in_border);
+        let plan = plan::conv::<T>(&g, n, self.winograd, self.in_border, self.precision);
         match plan.weight_grad() {
             Kernel::Im2col => {
                 if need_dx {
@@ -441,5 +444,9 @@ impl<T: Float> Layer<T> for Conv2d<T> {
 
     fn macs(&self) -> usize {
         self.geom.macs()
+    }
+
+    fn set_precision(&mut self, precision: Precision) {
+        self.precision = precision;
     }
 }

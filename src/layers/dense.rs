@@ -1,10 +1,12 @@
 //! Fully connected layer.
 
 use super::{Layer, Param};
-use crate::tensor::plan::{self, Kernel, Product};
+use crate::tensor::gather_bf16::{f32s, f32s_mut, pack_pairs, to_bf16_vec};
+use crate::tensor::plan::{self, Kernel, Precision, Product};
 use crate::tensor::{
     fill_iota, gemm, transpose, Float, GatherGemm, Init, Nonzeros, Op, SparseConv, Tensor,
 };
+use crate::tensor::{gather_gemm_bf16, GatherGemmBf16};
 
 /// `y = x·W + b` with `x: [N, In]`, `W: [In, Out]` (TensorFlow's layout), `b: [Out]`, `y: [N, Out]`.
 ///
@@ -30,13 +32,20 @@ pub struct Dense<T> {
     /// [`Layer::infer`] at batch 1 over the input's nonzeros ([`SparseConv`]), and those.
     sparse: bool,
     nz: Nonzeros<T>,
+    /// The training products' arithmetic ([`Layer::set_precision`]), and the bf16 operands
+    /// ([`Kernel::GatherBf16`]): the gathered one, the packed one, pair and row tables.
+    precision: Precision,
+    bf_a: Vec<u16>,
+    bf_b: Vec<u16>,
+    bf_q: Vec<usize>,
+    bf_p: Vec<usize>,
 }
 
 impl<T: Float> Dense<T> {
     /// [`Layer::infer`] by [`Layer::forward`], recorded as such for [`plan::last`].
     fn infer_dense(&mut self, x: &Tensor<T>) {
         self.forward(x);
-        plan::ran(Product::DenseInfer, plan::dense::<T>());
+        plan::ran(Product::DenseInfer, self.kernel());
     }
 
     /// A dense layer with zero weights and bias (initialise them with [`super::init`]).
@@ -65,6 +74,11 @@ impl<T: Float> Dense<T> {
             dxt: Vec::new(),
             sparse: false,
             nz: Nonzeros::default(),
+            precision: Precision::F32,
+            bf_a: Vec::new(),
+            bf_b: Vec::new(),
+            bf_q: Vec::new(),
+            bf_p: Vec::new(),
         }
     }
 
@@ -80,6 +94,96 @@ impl<T: Float> Dense<T> {
 }
 
 impl<T: Float> Dense<T> {
+    /// The plan's kernel for this layer's products.
+    fn kernel(&self) -> Kernel {
+        plan::dense::<T>(self.precision, self.n_in, self.n_out)
+    }
+
+    /// `y = b + x·W` by the bf16 gather GEMM: pairs of inputs `x[n, 2u..2u + 2]` against pairs
+    /// of weight rows.
+    fn forward_bf16(&mut self, x: &Tensor<T>) {
+        let (n, ni, no) = (x.batch(), self.n_in, self.n_out);
+        fill_iota(&mut self.x_rows, n, ni);
+        fill_iota(&mut self.bf_q, ni / 2, 2);
+        to_bf16_vec(f32s(x.data()), &mut self.bf_a);
+        pack_pairs(
+            f32s(self.params[0].value.data()),
+            ni,
+            no,
+            no,
+            &mut self.bf_b,
+        );
+        gather_gemm_bf16(GatherGemmBf16 {
+            a: &self.bf_a,
+            p: &self.x_rows,
+            q: &self.bf_q,
+            b: &self.bf_b,
+            ldb: no,
+            n: no,
+            c: f32s_mut(self.y.data_mut()),
+            ldc: no,
+            c_rows: None,
+            init: Init::Bias(f32s(self.params[1].value.data())),
+            relu: false,
+        });
+    }
+
+    /// The backward pass by the bf16 gather GEMM: `dW += xᵀ·dY` over pairs of samples (both
+    /// packed in pairs of rows, an odd batch padded with a zero sample), `dXᵀ = W·dYᵀ` over
+    /// pairs of outputs.
+    fn backward_bf16(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
+        let (n, ni, no) = (x.batch(), self.n_in, self.n_out);
+        // dW[i, j] += Σ_u x2[u, i]·dY2[u, j]: rows i (pair offsets 2i), steps u (2u·In).
+        let pairs = pack_pairs(f32s(x.data()), n, ni, ni, &mut self.bf_a);
+        pack_pairs(f32s(dy.data()), n, no, no, &mut self.bf_b);
+        fill_iota(&mut self.bf_p, ni, 2);
+        fill_iota(&mut self.bf_q, pairs, 2 * ni);
+        gather_gemm_bf16(GatherGemmBf16 {
+            a: &self.bf_a,
+            p: &self.bf_p,
+            q: &self.bf_q,
+            b: &self.bf_b,
+            ldb: no,
+            n: no,
+            c: f32s_mut(self.params[0].grad.data_mut()),
+            ldc: no,
+            c_rows: None,
+            init: Init::Accumulate,
+            relu: false,
+        });
+        let gb = self.params[1].grad.data_mut();
+        for row in dy.data().chunks_exact(no) {
+            for (g, &d) in gb.iter_mut().zip(row) {
+                *g += d;
+            }
+        }
+        if need_dx {
+            // dXᵀ[i, n] = Σ_u W[i, 2u..2u + 2]·dYᵀ2[u, n]: W's rows read in place, as in f32.
+            self.dyt.resize(no * n, T::zero());
+            transpose(dy.data(), n, no, &mut self.dyt);
+            to_bf16_vec(f32s(self.params[0].value.data()), &mut self.bf_a);
+            pack_pairs(f32s(&self.dyt), no, n, n, &mut self.bf_b);
+            fill_iota(&mut self.x_rows, ni, no);
+            fill_iota(&mut self.bf_q, no / 2, 2);
+            self.dxt.resize(ni * n, T::zero());
+            gather_gemm_bf16(GatherGemmBf16 {
+                a: &self.bf_a,
+                p: &self.x_rows,
+                q: &self.bf_q,
+                b: &self.bf_b,
+                ldb: n,
+                n,
+                c: f32s_mut(&mut self.dxt),
+                ldc: n,
+                c_rows: None,
+                init: Init::Zero,
+                relu: false,
+            });
+            self.dx.set_shape(x.shape());
+            transpose(&self.dxt, ni, n, self.dx.data_mut());
+        }
+    }
+
     /// The backward pass by gather GEMMs, for [`Float::simd`] types: the same three products.
     fn backward_gather(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         let (n, ni, no) = (x.batch(), self.n_in, self.n_out);
@@ -152,7 +256,11 @@ impl<T: Float> Layer<T> for Dense<T> {
         );
         let n = x.batch();
         self.y.set_shape(&[n, self.n_out]);
-        if plan::ran(Product::DenseForward, plan::dense::<T>()) == Kernel::Gather {
+        let kernel = plan::ran(Product::DenseForward, self.kernel());
+        if kernel == Kernel::GatherBf16 {
+            return self.forward_bf16(x);
+        }
+        if kernel == Kernel::Gather {
             // y = b + x·W by the gather GEMM (rows i·In, steps 0..In), starting from the bias.
             fill_iota(&mut self.x_rows, n, self.n_in);
             fill_iota(&mut self.iota_in, self.n_in, 1);
@@ -240,7 +348,11 @@ impl<T: Float> Layer<T> for Dense<T> {
             "{}: upstream gradient shape",
             self.name
         );
-        if plan::ran(Product::DenseBackward, plan::dense::<T>()) == Kernel::Gather {
+        let kernel = plan::ran(Product::DenseBackward, self.kernel());
+        if kernel == Kernel::GatherBf16 {
+            return self.backward_bf16(x, dy, need_dx);
+        }
+        if kernel == Kernel::Gather {
             self.backward_gather(x, dy, need_dx);
             return;
         }
@@ -295,5 +407,9 @@ impl<T: Float> Layer<T> for Dense<T> {
 
     fn macs(&self) -> usize {
         self.n_in * self.n_out
+    }
+
+    fn set_precision(&mut self, precision: Precision) {
+        self.precision = precision;
     }
 }

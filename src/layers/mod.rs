@@ -25,6 +25,7 @@ pub use flatten::Flatten;
 pub use relu::Relu;
 pub use sequential::Sequential;
 
+use crate::tensor::plan::Precision;
 use crate::tensor::{Float, Tensor};
 
 /// One trainable tensor and its gradient.
@@ -93,4 +94,9 @@ pub trait Layer<T: Float>: Send {
     fn macs(&self) -> usize {
         0
     }
+
+    /// The arithmetic of the layer's training products ([`crate::tensor::plan::conv`] and
+    /// [`crate::tensor::plan::dense`] pick their kernels by it). Layers without products ignore
+    /// it.
+    fn set_precision(&mut self, _precision: Precision) {}
 }

@@ -135,6 +135,13 @@ impl<T: Float> Sequential<T> {
     pub fn macs(&self) -> usize {
         self.layers.iter().map(|l| l.macs()).sum()
     }
+
+    /// Sets every layer's training arithmetic ([`Layer::set_precision`]).
+    pub fn set_precision(&mut self, precision: crate::tensor::plan::Precision) {
+        for l in &mut self.layers {
+            l.set_precision(precision);
+        }
+    }
 }
 
 impl<T: Float> Default for Sequential<T> {

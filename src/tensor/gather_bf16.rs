@@ -217,6 +217,41 @@ pub fn pack_pairs(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut Ve
     pairs
 }
 
+avx512_twin! {
+    /// `dst[2i] = bf16(src[i])`, `dst[2i + 1] = bf16(src[i + d])` (0 past the end).
+    fn pack_shift(src: &[f32], d: usize, dst: &mut [u16]) {
+        for (i, o) in dst.chunks_exact_mut(2).enumerate() {
+            o[0] = to_bf16(src[i]);
+            o[1] = src.get(i + d).map_or(0, |&v| to_bf16(v));
+        }
+    }
+}
+
+/// Each value paired with the one `d` places after it: `dst[2i..2i + 2] = bf16(src[i]),
+/// bf16(src[i + d])`, zero past the end. A gather over `dst` at `2·(p + q)` then reads the
+/// values at `p + q` and `p + q + d` as one pair: a convolution's weight gradient reads its
+/// input at two output pixels `d = SW·Cin` apart, as one pair of reduction steps.
+pub fn pack_shifted(src: &[f32], d: usize, dst: &mut Vec<u16>) {
+    dst.resize(2 * src.len(), 0);
+    pack_shift(src, d, dst);
+}
+
+/// The f32 values of a slice of `T` that is f32 (what the bf16 kernels read and write: the
+/// plan picks them for f32 layers only).
+///
+/// # Panics
+/// If `T` is not f32.
+pub fn f32s<T: super::Float>(s: &[T]) -> &[f32] {
+    assert_eq!(T::DTYPE, "F32", "bf16 products are for f32 layers");
+    bytemuck::cast_slice(s)
+}
+
+/// [`f32s`], mutably.
+pub fn f32s_mut<T: super::Float>(s: &mut [T]) -> &mut [f32] {
+    assert_eq!(T::DTYPE, "F32", "bf16 products are for f32 layers");
+    bytemuck::cast_slice_mut(s)
+}
+
 /// The pair table of a reduction whose steps `q` come two by two next to each other
 /// (`q[2u + 1] = q[2u] + 1`, an even count): `q[0], q[2], …`, into `pairs`. `false` (and
 /// `pairs` unspecified) otherwise, e.g. a convolution's patch with an odd row length.

@@ -15,15 +15,39 @@
 //! | dense forward, backward | [`Kernel::Gemm`] | [`Kernel::Gather`] |
 //! | dense acting | [`Kernel::Sparse`] where allowed and sparse enough ([`dense_sparse_share`]); else the forward | the same |
 //!
-//! A new kernel family (bf16, issue 19) is a variant of [`Kernel`] and a rule in the functions
-//! below; the layers change only where they call it.
+//! With [`Precision::Bf16`] on a CPU with AVX512-BF16 ([`bf16_runs`]), the training products
+//! take the bf16 gather GEMM ([`crate::tensor::GatherGemmBf16`]: operands rounded to bf16, sums
+//! in f32) wherever its pairs of reduction steps exist, [`Kernel::GatherBf16`] and
+//! [`Kernel::PhasesBf16`] (see [`conv`] and [`dense`]); acting keeps the sparse and background
+//! products, which are faster at batch 1 than any dense product. Without AVX512-BF16 everything
+//! runs as in f32.
 //!
 //! Tests can ask which implementation ran: every choice a layer acts on is recorded per thread
 //! ([`last`]), on the thread that called the layer.
 
 use super::{ConvGeom, Float, WinogradKind, MAX_PIECES};
 use crate::tensor::Border;
+use serde::{Deserialize, Serialize};
 use std::cell::Cell;
+
+/// The arithmetic of the training products.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Precision {
+    /// f32 operands and sums.
+    #[default]
+    F32,
+    /// Operands rounded to bf16 (to nearest even), sums in f32; weights, gradients and Adam's
+    /// state stay f32 ([`crate::tensor::bf16`]). Only where the CPU has AVX512-BF16
+    /// ([`bf16_runs`]); elsewhere the products run in f32.
+    Bf16,
+}
+
+/// Whether products asked for in `precision` run in bf16 on this CPU: [`Precision::Bf16`] and
+/// AVX512-BF16 ([`crate::tensor::cpu::avx512_bf16`]).
+pub fn bf16_runs(precision: Precision) -> bool {
+    precision == Precision::Bf16 && super::cpu::avx512_bf16()
+}
 
 /// A product a layer computes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -67,6 +91,13 @@ pub enum Kernel {
     Scatter,
     /// Winograd's minimal filtering ([`crate::tensor::winograd_conv`]).
     Winograd(WinogradKind),
+    /// The bf16 gather GEMM ([`crate::tensor::GatherGemmBf16`]): a convolution's forward pass
+    /// (pairs of patch values, next to each other in a pixel's channels) and weight gradient
+    /// (pairs of horizontally adjacent output pixels), a dense layer's three products.
+    GatherBf16,
+    /// A convolution's input gradient by stride phases ([`Kernel::Phases`]) in bf16: pairs of
+    /// output channels of `dZ`.
+    PhasesBf16,
     /// The sum over the input's nonzero values only ([`crate::tensor::SparseConv`]).
     Sparse,
     /// A constant background's response plus the sparse difference's
@@ -164,7 +195,41 @@ impl ConvPlan {
 ///   block has at most [`MAX_PIECES`] pixels. Otherwise, for an input read in place, by stride
 ///   phases (each `dX` value written once); for a padded copy, scattered onto the padded
 ///   gradient.
-pub fn conv<T: Float>(g: &ConvGeom, n: usize, winograd: bool, in_border: Border) -> ConvPlan {
+///
+/// In bf16 ([`bf16_runs`]; f32 layers only, as [`Float::simd`]) the same products take
+/// [`Kernel::GatherBf16`] instead, without Winograd (the bf16 product does twice the
+/// multiply-adds per instruction, more than Winograd saves on these reductions), wherever its
+/// pairs exist: the forward pass where a patch row (`KW·Cin` values) has an even length, the
+/// weight gradient where an output row (`OW` pixels) has, the input gradient
+/// ([`Kernel::PhasesBf16`]) for an input read in place with an even `Cout`.
+pub fn conv<T: Float>(
+    g: &ConvGeom,
+    n: usize,
+    winograd: bool,
+    in_border: Border,
+    precision: Precision,
+) -> ConvPlan {
+    if T::simd() && bf16_runs(precision) {
+        let f32_plan = conv::<T>(g, n, false, in_border, Precision::F32);
+        let pick = |ok: bool, bf16: Kernel, other: Kernel| if ok { bf16 } else { other };
+        return ConvPlan {
+            forward: pick(
+                (g.kw * g.cin).is_multiple_of(2),
+                Kernel::GatherBf16,
+                f32_plan.forward,
+            ),
+            weight_grad: pick(
+                g.ow.is_multiple_of(2),
+                Kernel::GatherBf16,
+                f32_plan.weight_grad,
+            ),
+            input_grad: pick(
+                f32_plan.input_grad == Kernel::Phases && g.cout.is_multiple_of(2),
+                Kernel::PhasesBf16,
+                f32_plan.input_grad,
+            ),
+        };
+    }
     if !T::simd() {
         return ConvPlan {
             forward: Kernel::Im2col,
@@ -245,9 +310,15 @@ pub fn dense_sparse_share(n: usize) -> usize {
 }
 
 /// A dense layer's forward or backward kernel in precision `T`: the gather GEMM where
-/// [`Float::simd`] (rows `i·In` and steps `0..In` make it a plain `x·W`), else the GEMM.
-pub fn dense<T: Float>() -> Kernel {
-    if T::simd() {
+/// [`Float::simd`] (rows `i·In` and steps `0..In` make it a plain `x·W`), else the GEMM; in
+/// bf16 ([`bf16_runs`]) the bf16 gather GEMM, whose pairs are pairs of inputs (forward), of
+/// outputs (input gradient) and of samples (weight gradient, an odd batch padded with a zero
+/// sample), for a layer whose `In` and `Out` are even.
+pub fn dense<T: Float>(precision: Precision, n_in: usize, n_out: usize) -> Kernel {
+    let pairs = n_in.is_multiple_of(2) && n_out.is_multiple_of(2);
+    if T::simd() && bf16_runs(precision) && pairs {
+        Kernel::GatherBf16
+    } else if T::simd() {
         Kernel::Gather
     } else {
         Kernel::Gemm

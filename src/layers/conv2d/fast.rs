@@ -10,12 +10,15 @@
 //! output; the weight gradient reduces over all output pixels straight from the padded input.
 
 use super::Conv2d;
+use crate::tensor::gather_bf16::{
+    f32s, f32s_mut, pack_pairs, pack_shifted, pair_steps, to_bf16_vec,
+};
 use crate::tensor::plan::{self, ConvPlan, Kernel};
 use crate::tensor::{
-    fill_iota, pad_input, unpad_input, winograd_conv, winograd_filters, winograd_filters_s2d,
-    winograd_filters_s2d_adjoint, winograd_wgrad, Background, ConvGeom, Float, GatherGemm, Init,
-    Nonzeros, ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch, WinogradShape,
-    SKIP_OUTPUT,
+    fill_iota, gather_gemm_bf16, pad_input, unpad_input, winograd_conv, winograd_filters,
+    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Background, ConvGeom,
+    Float, GatherGemm, GatherGemmBf16, Init, Nonzeros, ScatterGemm, SparseConv, Tensor,
+    WinogradKind, WinogradScratch, WinogradShape, SKIP_OUTPUT,
 };
 use rayon::prelude::*;
 
@@ -56,6 +59,14 @@ pub(super) struct Scratch<T> {
     sp_taps: Vec<usize>,
     /// Background acting.
     bg: Background<T>,
+    /// The bf16 products ([`Kernel::GatherBf16`], [`Kernel::PhasesBf16`]): the gathered
+    /// operand in bf16 (the input, the input paired with the next output pixel's, or `dZ` in
+    /// its border), the packed right operand (`W`, `dZ`, a phase's taps), the pair table and
+    /// the weight gradient's row table (patch offsets doubled: pairs are two values wide).
+    bf_a: Vec<u16>,
+    bf_b: Vec<u16>,
+    bf_q: Vec<usize>,
+    bf_p: Vec<usize>,
 }
 
 impl<T: Float> Conv2d<T> {
@@ -90,7 +101,7 @@ impl<T: Float> Conv2d<T> {
     /// GEMM that reduces over the phase's `J·L·Cout` taps, gathered from `dZ` inside a zero
     /// border (taps in reverse order, so the offsets are non-negative). Each `dX` value is
     /// written once (no scatter, no overlapping adds), `Cin` columns wide.
-    fn dx_by_phases(&mut self, g: ConvGeom, dz: &[T], n: usize) {
+    fn dx_by_phases(&mut self, g: ConvGeom, dz: &[T], n: usize, bf16: bool) {
         let (sh, sw, co, ci) = (g.sh, g.sw, g.cout, g.cin);
         // dZ inside a border of (max taps − 1) above/left and enough below/right.
         let (tj, tl) = (g.kh.div_ceil(sh) - 1, g.kw.div_ceil(sw) - 1);
@@ -119,6 +130,9 @@ impl<T: Float> Conv2d<T> {
             });
         let w = self.params[0].value.data();
         let b = self.in_border;
+        if bf16 {
+            to_bf16_vec(f32s(&self.fast.dzpad), &mut self.fast.bf_a);
+        }
         for py in 0..sh.min(g.h) {
             for px in 0..sw.min(g.w) {
                 // Taps of this phase (none if the filter is smaller than the stride).
@@ -154,6 +168,30 @@ impl<T: Float> Conv2d<T> {
                         }
                     }
                 }
+                if bf16 {
+                    // Pairs of output channels: `Cout` even (the plan's condition).
+                    let f = &mut self.fast;
+                    assert!(
+                        pair_steps(&f.ph_q, &mut f.bf_q),
+                        "{}: phase taps",
+                        self.name
+                    );
+                    pack_pairs(f32s(&f.ph_w), f.ph_q.len(), ci, ci, &mut f.bf_b);
+                    gather_gemm_bf16(GatherGemmBf16 {
+                        a: &f.bf_a,
+                        p: &f.ph_p,
+                        q: &f.bf_q,
+                        b: &f.bf_b,
+                        ldb: ci,
+                        n: ci,
+                        c: f32s_mut(self.dx.data_mut()),
+                        ldc: ci,
+                        c_rows: Some(&f.ph_rows),
+                        init: Init::Zero,
+                        relu: false,
+                    });
+                    continue;
+                }
                 T::gather_gemm(GatherGemm {
                     a: &self.fast.dzpad,
                     p: &self.fast.ph_p,
@@ -172,8 +210,8 @@ impl<T: Float> Conv2d<T> {
         self.zero_input_border(g, n, false);
     }
 
-    /// The forward pass by [`Kernel::Gather`] or [`Kernel::Winograd`], with `g` the input's
-    /// geometry.
+    /// The forward pass by [`Kernel::Gather`], [`Kernel::GatherBf16`] or [`Kernel::Winograd`],
+    /// with `g` the input's geometry.
     pub(super) fn forward_fast(&mut self, g: ConvGeom, x: &Tensor<T>, kernel: Kernel) {
         let n = x.batch();
         let a: &[T] = if g.reads_input_directly() {
@@ -190,6 +228,33 @@ impl<T: Float> Conv2d<T> {
                 .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
             Some(&self.out_rows[..])
         };
+        if kernel == Kernel::GatherBf16 {
+            // Z = b + x·W with pairs of patch values (a pixel's channels, next to each other)
+            // against pairs of filter rows.
+            let q = &mut self.fast.bf_q;
+            assert!(
+                pair_steps(&self.fast.patch, q),
+                "{}: patch pairs",
+                self.name
+            );
+            to_bf16_vec(f32s(a), &mut self.fast.bf_a);
+            let w = f32s(self.params[0].value.data());
+            pack_pairs(w, g.patch_len(), g.cout, g.cout, &mut self.fast.bf_b);
+            gather_gemm_bf16(GatherGemmBf16 {
+                a: &self.fast.bf_a,
+                p: &self.fast.pixels,
+                q: &self.fast.bf_q,
+                b: &self.fast.bf_b,
+                ldb: g.cout,
+                n: g.cout,
+                c: f32s_mut(self.y.data_mut()),
+                ldc: g.cout,
+                c_rows,
+                init: Init::Bias(f32s(self.params[1].value.data())),
+                relu: self.relu,
+            });
+            return;
+        }
         if let Kernel::Winograd(kind) = kernel {
             // VALID over the (padded) input: every input tile (4×4 pixels, or 3×3 blocks of
             // s×s) of a 2×2 output tile.
@@ -260,6 +325,37 @@ impl<T: Float> Conv2d<T> {
                 let shape = self.winograd_shape(g, n, kind);
                 let dw = self.params[0].grad.data_mut();
                 winograd_wgrad(shape, a, dz, dw, &mut self.fast.wino);
+            }
+            Kernel::GatherBf16 => {
+                // dW[k, co] += Σ_m x[pixels[m] + patch[k]]·dZ[m, co] over pairs of output
+                // pixels (2u, 2u + 1), next to each other in a row (`OW` even, the plan's
+                // condition), so `SW·Cin` apart in the input: the input paired with itself
+                // shifted by that, against pairs of rows of dZ.
+                let d = g.sw * g.cin;
+                self.fast.bf_q.clear();
+                for pair in self.fast.pixels.chunks_exact(2) {
+                    assert_eq!(pair[1], pair[0] + d, "{}: pixel pairs", self.name);
+                    self.fast.bf_q.push(2 * pair[0]);
+                }
+                self.fast.bf_p.clear();
+                self.fast
+                    .bf_p
+                    .extend(self.fast.patch.iter().map(|&k| 2 * k));
+                pack_shifted(f32s(a), d, &mut self.fast.bf_a);
+                pack_pairs(f32s(dz), m, g.cout, g.cout, &mut self.fast.bf_b);
+                gather_gemm_bf16(GatherGemmBf16 {
+                    a: &self.fast.bf_a,
+                    p: &self.fast.bf_p,
+                    q: &self.fast.bf_q,
+                    b: &self.fast.bf_b,
+                    ldb: g.cout,
+                    n: g.cout,
+                    c: f32s_mut(self.params[0].grad.data_mut()),
+                    ldc: g.cout,
+                    c_rows: None,
+                    init: Init::Accumulate,
+                    relu: false,
+                });
             }
             _ => {
                 // dW[k, co] += Σ_m xpad[pixels[m] + patch[k]] · dZ[m, co]
@@ -350,7 +446,8 @@ impl<T: Float> Conv2d<T> {
                     kind: WinogradKind::S2d(1),
                 }
             }
-            Kernel::Phases => return self.dx_by_phases(g, dz, n),
+            Kernel::Phases => return self.dx_by_phases(g, dz, n, false),
+            Kernel::PhasesBf16 => return self.dx_by_phases(g, dz, n, true),
             _ => return self.dx_by_scatter(g, dz, n),
         };
         {
