@@ -50,6 +50,9 @@ fn run() {
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     if what == "step" {
         let mut learner = Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut rng);
+        if args.get(4).map(String::as_str) == Some("bf16") {
+            learner.set_precision(invaders::tensor::plan::Precision::Bf16);
+        }
         // Laid out as the agent's batches are: inside conv1's padding (a zero border).
         let mut batch = Batch::padded(48, [88, 80, 4]);
         for states in [&mut batch.states, &mut batch.next_states] {
@@ -84,6 +87,9 @@ fn run() {
         // Each layer of the article's network as built (fused ReLUs, borders), batch 48.
         let init = invaders::layers::init::VarianceScaling::HE;
         let mut net = invaders::dqn::article_qnet::<f32>([88, 80, 4], 6, &init, &mut rng);
+        if args.get(4).map(String::as_str) == Some("bf16") {
+            net.set_precision(invaders::tensor::plan::Precision::Bf16);
+        }
         let x = random(&[48, 88, 80, 4], &mut rng);
         net.forward(&x);
         let mut inputs = vec![x];

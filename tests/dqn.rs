@@ -6,6 +6,7 @@ mod common;
 use invaders::dqn::checkpoint;
 use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
 use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
+use invaders::tensor::plan::Precision;
 use invaders::tensor::Tensor;
 use proptest::prelude::*;
 use rand::Rng;
@@ -98,7 +99,27 @@ fn toy_config() -> Config {
 /// the corridor and Q-values near γ^k.
 #[test]
 fn dqn_learns_a_toy_corridor() {
-    let mut agent = Agent::new(toy_config(), Corridor::new());
+    learns_the_corridor(Precision::F32);
+}
+
+/// The same in bf16 (issue 19: learning parity), with the bf16 kernels asserted where the CPU
+/// has AVX512-BF16 (elsewhere the products run in f32 and this is the test above again).
+#[test]
+fn dqn_learns_a_toy_corridor_in_bf16() {
+    let before = invaders::tensor::cpu::paths(invaders::tensor::cpu::Family::Bf16);
+    learns_the_corridor(Precision::Bf16);
+    let ran = invaders::tensor::cpu::paths(invaders::tensor::cpu::Family::Bf16).since(before);
+    assert_eq!(
+        ran.avx512 > 0,
+        invaders::tensor::cpu::avx512_bf16(),
+        "bf16 kernels ran: {ran:?}"
+    );
+}
+
+fn learns_the_corridor(precision: Precision) {
+    let mut config = toy_config();
+    config.precision = precision;
+    let mut agent = Agent::new(config, Corridor::new());
     for _ in 0..120 {
         agent.play_episode().unwrap();
     }
