@@ -274,6 +274,7 @@ fn abs64(v: &[f32]) -> Vec<f64> {
 /// read theirs): forward, weight gradient and input gradient against the exact products of the
 /// unrounded operands (f64), each element to `dot_error_bound` of its own `Σ|terms|` (the same
 /// products of absolute values), with the kernels asserted.
+#[allow(clippy::too_many_arguments)]
 fn conv_case(
     k: usize,
     s: usize,
@@ -309,13 +310,13 @@ fn conv_case(
         }
         Ok(())
     };
-    if (k * cin) % 2 == 0 {
+    if (k * cin).is_multiple_of(2) {
         expect(Product::ConvForward, Kernel::GatherBf16)?;
     }
-    if g.ow % 2 == 0 {
+    if g.ow.is_multiple_of(2) {
         expect(Product::ConvWeightGrad, Kernel::GatherBf16)?;
     }
-    if cout % 2 == 0 {
+    if cout.is_multiple_of(2) {
         expect(Product::ConvInputGrad, Kernel::PhasesBf16)?;
     }
     // The exact products, and the same over absolute values (the bounds' Σ|terms|).
@@ -399,7 +400,7 @@ proptest! {
         let dy = uniform::<f32>(&[n, no], &mut r);
         layer.forward(&x);
         layer.backward(&x, &dy, true);
-        let even = ni % 2 == 0 && no % 2 == 0;
+        let even = ni.is_multiple_of(2) && no.is_multiple_of(2);
         let want = if bf16_expected() && even { Some(Kernel::GatherBf16) } else { plan::last(Product::DenseForward).filter(|&k| k != Kernel::GatherBf16) };
         prop_assert_eq!(plan::last(Product::DenseForward), want);
         prop_assert_eq!(plan::last(Product::DenseBackward), want);
