@@ -433,3 +433,70 @@ proptest! {
         within_bounds("dx", layer.input_grad().data(), &dx, &bound(&dxa))?;
     }
 }
+
+/// The layers in bf16 give the same bits on 1, 2 and 3 threads: a convolution reading its input
+/// in place (so all three products run in bf16, the input gradient by phases) and a dense layer
+/// with an odd batch.
+#[test]
+fn bf16_layers_are_the_same_on_any_thread_count() {
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let mut r = rng(11);
+            let mut out = Vec::new();
+            let g = ConvGeom::new(24, 22, 32, 64, 4, 4, (2, 2), Padding::Valid).unwrap();
+            let mut conv = Conv2d::<f32>::new("c", g).with_relu();
+            conv.set_precision(Precision::Bf16);
+            let (wt, bt) = (
+                uniform::<f32>(&[4, 4, 32, 64], &mut r),
+                uniform::<f32>(&[64], &mut r),
+            );
+            set_params(&mut conv, &[&wt, &bt]);
+            let x = uniform::<f32>(&[7, 24, 22, 32], &mut r);
+            let dy = uniform::<f32>(&[7, g.oh, g.ow, 64], &mut r);
+            conv.forward(&x);
+            conv.backward(&x, &dy, true);
+            out.extend_from_slice(conv.output().data());
+            out.extend_from_slice(conv.input_grad().data());
+            out.extend_from_slice(conv.params()[0].grad.data());
+            let mut dense = Dense::<f32>::new("d", 700, 130);
+            dense.set_precision(Precision::Bf16);
+            let (wt, bt) = (
+                uniform::<f32>(&[700, 130], &mut r),
+                uniform::<f32>(&[130], &mut r),
+            );
+            set_params(&mut dense, &[&wt, &bt]);
+            let x = uniform::<f32>(&[9, 700], &mut r);
+            let dy = uniform::<f32>(&[9, 130], &mut r);
+            dense.forward(&x);
+            dense.backward(&x, &dy, true);
+            out.extend_from_slice(dense.output().data());
+            out.extend_from_slice(dense.input_grad().data());
+            out.extend_from_slice(dense.params()[0].grad.data());
+            let ran = [
+                Product::ConvForward,
+                Product::ConvWeightGrad,
+                Product::ConvInputGrad,
+                Product::DenseForward,
+                Product::DenseBackward,
+            ]
+            .map(plan::last);
+            if bf16_expected() {
+                let k = |k| Some(k);
+                let want = [Kernel::GatherBf16, Kernel::GatherBf16, Kernel::PhasesBf16]
+                    .map(k)
+                    .into_iter()
+                    .chain([k(Kernel::GatherBf16); 2])
+                    .collect::<Vec<_>>();
+                assert_eq!(ran.to_vec(), want);
+            }
+            out
+        })
+    };
+    let one = run(1);
+    assert_eq!(one, run(2));
+    assert_eq!(one, run(3));
+}
