@@ -277,6 +277,26 @@ fn bad_inputs_give_clear_errors() {
         "checkpoint",
     );
     fails_with(
+        &invaders(&["train", "--precision", "fp16", "--out", &path("r5")]),
+        "fp16",
+    );
+    fails_with(
+        &invaders(&["train", "--precision", "bf16", "--resume", &path("r5")]),
+        "--resume",
+    );
+    std::fs::write(root.join("precision.toml"), "precision = \"f16\"\n").unwrap();
+    fails_with(
+        &invaders(&[
+            "train",
+            "--config",
+            &path("precision.toml"),
+            "--out",
+            &path("r6"),
+        ]),
+        "precision",
+    );
+    fails_with(&invaders(&["bench", "--precision", "f64"]), "f64");
+    fails_with(
         &invaders(&["bench", "--checkpoint", &path("nothing-here")]),
         "nothing-here",
     );
@@ -302,7 +322,7 @@ fn bad_inputs_give_clear_errors() {
         &invaders(&["plot", &path("nothing-here"), "--out", &path("x.png")]),
         "metrics.csv",
     );
-    for r in ["r1", "r2", "r3", "r4"] {
+    for r in ["r1", "r2", "r3", "r4", "r5", "r6"] {
         assert!(
             !root.join(r).exists() || std::fs::read_dir(root.join(r)).unwrap().next().is_none(),
             "{r} written"

@@ -30,16 +30,17 @@ use crate::tensor::Border;
 use serde::{Deserialize, Serialize};
 use std::cell::Cell;
 
-/// The arithmetic of the training products.
+/// The arithmetic of the training products. In bf16 the operands are rounded to bf16 (to
+/// nearest even, [`crate::tensor::bf16`]) and the sums stay f32, as do weights, gradients and
+/// Adam's state; only where the CPU has AVX512-BF16 ([`bf16_runs`]), elsewhere in f32. (The
+/// variants' comments are the command line's help.)
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Precision {
     /// f32 operands and sums.
     #[default]
     F32,
-    /// Operands rounded to bf16 (to nearest even), sums in f32; weights, gradients and Adam's
-    /// state stay f32 ([`crate::tensor::bf16`]). Only where the CPU has AVX512-BF16
-    /// ([`bf16_runs`]); elsewhere the products run in f32.
+    /// bf16 operands, f32 sums (CPUs with AVX512-BF16; elsewhere f32).
     Bf16,
 }
 
