@@ -106,11 +106,23 @@ fn train_by_frames() {
         "act_checkpoint_ms",
         "env_frames_per_s",
         "agent_steps_per_s",
+        "strong_agent_steps_per_s",
     ] {
         let v = json[key].as_f64().unwrap_or(-1.0);
         assert!(v > 0.0 && v.is_finite(), "{key} in {text}");
     }
     assert_eq!(json["threads"], 1, "{text}");
+    assert_eq!(json["precision"], "f32", "{text}");
+    let family = if invaders::tensor::cpu::avx512() {
+        "avx512-f32"
+    } else {
+        "portable-f32"
+    };
+    assert_eq!(json["kernel_family"], family, "{text}");
+    assert!(
+        json["kernels"]["conv_forward"].is_string(),
+        "each product's kernel: {text}"
+    );
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -165,21 +165,25 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let env_fps = frames as f64 / env_secs;
     let env_steps_per_s = steps as f64 / env_secs;
 
-    // End to end: the article preset with learning on from step 500.
-    let mut e2e = Config::preset(Preset::Article);
-    e2e.precision = args.precision;
-    e2e.learning_starts = 500;
-    e2e.replay_capacity = 5_000;
-    let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
-    let mut agent = Agent::new(e2e, env);
-    while agent.counters.agent_steps < 600 {
-        agent.play_episode()?;
-    }
-    let (s0, t0) = (agent.counters.agent_steps, Instant::now());
-    while agent.counters.agent_steps < s0 + 2_000 {
-        agent.play_episode()?;
-    }
-    let agent_steps_per_s = (agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64();
+    // End to end: the article and strong presets with learning on from step 500.
+    let end_to_end = |preset: Preset| -> anyhow::Result<f64> {
+        let mut e2e = Config::preset(preset);
+        e2e.precision = args.precision;
+        e2e.learning_starts = 500;
+        e2e.replay_capacity = 5_000;
+        let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
+        let mut agent = Agent::new(e2e, env);
+        while agent.counters.agent_steps < 600 {
+            agent.play_episode()?;
+        }
+        let (s0, t0) = (agent.counters.agent_steps, Instant::now());
+        while agent.counters.agent_steps < s0 + 2_000 {
+            agent.play_episode()?;
+        }
+        Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64())
+    };
+    let agent_steps_per_s = end_to_end(Preset::Article)?;
+    let strong_steps_per_s = end_to_end(Preset::Strong)?;
     let env_share = agent_steps_per_s / env_steps_per_s;
 
     if args.json {
@@ -197,6 +201,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "act_checkpoint_ms": act_trained_ms,
                 "env_frames_per_s": env_fps,
                 "agent_steps_per_s": agent_steps_per_s,
+                "strong_agent_steps_per_s": strong_steps_per_s,
                 "env_share_of_training": env_share,
             })
         );
@@ -213,6 +218,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         }
         println!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
         println!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
+        println!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
     }
     Ok(())
 }
