@@ -446,3 +446,47 @@ fn strong_preset_export_and_protocol() {
     assert!(!out.status.success(), "--protocol fixes epsilon");
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// The shipped player (`models/strong/`, README "A trained player") loads and plays on a fresh
+/// clone, by the file's own configuration; it holds no training state, so `--resume` refuses it.
+#[test]
+fn the_shipped_model_plays() {
+    let model = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/strong/model.safetensors"
+    );
+    let text = ok(&invaders(&[
+        "eval",
+        "--checkpoint",
+        model,
+        "--episodes",
+        "1",
+        "--epsilon",
+        "0.01",
+        "--threads",
+        "1",
+    ]));
+    assert!(text.contains("preset strong"), "{text}");
+    // The directory holds the model beside its config.toml: not a run stopped before its first
+    // checkpoint, so not started again (which would clear its metrics.csv).
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/models/strong");
+    let files = |d: &str| {
+        let mut v: Vec<_> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        v.sort();
+        v
+    };
+    let before = files(dir);
+    let metrics = std::fs::read(format!("{dir}/metrics.csv")).unwrap();
+    fails_with(
+        &invaders(&["train", "--resume", dir]),
+        "model.safetensors, which a run does not write",
+    );
+    assert_eq!(files(dir), before, "nothing written into {dir}");
+    assert_eq!(
+        std::fs::read(format!("{dir}/metrics.csv")).unwrap(),
+        metrics
+    );
+}

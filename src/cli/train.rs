@@ -120,6 +120,14 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
                     dir.display()
                 );
             }
+            // Starting again clears the run's files: only where the directory holds nothing
+            // else (a model exported beside its config.toml, say, is not a stopped run).
+            if let Some(other) = foreign_file(dir)? {
+                bail!(
+                    "{} holds no checkpoint, and {other}, which a run does not write: it is not a stopped run, so it is not resumed (a weights-only model plays with `eval --checkpoint`; train a new run with --out)",
+                    dir.display()
+                );
+            }
             lock = Some(guard::RunLock::acquire(dir)?);
             let text = std::fs::read_to_string(&saved)
                 .with_context(|| format!("cannot read {}", saved.display()))?;
@@ -287,6 +295,25 @@ fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
 }
 
 /// Removes what a run that never reached a checkpoint left (not the lock file: it may be held).
+/// The first file in `dir` that a run does not write before its first checkpoint (one of
+/// [`RUN_FILES`], or a replay file being written), if any.
+fn foreign_file(dir: &Path) -> anyhow::Result<Option<String>> {
+    let entries =
+        std::fs::read_dir(dir).with_context(|| format!("cannot read {}", dir.display()))?;
+    for entry in entries {
+        let name = entry
+            .with_context(|| format!("cannot read {}", dir.display()))?
+            .file_name()
+            .to_string_lossy()
+            .into_owned();
+        let replay_tmp = name.starts_with(".replay-") && name.ends_with(".tmp");
+        if !RUN_FILES.contains(&name.as_str()) && !replay_tmp {
+            return Ok(Some(name));
+        }
+    }
+    Ok(None)
+}
+
 fn clear_run_files(dir: &Path) -> anyhow::Result<()> {
     for name in RUN_FILES.iter().filter(|n| **n != guard::LOCK_FILE) {
         let path = dir.join(name);
