@@ -312,6 +312,18 @@ fn no_input_panics_aborts_or_hangs() {
             "learning_starts must be at most",
         ),
         ("n_step = 1000\n", "n_step must be in"),
+        (
+            "learning_rate_end = -1e-4\nlearning_rate_decay = [0, 10]\n",
+            "learning_rate_end must be >= 0",
+        ),
+        (
+            "learning_rate_end = 1e-5\nlearning_rate_decay = [10, 10]\n",
+            "learning_rate_decay must be [from, to]",
+        ),
+        (
+            "learning_rate_decay = [0, 10]\n",
+            "learning_rate_decay needs learning_rate_end",
+        ),
     ] {
         let cfg = config(&root, text);
         let out_dir = root.join("bounded");

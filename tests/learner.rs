@@ -505,6 +505,45 @@ fn epsilon_follows_its_schedule_and_the_agent_uses_it() {
     }
 }
 
+/// The learning rate's schedule: constant without `learning_rate_end`; with it, 1e-3 until
+/// step 100, linear to 1e-4 at step 200 (5.5e-4 half-way), 1e-4 after; and the agent hands
+/// Adam the rate of the step it trains at (the last train step of a 40-step episode that
+/// trains every step from step 10 is at step 40).
+#[test]
+fn the_learning_rate_follows_its_schedule_and_adam_gets_it() {
+    let mut c = agent_config();
+    c.learning_rate = 1e-3;
+    assert_eq!(c.learning_rate(123_456), 1e-3);
+    c.learning_rate_end = Some(1e-4);
+    c.learning_rate_decay = [100, 200];
+    for (t, lr) in [
+        (0, 1e-3),
+        (100, 1e-3),
+        (150, 5.5e-4),
+        (199, 1.09e-4),
+        (200, 1e-4),
+        (10_000, 1e-4),
+    ] {
+        assert!(
+            (c.learning_rate(t) - lr).abs() < 1e-12,
+            "step {t}: {}",
+            c.learning_rate(t)
+        );
+    }
+    c.learning_rate_decay = [0, 80];
+    c.train_every = 1;
+    c.learning_starts = 10;
+    let mut agent = Agent::new(c.clone(), Scripted::new(&[40], 0.0));
+    agent.play_episode().unwrap();
+    assert_eq!(agent.counters.agent_steps, 40);
+    assert_eq!(agent.learner.adam.lr, c.learning_rate(40) as f32);
+    assert!(
+        (agent.learner.adam.lr - 5.5e-4).abs() < 1e-9,
+        "{}",
+        agent.learner.adam.lr
+    );
+}
+
 /// `act_with_target_network` (the notebook's swap) picks actions with the target network:
 /// online and target networks that prefer different actions (biases only), ε = 0, no training
 /// and no copy, so every action shows which network chose it.

@@ -341,6 +341,7 @@ impl<G: Game> Agent<G> {
             if self.train_due(t) {
                 self.replay
                     .sample(&mut self.sample_rng, &self.table, &mut self.batch);
+                self.learner.adam.lr = self.config.learning_rate(t) as f32;
                 let stats = self.learner.train_step(&self.batch);
                 self.replay
                     .update_priorities(&self.batch.entries, self.learner.td_errors());

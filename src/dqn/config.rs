@@ -117,6 +117,14 @@ pub struct Config {
     pub batch_size: usize,
     /// Adam learning rate (the article: 1e-3).
     pub learning_rate: f64,
+    /// If set, the learning rate falls linearly from `learning_rate` to this between agent steps
+    /// `learning_rate_decay[0]` and `learning_rate_decay[1]`, and stays there (the article: a
+    /// constant rate).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub learning_rate_end: Option<f64>,
+    /// The agent steps `[from, to]` over which the learning rate falls to `learning_rate_end`.
+    #[serde(default)]
+    pub learning_rate_decay: [u64; 2],
     /// Discount factor γ (the article: 0.97).
     pub gamma: f64,
     /// Agent steps between gradient steps (the article: 4).
@@ -204,6 +212,8 @@ impl Config {
             replay_capacity: 20_000,
             batch_size: 48,
             learning_rate: 1e-3,
+            learning_rate_end: None,
+            learning_rate_decay: [0, 0],
             gamma: 0.97,
             train_every: 4,
             learning_starts: 2_000,
@@ -396,6 +406,20 @@ impl Config {
         if !(c.learning_rate > 0.0 && c.learning_rate.is_finite()) {
             bail!("learning_rate must be positive, got {}", c.learning_rate);
         }
+        if let Some(end) = c.learning_rate_end {
+            if !(end >= 0.0 && end.is_finite()) {
+                bail!("learning_rate_end must be >= 0, got {end}");
+            }
+            let [from, to] = c.learning_rate_decay;
+            if from >= to || to > MAX_STEPS_KNOB {
+                bail!(
+                    "learning_rate_decay must be [from, to] agent steps with from < to <= \
+                     {MAX_STEPS_KNOB}, got [{from}, {to}]"
+                );
+            }
+        } else if c.learning_rate_decay != [0, 0] {
+            bail!("learning_rate_decay needs learning_rate_end, the rate it falls to");
+        }
         if !(0.0..=1.0).contains(&c.gamma) {
             bail!("gamma must be in [0, 1], got {}", c.gamma);
         }
@@ -443,6 +467,17 @@ impl Config {
         }
         let frac = t as f64 / self.epsilon_decay_steps as f64;
         (self.epsilon_start + frac * (self.epsilon_end - self.epsilon_start)) as f32
+    }
+
+    /// The learning rate at agent step `t`: `learning_rate`, or with `learning_rate_end` linear
+    /// from it to that between the steps of `learning_rate_decay`, constant outside them.
+    pub fn learning_rate(&self, t: u64) -> f64 {
+        let Some(end) = self.learning_rate_end else {
+            return self.learning_rate;
+        };
+        let [from, to] = self.learning_rate_decay;
+        let frac = (t.saturating_sub(from) as f64 / (to - from) as f64).min(1.0);
+        self.learning_rate + frac * (end - self.learning_rate)
     }
 
     /// Bytes the replay memory takes when full: one 88x80 frame and 8 bytes of transition data
