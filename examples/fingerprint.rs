@@ -1,7 +1,7 @@
 //! Prints a fingerprint (FNV-1a over the bits) of everything the article's network computes for
 //! fixed seeds: forward, backward and inference passes at several batches and input layouts, and
-//! a few train steps, at 1 and 2 threads; in f32 (the fast paths where the CPU has them) and f64
-//! (im2col + GEMM). For refactors that must not change a bit: run it before and after, with and
+//! a few train steps, at 1 and 2 threads; in f32 (the fast paths where the CPU has them), bf16
+//! (its products where the CPU has AVX512-BF16) and f64 (im2col + GEMM). For refactors that must not change a bit: run it before and after, with and
 //! without `INVADERS_NO_SIMD=1`, and compare the outputs:
 //! `cargo run --release --example fingerprint > before.txt`.
 //!
@@ -11,6 +11,7 @@
 use invaders::dqn::{article_qnet, Batch, Learner};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::Sequential;
+use invaders::tensor::plan::Precision;
 use invaders::tensor::{Float, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -73,9 +74,10 @@ fn bordered<T: Float>(x: &Tensor<T>, b: usize) -> Tensor<T> {
     out
 }
 
-fn passes<T: Float>(tag: &str, input_shape: [usize; 3], batches: &[usize]) {
+fn passes<T: Float>(tag: &str, input_shape: [usize; 3], batches: &[usize], precision: Precision) {
     let mut rng = ChaCha8Rng::seed_from_u64(21);
     let mut net: Sequential<T> = article_qnet(input_shape, 6, &VarianceScaling::HE, &mut rng);
+    net.set_precision(precision);
     let [h, w, c] = input_shape;
     for &n in batches {
         for frames in [false, true] {
@@ -134,10 +136,11 @@ fn passes<T: Float>(tag: &str, input_shape: [usize; 3], batches: &[usize]) {
     }
 }
 
-fn train(threads: usize) {
+fn train(threads: usize, precision: Precision) {
     let input = [88, 80, 4];
     let mut rng = ChaCha8Rng::seed_from_u64(24);
     let mut learner = Learner::new(input, 6, 1e-3, 0.99, &mut rng);
+    learner.set_precision(precision);
     learner.double = threads == 2;
     for step in 0..4 {
         let mut batch = if step % 2 == 0 {
@@ -168,7 +171,7 @@ fn train(threads: usize) {
         }
         let s = learner.train_step(&batch);
         println!(
-            "train t={threads} step {step}: loss {:08x} maxq {:08x} norm {:08x} params {:016x}",
+            "train {precision:?} t={threads} step {step}: loss {:08x} maxq {:08x} norm {:08x} params {:016x}",
             s.loss.to_bits(),
             s.mean_max_q.to_bits(),
             s.grad_norm.to_bits(),
@@ -184,10 +187,18 @@ fn main() {
             .build()
             .unwrap();
         pool.install(|| {
-            passes::<f32>(&format!("f32 t={threads}"), [88, 80, 4], &[1, 4, 8, 48]);
-            passes::<f32>(&format!("f32 t={threads} c1"), [88, 80, 1], &[1, 8]);
-            passes::<f64>(&format!("f64 t={threads}"), [36, 32, 2], &[1, 8]);
-            train(threads);
+            for (name, precision) in [("f32", Precision::F32), ("bf16", Precision::Bf16)] {
+                let tag = format!("{name} t={threads}");
+                passes::<f32>(&tag, [88, 80, 4], &[1, 4, 8, 48], precision);
+                passes::<f32>(&format!("{tag} c1"), [88, 80, 1], &[1, 8], precision);
+                train(threads, precision);
+            }
+            passes::<f64>(
+                &format!("f64 t={threads}"),
+                [36, 32, 2],
+                &[1, 8],
+                Precision::F32,
+            );
         });
     }
 }

@@ -868,8 +868,10 @@ fn gather_gemm_refuses_out_of_range_tables() {
             })
         })
         .map_err(|e| {
+            // A literal message comes as `&str`, a formatted one as `String`.
             e.downcast_ref::<&str>()
                 .map(|s| s.to_string())
+                .or_else(|| e.downcast_ref::<String>().cloned())
                 .unwrap_or_default()
         })
     };

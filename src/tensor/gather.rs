@@ -91,6 +91,36 @@ pub(crate) fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize
     c_rows.map_or(r * ldc, |cr| cr[r])
 }
 
+/// The checks on `C` shared by the gather kernels (`kernel` names the caller in the message): `rows`
+/// rows of `n` columns at `ldc` apart or at `c_rows` (increasing, not overlapping), inside
+/// `c_len` values; a bias of `bias` values covers the `n` columns.
+pub(crate) fn check_c(
+    kernel: &str,
+    rows: usize,
+    n: usize,
+    ldc: usize,
+    c_rows: Option<&[usize]>,
+    c_len: usize,
+    bias: Option<usize>,
+) {
+    match c_rows {
+        None => assert!(n <= ldc, "{kernel}: n > ldc"),
+        Some(cr) => {
+            assert_eq!(cr.len(), rows, "{kernel}: c_rows length");
+            assert!(rows_apart(cr, n), "{kernel}: c_rows overlap or decrease");
+        }
+    }
+    // Sums in checked arithmetic: a table entry near `usize::MAX` must not wrap past a check.
+    let last = match c_rows {
+        Some(cr) => Some(cr[rows - 1]),
+        None => (rows - 1).checked_mul(ldc),
+    };
+    assert!(within(last, n, c_len + 1), "{kernel}: C too short");
+    if let Some(len) = bias {
+        assert!(len >= n, "{kernel}: bias too short");
+    }
+}
+
 impl<T: Float> GatherGemm<'_, T> {
     /// Where row `r` of `C` starts in `c`.
     #[inline]
@@ -104,28 +134,19 @@ impl<T: Float> GatherGemm<'_, T> {
         if rows == 0 || self.n == 0 {
             return;
         }
-        match self.c_rows {
-            None => assert!(self.n <= self.ldc, "gather_gemm: n > ldc"),
-            Some(cr) => {
-                assert_eq!(cr.len(), rows, "gather_gemm: c_rows length");
-                assert!(
-                    rows_apart(cr, self.n),
-                    "gather_gemm: c_rows overlap or decrease"
-                );
-            }
-        }
-        // Sums in checked arithmetic: a table entry near `usize::MAX` must not wrap past a check.
-        let last = match self.c_rows {
-            Some(cr) => Some(cr[rows - 1]),
-            None => (rows - 1).checked_mul(self.ldc),
+        let bias = match self.init {
+            Init::Bias(bias) => Some(bias.len()),
+            _ => None,
         };
-        assert!(
-            within(last, self.n, self.c.len() + 1),
-            "gather_gemm: C too short"
+        check_c(
+            "gather_gemm",
+            rows,
+            self.n,
+            self.ldc,
+            self.c_rows,
+            self.c.len(),
+            bias,
         );
-        if let Init::Bias(bias) = self.init {
-            assert!(bias.len() >= self.n, "gather_gemm: bias too short");
-        }
         if steps > 0 {
             assert!(self.n <= self.ldb, "gather_gemm: n > ldb");
             assert!(
@@ -459,10 +480,50 @@ pub(crate) mod avx512 {
         }
     }
 
-    /// Dispatches one tile on the panel width (in vectors).
+    /// `$tile::<$mr, NV, FULL>(args…, masks, tail…)` for a panel `nv` vectors wide (1 to 4) with
+    /// lane masks `m`: the panel's width and whether all its lanes are used become constants of
+    /// the tile. Shared with the bf16 kernel.
+    macro_rules! by_panel {
+        ($tile:ident::<$mr:ident>($($arg:expr),*; $nv:expr, $m:expr; $($tail:expr),*)) => {{
+            let (nv, m): (usize, [u16; 4]) = ($nv, $m);
+            let full = m[..nv].iter().all(|&x| x == u16::MAX);
+            match (nv, full) {
+                (1, true) => $tile::<$mr, 1, true>($($arg,)* [m[0]], $($tail),*),
+                (1, false) => $tile::<$mr, 1, false>($($arg,)* [m[0]], $($tail),*),
+                (2, true) => $tile::<$mr, 2, true>($($arg,)* [m[0], m[1]], $($tail),*),
+                (2, false) => $tile::<$mr, 2, false>($($arg,)* [m[0], m[1]], $($tail),*),
+                (3, true) => $tile::<$mr, 3, true>($($arg,)* [m[0], m[1], m[2]], $($tail),*),
+                (3, false) => $tile::<$mr, 3, false>($($arg,)* [m[0], m[1], m[2]], $($tail),*),
+                (_, true) => $tile::<$mr, 4, true>($($arg,)* m, $($tail),*),
+                (_, false) => $tile::<$mr, 4, false>($($arg,)* m, $($tail),*),
+            }
+        }};
+    }
+    pub(crate) use by_panel;
+
+    /// `$tile::<H>(args…)` for a tile height `h` below 10 (the rows left over after the full
+    /// tiles). Shared with the bf16 kernel.
+    macro_rules! by_height {
+        ($tile:ident($h:expr; $($arg:expr),*)) => {
+            match $h {
+                1 => $tile::<1>($($arg),*),
+                2 => $tile::<2>($($arg),*),
+                3 => $tile::<3>($($arg),*),
+                4 => $tile::<4>($($arg),*),
+                5 => $tile::<5>($($arg),*),
+                6 => $tile::<6>($($arg),*),
+                7 => $tile::<7>($($arg),*),
+                8 => $tile::<8>($($arg),*),
+                _ => $tile::<9>($($arg),*),
+            }
+        };
+    }
+    pub(crate) use by_height;
+
+    /// Dispatches one tile on the panel width (in vectors) and whether it is full.
     ///
     /// # Safety
-    /// As [`tile`], with `nv` in `1..=4` and `masks[..nv]` the panel's lane masks.
+    /// As [`tile`], with `nv` in `1..=4` and `m[..nv]` the panel's lane masks.
     #[target_feature(enable = "avx512f")]
     #[inline]
     #[allow(clippy::too_many_arguments)]
@@ -479,24 +540,10 @@ pub(crate) mod avx512 {
         start: Start,
         end: End,
     ) {
-        // Every panel of the network's layers is full except dense2's (6 columns).
-        let full = m[..nv].iter().all(|&x| x == u16::MAX);
-        match (nv, full) {
-            (1, _) => tile::<MR, 1, false>(a, p, q, b, ldb, c, crow, [m[0]], start, end),
-            (2, true) => tile::<MR, 2, true>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, end),
-            (2, false) => tile::<MR, 2, false>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, end),
-            (3, true) => {
-                tile::<MR, 3, true>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, end)
-            }
-            (3, false) => {
-                tile::<MR, 3, false>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, end)
-            }
-            (_, true) => tile::<MR, 4, true>(a, p, q, b, ldb, c, crow, m, start, end),
-            (_, false) => tile::<MR, 4, false>(a, p, q, b, ldb, c, crow, m, start, end),
-        }
+        by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, end))
     }
 
-    /// A tile of any height `h < 10` (the rows left over after the full tiles).
+    /// A tile of any height `h < 10`.
     ///
     /// # Safety
     /// As [`tile_nv`] for `h` rows.
@@ -516,17 +563,7 @@ pub(crate) mod avx512 {
         start: Start,
         end: End,
     ) {
-        match h {
-            1 => tile_nv::<1>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            2 => tile_nv::<2>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            3 => tile_nv::<3>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            4 => tile_nv::<4>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            5 => tile_nv::<5>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            6 => tile_nv::<6>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            7 => tile_nv::<7>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            8 => tile_nv::<8>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-            _ => tile_nv::<9>(nv, a, p, q, b, ldb, c, crow, m, start, end),
-        }
+        by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, end))
     }
 
     /// Lane masks of the 64-column panel starting at `j0` of an `n`-column product, and its

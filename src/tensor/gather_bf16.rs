@@ -26,7 +26,7 @@
 
 use super::bf16::{from_bf16, to_bf16};
 use super::cpu::{avx512_twin, took, Family};
-use super::gather::{largest, row_start, rows_apart, within, Init};
+use super::gather::{check_c, largest, row_start, within, Init};
 
 /// The operands of one bf16 gather GEMM (see the module documentation).
 pub struct GatherGemmBf16<'a> {
@@ -60,27 +60,19 @@ impl GatherGemmBf16<'_> {
         if rows == 0 || self.n == 0 {
             return;
         }
-        match self.c_rows {
-            None => assert!(self.n <= self.ldc, "gather_gemm_bf16: n > ldc"),
-            Some(cr) => {
-                assert_eq!(cr.len(), rows, "gather_gemm_bf16: c_rows length");
-                assert!(
-                    rows_apart(cr, self.n),
-                    "gather_gemm_bf16: c_rows overlap or decrease"
-                );
-            }
-        }
-        let last = match self.c_rows {
-            Some(cr) => Some(cr[rows - 1]),
-            None => (rows - 1).checked_mul(self.ldc),
+        let bias = match self.init {
+            Init::Bias(bias) => Some(bias.len()),
+            _ => None,
         };
-        assert!(
-            within(last, self.n, self.c.len() + 1),
-            "gather_gemm_bf16: C too short"
+        check_c(
+            "gather_gemm_bf16",
+            rows,
+            self.n,
+            self.ldc,
+            self.c_rows,
+            self.c.len(),
+            bias,
         );
-        if let Init::Bias(bias) = self.init {
-            assert!(bias.len() >= self.n, "gather_gemm_bf16: bias too short");
-        }
         if pairs > 0 {
             assert!(self.n <= self.ldb, "gather_gemm_bf16: n > ldb");
             // The last pair of the last row of `b` ends at 2·((pairs − 1)·ldb + n).
@@ -276,7 +268,9 @@ mod avx512 {
     //! of `b` (16 columns × 2 bf16 each), broadcasts each row's pair (one 32-bit load), and
     //! issues `MR·NV` `vdpbf16ps`: `MR + NV` loads per `2·16·MR·NV` multiply-adds.
     use super::GatherGemmBf16;
-    use crate::tensor::gather::avx512::{panel_masks, split_tasks, tile_rows, Dest};
+    use crate::tensor::gather::avx512::{
+        by_height, by_panel, panel_masks, split_tasks, tile_rows, Dest,
+    };
     use crate::tensor::gather::Init;
     use std::arch::x86_64::*;
 
@@ -391,21 +385,7 @@ mod avx512 {
         start: Start,
         relu: bool,
     ) {
-        let full = m[..nv].iter().all(|&x| x == u16::MAX);
-        match (nv, full) {
-            (1, true) => tile::<MR, 1, true>(a, p, q, b, ldb, c, crow, [m[0]], start, relu),
-            (1, false) => tile::<MR, 1, false>(a, p, q, b, ldb, c, crow, [m[0]], start, relu),
-            (2, true) => tile::<MR, 2, true>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, relu),
-            (2, false) => tile::<MR, 2, false>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, relu),
-            (3, true) => {
-                tile::<MR, 3, true>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, relu)
-            }
-            (3, false) => {
-                tile::<MR, 3, false>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, relu)
-            }
-            (_, true) => tile::<MR, 4, true>(a, p, q, b, ldb, c, crow, m, start, relu),
-            (_, false) => tile::<MR, 4, false>(a, p, q, b, ldb, c, crow, m, start, relu),
-        }
+        by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, relu))
     }
 
     /// A tile of any height `h < 10` (the rows left over after the full tiles).
@@ -428,17 +408,7 @@ mod avx512 {
         start: Start,
         relu: bool,
     ) {
-        match h {
-            1 => tile_nv::<1>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            2 => tile_nv::<2>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            3 => tile_nv::<3>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            4 => tile_nv::<4>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            5 => tile_nv::<5>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            6 => tile_nv::<6>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            7 => tile_nv::<7>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            8 => tile_nv::<8>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-            _ => tile_nv::<9>(nv, a, p, q, b, ldb, c, crow, m, start, relu),
-        }
+        by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, relu))
     }
 
     /// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part):
