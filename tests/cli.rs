@@ -490,3 +490,92 @@ fn the_shipped_model_plays() {
         metrics
     );
 }
+
+/// `experiment strong` end to end at a tiny budget: refuses a protocol below 100 episodes and a
+/// bad reference file before training anything; trains the seeds, evaluates each by the
+/// protocol and writes a table with each seed's frames, wall time, speed and score, the mean over
+/// seeds, the command and the figure; run again, it trains and plays nothing and reports the same
+/// runs.
+#[test]
+fn experiment_strong_trains_evaluates_and_reports() {
+    let root = tmp("experiment-strong");
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = root.join("tiny.toml");
+    std::fs::write(
+        &cfg,
+        "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n",
+    )
+    .unwrap();
+    let out = root.join("exp");
+    let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
+    let base = [
+        "experiment",
+        "strong",
+        "--seeds",
+        "1",
+        "--frames",
+        "2000",
+        "--config",
+        cfg_s,
+        "--out",
+        out_s,
+    ];
+    let with = |extra: &[&str]| -> Vec<String> {
+        base.iter().chain(extra).map(|s| s.to_string()).collect()
+    };
+    let run = |args: &[String]| invaders(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    fails_with(
+        &run(&with(&["--eval-episodes", "50"])),
+        "at least 100 episodes",
+    );
+    let bad = root.join("bad.csv");
+    std::fs::write(&bad, "agent,frames\nx,1\n").unwrap();
+    fails_with(
+        &run(&with(&["--reference", bad.to_str().unwrap()])),
+        "agent,frames,score",
+    );
+    assert!(
+        !out.join("strong-seed1").exists(),
+        "nothing trained before the inputs are checked"
+    );
+
+    let reference = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/docs/strong/dopamine-spaceinvaders.csv"
+    );
+    let args = with(&["--reference", reference, "--agents", "Dopamine DQN"]);
+    let first = ok(&run(&args));
+    let table = std::fs::read_to_string(out.join("results.md")).unwrap();
+    let row = table
+        .lines()
+        .find(|l| l.starts_with("| 1 | "))
+        .unwrap_or_else(|| panic!("no row for seed 1:\n{table}"));
+    let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+    let frames: u64 = cells[2].parse().unwrap();
+    assert!((2000..2000 + 27_000 * 4).contains(&frames), "{row}");
+    assert!(
+        cells[4].parse::<f64>().unwrap() > 0.0,
+        "agent steps/s: {row}"
+    );
+    assert!(
+        cells[6].contains(" ± ") && cells[6].contains('–'),
+        "protocol score: {row}"
+    );
+    assert!(
+        table.contains("Mean protocol score over the seeds: "),
+        "{table}"
+    );
+    assert!(
+        table.contains("'Dopamine DQN'"),
+        "the command, quoted as a shell takes it: {table}"
+    );
+    assert!(std::fs::metadata(out.join("rewards.png")).unwrap().len() > 1000);
+    assert!(first.contains("strong-seed1: done"), "{first}");
+    // Again: nothing to train or play (the evaluation is kept beside the run), the same report.
+    assert!(out.join("strong-seed1.protocol").exists());
+    let again = ok(&run(&args));
+    assert!(again.contains("strong-seed1: already trained"), "{again}");
+    let table2 = std::fs::read_to_string(out.join("results.md")).unwrap();
+    assert!(table2.contains(row), "{table2}");
+    let _ = std::fs::remove_dir_all(&root);
+}
