@@ -198,15 +198,15 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(common::cases(64)))]
 
     /// The bf16 gather GEMM on random shapes (1 to 40 rows, so full and partial row tiles; 1 to
-    /// 150 columns, so one to three 64-column panels with masked tails; 1 to 150 pairs, so
-    /// one to three 64-pair blocks), with the path asserted:
+    /// 150 columns, so one to three 64-column panels with masked tails; 1 to 600 pairs, so
+    /// one to three 256-pair blocks), with the path asserted:
     /// - against the exact f64 product of the unrounded operands, to the derived bound
     ///   (`dot_error_bound` with the start counted as one more term);
     /// - against the portable loops: bit for bit where AVX512-BF16 ran (the same additions in
     ///   the same order, `vdpbf16ps`'s).
     #[test]
     fn gather_gemm_bf16_matches_its_references(
-        rows in 1usize..40, pairs in 1usize..150, n in 1usize..150, seed in any::<u64>()
+        rows in 1usize..40, pairs in 1usize..600, n in 1usize..150, seed in any::<u64>()
     ) {
         let case = Case::draw(rows, pairs, n, seed);
         let fast = case.run(|g| {
@@ -227,7 +227,7 @@ proptest! {
 /// The same bits on 1, 2 and 3 threads (each element summed in pair order, whatever the split).
 #[test]
 fn gather_gemm_bf16_is_the_same_on_any_thread_count() {
-    let case = Case::draw(301, 150, 70, 5);
+    let case = Case::draw(301, 600, 70, 5);
     let on = |t: usize| {
         rayon::ThreadPoolBuilder::new()
             .num_threads(t)

@@ -274,9 +274,13 @@ mod avx512 {
     use crate::tensor::gather::Init;
     use std::arch::x86_64::*;
 
-    /// Pairs per block: the block's `b` (64 pairs × 64 columns × 4 bytes, 16 KiB) stays in L1
-    /// while the task's row tiles run over it.
-    const TP: usize = 64;
+    /// Pairs per block: the task's row tiles run over one block of `b` (256 pairs × 64 columns ×
+    /// 4 bytes, 64 KiB, in L2) before the next, and `C`'s tiles are stored and loaded again
+    /// between blocks. 64-pair blocks (16 KiB, in L1) made the article's train step 4% slower on
+    /// Zen 5 (docs/performance.md): the weight gradients' long reductions (conv1's, 10 560 pairs
+    /// of output pixels at batch 48) went back to `C` every 64 pairs. 128 and 512 measured level
+    /// with 256.
+    const TP: usize = 256;
 
     /// The operands every task reads.
     #[derive(Clone, Copy)]
