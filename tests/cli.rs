@@ -123,6 +123,27 @@ fn train_by_frames() {
         json["kernels"]["conv_forward"].is_string(),
         "each product's kernel: {text}"
     );
+    // A weights-only model file times acting too (the shipped player's network).
+    let model = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/strong/model.safetensors"
+    );
+    let text = ok(&invaders(&[
+        "bench",
+        "--threads",
+        "1",
+        "--steps",
+        "1",
+        "--json",
+        "--checkpoint",
+        model,
+    ]));
+    let json: serde_json::Value = serde_json::from_str(text.trim()).expect(&text);
+    let v = json["act_checkpoint_ms"].as_f64().unwrap_or(-1.0);
+    assert!(
+        v > 0.0 && v.is_finite(),
+        "act_checkpoint_ms with a model file: {text}"
+    );
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -4,7 +4,9 @@
 # with the CPU named and its FMA peak. Never while a training run is going.
 #
 # usage: tools/bench_series.sh [ROUNDS] [OUT]      (from the repository's root, after
-#        `cargo build --release`; PY is the Python with tensorflow-cpu and torch installed)
+#        `cargo build --release`; PY is the Python with tensorflow-cpu and torch installed;
+#        CKPT, if set, is a trained network whose acting `bench` times too, e.g.
+#        models/strong/model.safetensors)
 set -u
 ROUNDS=${1:-3}
 OUT=${2:-bench-series.log}
@@ -22,7 +24,7 @@ B=${BENCH:-../shared/bench}
 for r in $(seq 1 "$ROUNDS"); do
   for t in 1 2; do
     for p in f32 bf16; do
-      echo "round $r ours-$p threads=$t $($BIN bench --json --threads "$t" --precision $p --steps 30 2>/dev/null)" >> "$OUT"
+      echo "round $r ours-$p threads=$t $($BIN bench --json --threads "$t" --precision $p --steps 30 ${CKPT:+--checkpoint "$CKPT"} 2>/dev/null)" >> "$OUT"
     done
     for script in tf_step tf_step_bf16 torch_step torch_step_bf16; do
       echo "round $r $($PY "$B/$script.py" "$t" 30 2>/dev/null | tail -1)" >> "$OUT"

@@ -35,9 +35,9 @@ pub struct BenchArgs {
     /// Train steps to time.
     #[arg(long, default_value_t = 30)]
     steps: usize,
-    /// Also time acting with this checkpoint's acting network (a run directory or its
-    /// `checkpoint.safetensors`), besides a newly initialised one. A trained network's
-    /// activations are mostly zeros, which acting skips.
+    /// Also time acting with a trained network (a run directory, its `checkpoint.safetensors`
+    /// or a weights-only model file such as models/strong/model.safetensors), besides a newly
+    /// initialised one. A trained network's activations are mostly zeros, which acting skips.
     #[arg(long, value_name = "PATH")]
     checkpoint: Option<PathBuf>,
 }
@@ -61,7 +61,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             } else {
                 path.clone()
             };
-            Some(checkpoint::load(&file)?)
+            Some(checkpoint::load_model(&file)?)
         }
     };
     let threads = rayon::current_num_threads();
@@ -130,15 +130,8 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let act_ms = time_acting(&mut learner.online, &config, &mut rng)?;
     let act_trained_ms = match &mut trained {
         None => None,
-        Some(ckpt) => {
-            // The network the run acts with (the lagged copy for the notebook's swap).
-            let net = if ckpt.config.act_with_target_network {
-                &mut ckpt.learner.target
-            } else {
-                &mut ckpt.learner.online
-            };
-            Some(time_acting(net, &ckpt.config, &mut rng)?)
-        }
+        // The trained online network, as `eval` plays it.
+        Some(model) => Some(time_acting(&mut model.online, &model.config, &mut rng)?),
     };
 
     // The emulator with the article's pipeline and input normalisation, random actions.
