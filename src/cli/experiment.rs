@@ -113,7 +113,8 @@ pub struct PreprocessingArgs {
     /// Runs trained at once (default: the number of cores).
     #[arg(long)]
     jobs: Option<usize>,
-    /// Evaluation episodes per final checkpoint.
+    /// Evaluation episodes per final checkpoint, with ε = 0.05 in the run's own game (each is
+    /// also evaluated by the protocol: 100 episodes of `v5`).
     #[arg(long, default_value_t = 30)]
     eval_episodes: u32,
     /// A TOML file of overrides applied to every run (e.g. a shorter ε decay for a small budget).
