@@ -598,5 +598,11 @@ fn experiment_strong_trains_evaluates_and_reports() {
     assert!(again.contains("strong-seed1: already trained"), "{again}");
     let table2 = std::fs::read_to_string(out.join("results.md")).unwrap();
     assert!(table2.contains(row), "{table2}");
+    // A kept summary cut short is played again, not an error.
+    let kept = out.join("strong-seed1.protocol");
+    let text = std::fs::read_to_string(&kept).unwrap();
+    std::fs::write(&kept, &text[..text.find('\n').unwrap() + 8]).unwrap();
+    ok(&run(&args));
+    assert_eq!(std::fs::read_to_string(&kept).unwrap(), text);
     let _ = std::fs::remove_dir_all(&root);
 }

@@ -361,21 +361,21 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
 
 /// The mean evaluation score of a run's final checkpoint.
 fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<f64> {
+    let (episodes, seed) = (episodes.to_string(), seed.to_string());
+    let last = run_eval(exe, dir, &["--episodes", &episodes, "--seed", &seed])?;
+    Ok(parse_scores(&last)?.mean)
+}
+
+/// Runs `invaders eval` on a run's final checkpoint with `args` (one thread) and returns its
+/// summary line (`… mean M std S min A max B`).
+fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
     let out = Command::new(exe)
-        .args([
-            "eval",
-            "--threads",
-            "1",
-            "--episodes",
-            &episodes.to_string(),
-            "--seed",
-            &seed.to_string(),
-            "--checkpoint",
-        ])
+        .args(["eval", "--threads", "1"])
+        .args(args)
+        .arg("--checkpoint")
         .arg(dir)
         .output()
         .context("cannot start invaders eval")?;
-    let text = String::from_utf8_lossy(&out.stdout);
     if !out.status.success() {
         bail!(
             "eval of {} failed: {}",
@@ -383,12 +383,8 @@ fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<
             String::from_utf8_lossy(&out.stderr)
         );
     }
-    let last = text.lines().last().unwrap_or_default();
-    last.split(" mean ")
-        .nth(1)
-        .and_then(|s| s.split_whitespace().next())
-        .and_then(|v| v.parse().ok())
-        .ok_or_else(|| anyhow!("cannot read the eval score from `{last}`"))
+    let text = String::from_utf8_lossy(&out.stdout);
+    Ok(text.lines().last().unwrap_or_default().to_string())
 }
 
 /// Episodes the evaluation protocol plays at least (`invaders eval --protocol`).
@@ -412,30 +408,21 @@ fn evaluate_protocol(exe: &Path, dir: &Path, episodes: u32) -> anyhow::Result<Sc
         .frames;
     let key = format!("frames {frames} episodes {episodes}");
     let cache = dir.with_extension("protocol");
-    if let Ok(text) = std::fs::read_to_string(&cache) {
-        if let Some((k, summary)) = text.split_once('\n') {
-            if k == key {
-                return parse_scores(summary.trim_end());
-            }
-        }
+    // A summary kept for this network and these episodes; anything else (another network, a
+    // file cut short) is played again.
+    let kept = std::fs::read_to_string(&cache).ok().and_then(|text| {
+        let (k, line) = text.split_once('\n')?;
+        (k == key).then(|| parse_scores(line.trim_end()).ok())?
+    });
+    if let Some(scores) = kept {
+        return Ok(scores);
     }
-    let out = Command::new(exe)
-        .args(["eval", "--protocol", "--threads", "1", "--episodes"])
-        .arg(episodes.to_string())
-        .arg("--checkpoint")
-        .arg(dir)
-        .output()
-        .context("cannot start invaders eval")?;
-    if !out.status.success() {
-        bail!(
-            "protocol evaluation of {} failed: {}",
-            dir.display(),
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let text = String::from_utf8_lossy(&out.stdout);
-    let last = text.lines().last().unwrap_or_default();
-    let scores = parse_scores(last)?;
+    let last = run_eval(
+        exe,
+        dir,
+        &["--protocol", "--episodes", &episodes.to_string()],
+    )?;
+    let scores = parse_scores(&last)?;
     std::fs::write(&cache, format!("{key}\n{last}\n"))
         .with_context(|| format!("cannot write {}", cache.display()))?;
     Ok(scores)
