@@ -93,15 +93,15 @@ pub(crate) fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize
 
 /// The checks on `C` shared by the gather kernels (`kernel` names the caller in the message): `rows`
 /// rows of `n` columns at `ldc` apart or at `c_rows` (increasing, not overlapping), inside
-/// `c_len` values; a bias of `bias` values covers the `n` columns.
-pub(crate) fn check_c(
+/// `c_len` values; a bias covers the `n` columns.
+pub(crate) fn check_c<T>(
     kernel: &str,
     rows: usize,
     n: usize,
     ldc: usize,
     c_rows: Option<&[usize]>,
     c_len: usize,
-    bias: Option<usize>,
+    init: &Init<'_, T>,
 ) {
     match c_rows {
         None => assert!(n <= ldc, "{kernel}: n > ldc"),
@@ -116,8 +116,8 @@ pub(crate) fn check_c(
         None => (rows - 1).checked_mul(ldc),
     };
     assert!(within(last, n, c_len + 1), "{kernel}: C too short");
-    if let Some(len) = bias {
-        assert!(len >= n, "{kernel}: bias too short");
+    if let Init::Bias(bias) = init {
+        assert!(bias.len() >= n, "{kernel}: bias too short");
     }
 }
 
@@ -134,10 +134,6 @@ impl<T: Float> GatherGemm<'_, T> {
         if rows == 0 || self.n == 0 {
             return;
         }
-        let bias = match self.init {
-            Init::Bias(bias) => Some(bias.len()),
-            _ => None,
-        };
         check_c(
             "gather_gemm",
             rows,
@@ -145,7 +141,7 @@ impl<T: Float> GatherGemm<'_, T> {
             self.ldc,
             self.c_rows,
             self.c.len(),
-            bias,
+            &self.init,
         );
         if steps > 0 {
             assert!(self.n <= self.ldb, "gather_gemm: n > ldb");

@@ -60,10 +60,6 @@ impl GatherGemmBf16<'_> {
         if rows == 0 || self.n == 0 {
             return;
         }
-        let bias = match self.init {
-            Init::Bias(bias) => Some(bias.len()),
-            _ => None,
-        };
         check_c(
             "gather_gemm_bf16",
             rows,
@@ -71,7 +67,7 @@ impl GatherGemmBf16<'_> {
             self.ldc,
             self.c_rows,
             self.c.len(),
-            bias,
+            &self.init,
         );
         if pairs > 0 {
             assert!(self.n <= self.ldb, "gather_gemm_bf16: n > ldb");
