@@ -66,9 +66,9 @@ pub struct EvalArgs {
 }
 
 /// The evaluation protocol's exploration rate, episodes and default seed.
-const PROTOCOL_EPSILON: f32 = 0.01;
-const PROTOCOL_EPISODES: u32 = 100;
-const PROTOCOL_SEED: u64 = 1_000_000;
+pub(super) const PROTOCOL_EPSILON: f32 = 0.01;
+pub(super) const PROTOCOL_EPISODES: u32 = 100;
+pub(super) const PROTOCOL_SEED: u64 = 1_000_000;
 
 /// What to play: the arguments with the protocol's or the defaults' values filled in.
 struct Plan {

@@ -21,6 +21,7 @@ use std::sync::Mutex;
 use anyhow::{anyhow, bail, Context};
 use clap::{Args, Subcommand, ValueEnum};
 
+use super::eval::{PROTOCOL_EPISODES, PROTOCOL_EPSILON, PROTOCOL_SEED};
 use invaders::dqn::checkpoint;
 use invaders::dqn::{Config, Preset, STRONG_FRAMES};
 use invaders::env::Pipeline;
@@ -242,7 +243,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
     );
     plot_groups(&groups, &title, 100, &png)?;
     let table = format!(
-        "# Preprocessing experiment\n\nCommand: `{}`\n\nBudget: {} episodes per run, {} seed(s) per configuration; evaluation over {} episodes with ε = 0.05 in the run's own game (the article's: `v0`), and by the evaluation protocol ({PROTOCOL_EPISODES} episodes of `v5`, ε = 0.01, seed 1 000 000).\n\n| configuration | seeds | mean reward, last 100 episodes | evaluation score | protocol score |\n| --- | --- | --- | --- | --- |\n{}\n\nMeans over seeds ± their standard deviation (population). Figure: `rewards.png`.\n",
+        "# Preprocessing experiment\n\nCommand: `{}`\n\nBudget: {} episodes per run, {} seed(s) per configuration; evaluation over {} episodes with ε = 0.05 in the run's own game (the article's: `v0`), and by the evaluation protocol ({PROTOCOL_EPISODES} episodes of `v5`, ε = {PROTOCOL_EPSILON}, seed {PROTOCOL_SEED}).\n\n| configuration | seeds | mean reward, last 100 episodes | evaluation score | protocol score |\n| --- | --- | --- | --- | --- |\n{}\n\nMeans over seeds ± their standard deviation (population). Figure: `rewards.png`.\n",
         command_line(),
         args.episodes,
         args.seeds,
@@ -387,9 +388,6 @@ fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
     Ok(text.lines().last().unwrap_or_default().to_string())
 }
 
-/// Episodes the evaluation protocol plays at least (`invaders eval --protocol`).
-const PROTOCOL_EPISODES: u32 = 100;
-
 /// A protocol evaluation's summary.
 struct Scores {
     mean: f64,
@@ -523,7 +521,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         &args.out.join("rewards.png"),
     )?;
     let table = format!(
-        "# The strong preset over {} seeds\n\nCommand: `{}`\n\nBudget: {} frames per run, one thread each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = 0.01 on seed 1 000 000.\n\n| seed | frames | wall hours | agent steps/s | training return, last 100 episodes | protocol score: mean ± std (min–max) |\n| --- | --- | --- | --- | --- | --- |\n{}\n\nMean protocol score over the seeds: {}. Figure: `rewards.png`.\n",
+        "# The strong preset over {} seeds\n\nCommand: `{}`\n\nBudget: {} frames per run, one thread each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}.\n\n| seed | frames | wall hours | agent steps/s | training return, last 100 episodes | protocol score: mean ± std (min–max) |\n| --- | --- | --- | --- | --- | --- |\n{}\n\nMean protocol score over the seeds: {}. Figure: `rewards.png`.\n",
         args.seeds,
         command_line(),
         args.frames,

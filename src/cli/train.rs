@@ -294,9 +294,8 @@ fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
     Ok(lock)
 }
 
-/// Removes what a run that never reached a checkpoint left (not the lock file: it may be held).
-/// The first file in `dir` that a run does not write before its first checkpoint (one of
-/// [`RUN_FILES`], or a replay file being written), if any.
+/// The first file in `dir` that is not one a run writes (one of [`RUN_FILES`], or a replay file
+/// being written), if any.
 fn foreign_file(dir: &Path) -> anyhow::Result<Option<String>> {
     let entries =
         std::fs::read_dir(dir).with_context(|| format!("cannot read {}", dir.display()))?;
@@ -314,6 +313,7 @@ fn foreign_file(dir: &Path) -> anyhow::Result<Option<String>> {
     Ok(None)
 }
 
+/// Removes what a run that never reached a checkpoint left (not the lock file: it may be held).
 fn clear_run_files(dir: &Path) -> anyhow::Result<()> {
     for name in RUN_FILES.iter().filter(|n| **n != guard::LOCK_FILE) {
         let path = dir.join(name);
