@@ -6,6 +6,7 @@
 mod common;
 
 use std::io::{BufRead, BufReader};
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
@@ -369,6 +370,79 @@ fn no_input_panics_aborts_or_hangs() {
     assert!(
         out.contains("skipped 2 row(s)") && out.contains("line 3, 4"),
         "{out}"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Ctrl-C at a terminal signals the foreground process group. `experiment`'s runs are in groups
+/// of their own, so it alone gets it and must pass it on once (twice would stop a run at once):
+/// the running training stops with a checkpoint, no further run starts, and the experiment exits
+/// with 130 after its runs have stopped.
+#[test]
+fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
+    let root = tmp("experiment-signals");
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = config(&root, FAST);
+    let out = root.join("exp");
+    let mut child = bin()
+        .args([
+            "experiment",
+            "strong",
+            "--seeds",
+            "2",
+            "--jobs",
+            "1",
+            "--frames",
+            "100000000",
+            "--config",
+            &cfg,
+            "--out",
+            s(&out),
+        ])
+        .process_group(0) // a terminal's foreground group, with the experiment as its leader
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = out.join("strong-seed1.log");
+    let started = std::time::Instant::now();
+    while !std::fs::read_to_string(&log).is_ok_and(|t| t.contains("\nep 3 ")) {
+        assert!(
+            started.elapsed().as_secs() < 300,
+            "the first run never reached episode 3"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let sent = Command::new("kill")
+        .args(["-INT", "--", &format!("-{}", child.id())])
+        .status()
+        .unwrap();
+    assert!(sent.success());
+    let waited = std::time::Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if waited.elapsed().as_secs() > 120 {
+            child.kill().unwrap();
+            panic!("the experiment did not stop within 120 s of a Ctrl-C");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    };
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut stderr).unwrap();
+    assert_eq!(status.code(), Some(130), "{stderr}");
+    assert!(stderr.contains("run the same command again"), "{stderr}");
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        text.contains("stopped at episode"),
+        "the run stopped by itself, with a checkpoint, before the experiment exited:\n{text}"
+    );
+    let ckpt =
+        invaders::dqn::checkpoint::load(&out.join("strong-seed1/checkpoint.safetensors")).unwrap();
+    assert!(ckpt.counters.episodes >= 3, "the episodes played are kept");
+    assert!(
+        !out.join("strong-seed2").exists() && !out.join("strong-seed2.log").exists(),
+        "no run starts after a stop"
     );
     let _ = std::fs::remove_dir_all(&root);
 }

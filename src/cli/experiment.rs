@@ -13,15 +13,21 @@
 //! each). Each experiment writes `rewards.png` (mean over seeds with a min–max band) and
 //! `results.md` (the table, with the command and budget) into `--out`. Re-running the same
 //! command continues unfinished runs and skips finished ones.
+//!
+//! A Ctrl-C (or SIGTERM) stops the whole experiment and loses nothing: the runs stop after their
+//! episode with a checkpoint, no new run or evaluation starts, and the command exits with 130
+//! (see [`stop`]).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use anyhow::{anyhow, bail, Context};
 use clap::{Args, Subcommand, ValueEnum};
 
 use super::eval::{PROTOCOL_EPISODES, PROTOCOL_EPSILON, PROTOCOL_SEED};
+use super::Interrupted;
 use invaders::dqn::checkpoint;
 use invaders::dqn::{Config, Preset, STRONG_FRAMES};
 use invaders::env::Pipeline;
@@ -158,6 +164,7 @@ fn arms(args: &PreprocessingArgs) -> Vec<Arm> {
 }
 
 pub fn run(e: &Experiment) -> anyhow::Result<()> {
+    stop::catch();
     match e {
         Experiment::Preprocessing(args) => preprocessing(args),
         Experiment::Strong(args) => strong(args),
@@ -283,17 +290,25 @@ fn train_all(
         .max(1);
     let queue = Mutex::new(jobs.iter());
     let failures = Mutex::new(Vec::new());
+    // A run stopped by a signal (ours, passed on, or one sent to it alone) stops the experiment:
+    // no further run starts.
+    let stopped = AtomicBool::new(false);
     std::thread::scope(|s| {
         for _ in 0..workers {
             s.spawn(|| loop {
+                if stopped.load(Ordering::SeqCst) || stop::requested() {
+                    break;
+                }
                 let Some(job) = queue.lock().expect("queue").next() else {
                     break;
                 };
-                if let Err(err) = train_one(exe, job, budget) {
-                    failures
+                match train_one(exe, job, budget) {
+                    Err(err) if err.is::<Interrupted>() => stopped.store(true, Ordering::SeqCst),
+                    Err(err) => failures
                         .lock()
                         .expect("failures")
-                        .push(format!("{}-seed{}: {err:#}", job.label, job.seed));
+                        .push(format!("{}-seed{}: {err:#}", job.label, job.seed)),
+                    Ok(()) => {}
                 }
             });
         }
@@ -301,6 +316,9 @@ fn train_all(
     let failures = failures.into_inner().expect("failures");
     if !failures.is_empty() {
         bail!("some runs failed:\n{}", failures.join("\n"));
+    }
+    if stopped.into_inner() || stop::requested() {
+        return Err(stop::stopped());
     }
     Ok(())
 }
@@ -345,11 +363,13 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
         .append(true)
         .open(&log_path)?;
     eprintln!("{label}-seed{seed}: training (log: {})", log_path.display());
-    let status = cmd
-        .stdout(log.try_clone()?)
-        .stderr(log)
-        .status()
-        .context("cannot start invaders train")?;
+    let status = stop::run(cmd.stdout(log.try_clone()?).stderr(log))
+        .context("cannot start invaders train")?
+        .status;
+    if status.code() == Some(130) {
+        eprintln!("{label}-seed{seed}: stopped with a checkpoint");
+        return Err(Interrupted.into());
+    }
     if !status.success() {
         return Err(anyhow!(
             "invaders train failed ({status}); see {}",
@@ -370,13 +390,17 @@ fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<
 /// Runs `invaders eval` on a run's final checkpoint with `args` (one thread) and returns its
 /// summary line (`… mean M std S min A max B`).
 fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
-    let out = Command::new(exe)
-        .args(["eval", "--threads", "1"])
+    let mut cmd = Command::new(exe);
+    cmd.args(["eval", "--threads", "1"])
         .args(args)
         .arg("--checkpoint")
         .arg(dir)
-        .output()
-        .context("cannot start invaders eval")?;
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    let out = stop::run(&mut cmd).context("cannot start invaders eval")?;
+    if stop::requested() {
+        return Err(stop::stopped());
+    }
     if !out.status.success() {
         bail!(
             "eval of {} failed: {}",
@@ -552,4 +576,113 @@ fn command_line() -> String {
         .chain(std::env::args().skip(1).map(quote))
         .collect::<Vec<_>>()
         .join(" ")
+}
+
+/// Stopping an experiment: its child processes run in process groups of their own, so a Ctrl-C
+/// at the terminal reaches this process alone, and it passes each Ctrl-C or SIGTERM on to every
+/// running child exactly once, as SIGTERM. A training takes the first as `train` takes a Ctrl-C
+/// (it stops after the current episode, with a checkpoint) and a second as "stop at once" (its
+/// last checkpoint is kept); an evaluation ends at once and is played again next time.
+mod stop {
+    use std::process::{Command, Output};
+    use std::sync::Mutex;
+
+    /// Signals received so far, and the children running now (process ids). One lock for both,
+    /// so that a child started while a signal arrives gets it once, not twice or never.
+    static STATE: Mutex<(u32, Vec<u32>)> = Mutex::new((0, Vec::new()));
+
+    fn term(pid: u32) {
+        // SAFETY: `kill` touches no memory of ours. `pid` is a child not reaped yet (`run` takes
+        // it off the list before it reaps it), so it names that child and no other process.
+        unsafe {
+            libc::kill(pid as libc::pid_t, libc::SIGTERM);
+        }
+    }
+
+    /// Installs the handler (once, before any child starts).
+    pub fn catch() {
+        let set = ctrlc::set_handler(|| {
+            let mut state = STATE.lock().unwrap_or_else(|e| e.into_inner());
+            state.0 += 1;
+            if state.0 == 1 {
+                eprintln!(
+                    "\nstopping: the runs stop after their episode with a checkpoint; the same \
+                     command continues them (Ctrl-C again to stop them at once)"
+                );
+            }
+            state.1.iter().copied().for_each(term);
+        });
+        if let Err(e) = set {
+            eprintln!("warning: Ctrl-C will stop the experiment at once ({e})");
+        }
+    }
+
+    /// Whether a Ctrl-C or SIGTERM has arrived.
+    pub fn requested() -> bool {
+        STATE.lock().unwrap_or_else(|e| e.into_inner()).0 > 0
+    }
+
+    /// The error an experiment stopped by a signal returns (the program exits with 130).
+    pub fn stopped() -> anyhow::Error {
+        eprintln!("experiment stopped; run the same command again to continue it");
+        super::Interrupted.into()
+    }
+
+    /// Runs `cmd` to its end in a process group of its own, where a stop reaches it, and returns
+    /// its status and whatever output was piped.
+    pub fn run(cmd: &mut Command) -> std::io::Result<Output> {
+        use std::io::Read;
+        use std::os::unix::process::CommandExt;
+        let mut child = cmd.process_group(0).spawn()?;
+        let pid = child.id();
+        {
+            let mut state = STATE.lock().unwrap_or_else(|e| e.into_inner());
+            state.1.push(pid);
+            if state.0 > 0 {
+                term(pid);
+            }
+        }
+        fn drain(pipe: Option<impl Read>) -> Vec<u8> {
+            let mut bytes = Vec::new();
+            if let Some(mut pipe) = pipe {
+                let _ = pipe.read_to_end(&mut bytes);
+            }
+            bytes
+        }
+        let (stdout, stderr) = (child.stdout.take(), child.stderr.take());
+        std::thread::scope(|s| {
+            let stdout = s.spawn(|| drain(stdout));
+            let stderr = s.spawn(|| drain(stderr));
+            // Wait for the child to end without reaping it (`WNOWAIT`): until `wait` below, its
+            // process id stays its own, so the handler never signals a stranger.
+            loop {
+                // SAFETY: `info` is a valid place for `waitid` to write a `siginfo_t` to.
+                let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+                let rc = unsafe {
+                    libc::waitid(
+                        libc::P_PID,
+                        pid as libc::id_t,
+                        &mut info,
+                        libc::WEXITED | libc::WNOWAIT,
+                    )
+                };
+                if rc == 0
+                    || std::io::Error::last_os_error().kind() != std::io::ErrorKind::Interrupted
+                {
+                    break;
+                }
+            }
+            STATE
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .1
+                .retain(|&p| p != pid);
+            let status = child.wait()?;
+            Ok(Output {
+                status,
+                stdout: stdout.join().unwrap_or_default(),
+                stderr: stderr.join().unwrap_or_default(),
+            })
+        })
+    }
 }
