@@ -3,7 +3,8 @@
 //! criterion's wall time is not): `cargo run --release --example kbench -- conv1 fwd 50`;
 //! `-- step train 30` (and `step act 300`) for the whole train step with its minimum and median;
 //! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders);
-//! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input).
+//! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input); a layer's
+//! batch and then `bf16` after the count time its bf16 products (`-- conv1p wgrad 300 48 bf16`).
 
 use invaders::dqn::{Batch, Learner};
 use invaders::layers::{Conv2d, Dense, Layer};
@@ -162,6 +163,9 @@ fn run() {
         "dense1" => (Box::new(Dense::new(what, 7040, 128)), vec![batch, 7040]),
         _ => (Box::new(Dense::new(what, 128, 6)), vec![batch, 128]),
     };
+    if args.get(5).map(String::as_str) == Some("bf16") {
+        layer.set_precision(invaders::tensor::plan::Precision::Bf16);
+    }
     for p in layer.params_mut() {
         for v in p.value.data_mut() {
             *v = rng.random_range(-0.1..0.1);

@@ -6,9 +6,10 @@ mod common;
 
 use common::{avx512_expected, on_path, rng, set_params, uniform};
 use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::tensor::bf16::to_bf16;
 use invaders::tensor::bf16::{dot_bf16, dot_bf16_reference, dot_error_bound, round_bf16};
 use invaders::tensor::cpu::Family;
-use invaders::tensor::gather_bf16::{pack_pairs, to_bf16_vec};
+use invaders::tensor::gather_bf16::{pack_pairs, pack_shifted, to_bf16_vec};
 use invaders::tensor::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, pad_input, ConvGeom, Padding, Tensor,
@@ -78,6 +79,59 @@ proptest! {
 
 /// Values that are already bf16 multiply exactly: a dot product of small integers is exact on
 /// every path, whatever the order of the sums.
+/// A value of any kind the packing must round: normal over many binades, subnormal, zero of
+/// either sign, infinite, NaN, and values halfway between two bf16 values (ties to even).
+fn any_f32(r: &mut impl Rng) -> f32 {
+    match r.random_range(0..8) {
+        0 => f32::from_bits(r.random_range(1..0x0080_0000)), // subnormal
+        1 => [0.0, -0.0, f32::INFINITY, f32::NEG_INFINITY][r.random_range(0..4)],
+        2 => f32::from_bits(0x7FC0_0000 | r.random_range(0..0x0040_0000)), // NaN
+        3 => f32::from_bits((r.random::<u32>() & 0xFFFF_0000) | 0x8000),   // a tie
+        _ => draw(r),
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(common::cases(64)))]
+
+    /// `pack_pairs` and `pack_shifted` (written a pair word at a time so that they run wide)
+    /// against their definitions, element by element with `to_bf16`: odd row counts, row strides
+    /// above the width, shifts from 0 past the end, and every kind of value.
+    #[test]
+    fn packing_matches_its_definition(
+        rows in 0usize..9,
+        cols in 1usize..40,
+        pad in 0usize..5,
+        d in 0usize..300,
+        seed in any::<u64>(),
+    ) {
+        let mut r = rng(seed);
+        let ld = cols + pad;
+        let src: Vec<f32> = (0..rows * ld).map(|_| any_f32(&mut r)).collect();
+        let mut packed = Vec::new();
+        let pairs = pack_pairs(&src, rows, cols, ld, &mut packed);
+        prop_assert_eq!(pairs, rows.div_ceil(2));
+        prop_assert_eq!(packed.len(), 2 * pairs * cols);
+        for u in 0..pairs {
+            for j in 0..cols {
+                for k in 0..2 {
+                    let row = 2 * u + k;
+                    let want = if row < rows { to_bf16(src[row * ld + j]) } else { 0 };
+                    prop_assert_eq!(packed[2 * (u * cols + j) + k], want, "pair {} col {}", u, j);
+                }
+            }
+        }
+        let mut shifted = vec![7u16; 3]; // a used buffer of another length
+        pack_shifted(&src, d, &mut shifted);
+        prop_assert_eq!(shifted.len(), 2 * src.len());
+        for i in 0..src.len() {
+            let partner = src.get(i + d).map_or(0, |&v| to_bf16(v));
+            prop_assert_eq!(shifted[2 * i], to_bf16(src[i]), "value {}", i);
+            prop_assert_eq!(shifted[2 * i + 1], partner, "partner of {}", i);
+        }
+    }
+}
+
 #[test]
 fn exact_operands_give_exact_sums() {
     let a: Vec<f32> = (0..77).map(|i| (i % 13) as f32 - 6.0).collect();

@@ -167,11 +167,44 @@ pub fn to_bf16_vec(src: &[f32], dst: &mut Vec<u16>) {
     round_into(src, dst);
 }
 
+/// The pair `(lo, hi)` of bf16 values as the 32-bit word a pair is read as: `lo` in the low half
+/// (the first `u16` in memory on a little-endian CPU, the only kind with AVX-512).
+#[inline(always)]
+fn pair_word(lo: f32, hi: f32) -> u32 {
+    u32::from(to_bf16(lo)) | u32::from(to_bf16(hi)) << 16
+}
+
+/// `dst` as 32-bit words, one per pair, if it is aligned for them (a buffer from the allocator
+/// always is); written a word at a time, the packing loops below run 16 pairs wide.
+fn pair_words(dst: &mut [u16]) -> Option<&mut [u32]> {
+    if cfg!(target_endian = "little") {
+        bytemuck::try_cast_slice_mut(dst).ok()
+    } else {
+        None
+    }
+}
+
 avx512_twin! {
     /// Packs rows `2u` and `2u + 1` of a row-major `rows × cols` matrix (row stride `ld`) into
     /// pair row `u`: `dst[2·(u·cols + j) + k] = bf16(src[(2u + k)·ld + j])`, with a zero for the
     /// missing row of an odd count. `dst` holds `2·⌈rows/2⌉·cols` values.
     fn pack_rows(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut [u16]) {
+        if let Some(words) = pair_words(dst) {
+            for (u, out) in words.chunks_exact_mut(cols).enumerate() {
+                let r0 = &src[2 * u * ld..][..cols];
+                if 2 * u + 1 < rows {
+                    let r1 = &src[(2 * u + 1) * ld..][..cols];
+                    for ((o, &x0), &x1) in out.iter_mut().zip(r0).zip(r1) {
+                        *o = pair_word(x0, x1);
+                    }
+                } else {
+                    for (o, &x0) in out.iter_mut().zip(r0) {
+                        *o = u32::from(to_bf16(x0));
+                    }
+                }
+            }
+            return;
+        }
         for (u, out) in dst.chunks_exact_mut(2 * cols).enumerate() {
             let r0 = &src[2 * u * ld..][..cols];
             if 2 * u + 1 < rows {
@@ -208,6 +241,17 @@ pub fn pack_pairs(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut Ve
 avx512_twin! {
     /// `dst[2i] = bf16(src[i])`, `dst[2i + 1] = bf16(src[i + d])` (0 past the end).
     fn pack_shift(src: &[f32], d: usize, dst: &mut [u16]) {
+        if let Some(words) = pair_words(dst) {
+            // The pairs with a partner, then the last `d` values alone.
+            let (both, alone) = words.split_at_mut(src.len().saturating_sub(d));
+            for ((o, &lo), &hi) in both.iter_mut().zip(src).zip(&src[d.min(src.len())..]) {
+                *o = pair_word(lo, hi);
+            }
+            for (o, &lo) in alone.iter_mut().zip(&src[both.len()..]) {
+                *o = u32::from(to_bf16(lo));
+            }
+            return;
+        }
         for (i, o) in dst.chunks_exact_mut(2).enumerate() {
             o[0] = to_bf16(src[i]);
             o[1] = src.get(i + d).map_or(0, |&v| to_bf16(v));
