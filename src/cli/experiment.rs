@@ -656,7 +656,8 @@ mod stop {
             // Wait for the child to end without reaping it (`WNOWAIT`): until `wait` below, its
             // process id stays its own, so the handler never signals a stranger.
             loop {
-                // SAFETY: `info` is a valid place for `waitid` to write a `siginfo_t` to.
+                // SAFETY: a zeroed `siginfo_t` (plain integers) is a valid value, and `info` is
+                // a valid place for `waitid` to write one to.
                 let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
                 let rc = unsafe {
                     libc::waitid(
