@@ -243,21 +243,127 @@ pub fn mean_band(seeds: &[Vec<(f64, f64)>], window: usize) -> Vec<(f64, f64, f64
         .collect()
 }
 
+/// A curve known only within bounds: each episode's reward lies in `[low, high]`. The article's
+/// notebook's training curve, digitised from its saved plot, is one (see
+/// `docs/experiment/notebook/README.md`).
+pub struct Bounded {
+    /// Legend label.
+    pub label: String,
+    /// `(episode, low, high)`, one per episode in episode order (episodes numbered from 1).
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// Reads a digitised plot (`tools/notebook/digitize_plot.py`): one row per pixel column with the
+/// 0-based indices of the first and last episode it covers, the extent of the line there
+/// (`reward_min`, `reward_max`) and one pixel in reward units. Every episode of a column lies in
+/// its extent widened by a pixel each way (and rewards are never negative).
+pub fn read_digitized(path: &Path, label: &str) -> anyhow::Result<Bounded> {
+    const HEADER: &str = "pixel_col,episode_x_from,episode_x_to,first_episode_index,last_episode_index,reward_min,reward_max,reward_per_pixel";
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    if lines.next() != Some(HEADER) {
+        anyhow::bail!("{}: the header must be `{HEADER}`", path.display());
+    }
+    let mut points: Vec<(f64, f64, f64)> = Vec::new();
+    for (n, line) in lines.enumerate() {
+        let bad = || anyhow!("{}: line {} is malformed", path.display(), n + 2);
+        let f: Vec<f64> = line
+            .split(',')
+            .map(|v| v.parse::<f64>().map_err(|_| bad()))
+            .collect::<Result<_, _>>()?;
+        let [_, _, _, first, last, min, max, px] = f[..] else {
+            return Err(bad());
+        };
+        let ordered = first.fract() == 0.0 && first >= 0.0 && last >= first && max >= min;
+        if !(ordered && px.is_finite() && px >= 0.0 && min.is_finite() && max.is_finite()) {
+            return Err(bad());
+        }
+        if points.len() as f64 != first {
+            anyhow::bail!(
+                "{}: line {} starts at episode index {first}, not {} (columns must cover the \
+                 episodes in order, each once)",
+                path.display(),
+                n + 2,
+                points.len()
+            );
+        }
+        for _ in first as usize..=last as usize {
+            let episode = points.len() as f64 + 1.0;
+            points.push((episode, (min - px).max(0.0), max + px));
+        }
+    }
+    if points.is_empty() {
+        anyhow::bail!("{}: no columns", path.display());
+    }
+    Ok(Bounded {
+        label: label.to_string(),
+        points,
+    })
+}
+
+/// Bounds on a bounded curve's `window`-episode moving average: the moving averages of its lower
+/// and of its upper bounds, `(episode, low, high)`. The true average lies between them.
+pub fn moving_bounds(curve: &Bounded, window: usize) -> Vec<(f64, f64, f64)> {
+    let lows = moving_average(
+        &curve.points.iter().map(|p| p.1).collect::<Vec<_>>(),
+        window,
+    );
+    let highs = moving_average(
+        &curve.points.iter().map(|p| p.2).collect::<Vec<_>>(),
+        window,
+    );
+    curve
+        .points
+        .iter()
+        .zip(lows.into_iter().zip(highs))
+        .map(|(p, (lo, hi))| (p.0, lo, hi))
+        .collect()
+}
+
 /// Draws each group's mean moving average over seeds as a line, with a shaded band from the
-/// lowest to the highest seed.
-pub fn plot_groups(groups: &[Group], title: &str, window: usize, out: &Path) -> anyhow::Result<()> {
+/// lowest to the highest seed; each bounded curve's moving average as a grey band between its
+/// bounds ([`moving_bounds`]).
+pub fn plot_groups(
+    groups: &[Group],
+    bounded: &[Bounded],
+    title: &str,
+    window: usize,
+    out: &Path,
+) -> anyhow::Result<()> {
     let bands: Vec<Vec<(f64, f64, f64, f64)>> =
         groups.iter().map(|g| mean_band(&g.seeds, window)).collect();
+    let limits: Vec<Vec<(f64, f64, f64)>> =
+        bounded.iter().map(|b| moving_bounds(b, window)).collect();
     let max_x = bands
         .iter()
         .flat_map(|b| b.iter().map(|p| p.0))
+        .chain(limits.iter().flat_map(|b| b.iter().map(|p| p.0)))
         .fold(1.0, f64::max);
     let max_y = bands
         .iter()
         .flat_map(|b| b.iter().map(|p| p.3))
+        .chain(limits.iter().flat_map(|b| b.iter().map(|p| p.2)))
         .fold(10.0, f64::max);
     let y_desc = format!("reward per episode ({window}-episode moving average)");
     figure(out, title, "episode", &y_desc, (max_x, max_y), |chart| {
+        for (b, limit) in bounded.iter().zip(&limits) {
+            let grey = RGBColor(110, 110, 110);
+            let mut outline: Vec<(f64, f64)> = limit.iter().map(|p| (p.0, p.2)).collect();
+            outline.extend(limit.iter().rev().map(|p| (p.0, p.1)));
+            chart.draw_series(std::iter::once(Polygon::new(outline, grey.mix(0.18))))?;
+            for edge in [1, 2] {
+                let line = limit
+                    .iter()
+                    .map(|p| (p.0, if edge == 1 { p.1 } else { p.2 }));
+                let series = chart.draw_series(LineSeries::new(line, grey.stroke_width(1)))?;
+                if edge == 1 {
+                    series.label(b.label.clone()).legend(move |(x, y)| {
+                        Rectangle::new([(x, y - 5), (x + 20, y + 5)], grey.mix(0.35).filled())
+                    });
+                }
+            }
+        }
         for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
             let label = format!("{} (mean of {} seeds)", g.label, g.seeds.len());
             draw_band(chart, band, Palette99::pick(i), label)?;
@@ -453,5 +559,80 @@ mod tests {
             band,
             vec![(50.0, 15.0, 10.0, 20.0), (100.0, 25.0, 20.0, 30.0)]
         );
+    }
+
+    fn write(name: &str, text: &str) -> std::path::PathBuf {
+        let path =
+            std::env::temp_dir().join(format!("invaders-plot-{}-{name}", std::process::id()));
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    const HEADER: &str = "pixel_col,episode_x_from,episode_x_to,first_episode_index,last_episode_index,reward_min,reward_max,reward_per_pixel\n";
+
+    /// Columns expand into one bound per episode, widened by a pixel (and never below 0); the
+    /// moving bounds are the moving averages of the two edges.
+    #[test]
+    fn a_digitised_plot_bounds_each_episode_and_its_moving_average() {
+        let path = write(
+            "ok.csv",
+            &format!("{HEADER}48,-0.7,1.9,0,1,2.0,60.0,4.5\n49,1.9,4.5,2,4,100.0,130.0,4.5\n"),
+        );
+        let curve = read_digitized(&path, "nb").unwrap();
+        assert_eq!(
+            curve.points,
+            vec![
+                (1.0, 0.0, 64.5),
+                (2.0, 0.0, 64.5),
+                (3.0, 95.5, 134.5),
+                (4.0, 95.5, 134.5),
+                (5.0, 95.5, 134.5),
+            ]
+        );
+        let m = moving_bounds(&curve, 2);
+        assert_eq!(m[0], (1.0, 0.0, 64.5));
+        assert_eq!(m[2], (3.0, 47.75, 99.5));
+        assert_eq!(m[4], (5.0, 95.5, 134.5));
+        let _ = std::fs::remove_file(path);
+    }
+
+    /// A gap or an overlap between columns, a wrong header, a short row: each a clear error.
+    #[test]
+    fn a_malformed_digitised_plot_is_refused() {
+        for (name, text, says) in [
+            (
+                "gap",
+                format!("{HEADER}1,0,1,0,1,1,2,4\n2,1,2,3,4,1,2,4\n"),
+                "not 2",
+            ),
+            (
+                "overlap",
+                format!("{HEADER}1,0,1,0,1,1,2,4\n2,1,2,1,4,1,2,4\n"),
+                "not 2",
+            ),
+            ("header", "episode,reward\n1,2\n".to_string(), "header"),
+            ("short", format!("{HEADER}1,0,1,0,1,1,2\n"), "line 2"),
+            ("reversed", format!("{HEADER}1,0,1,0,1,5,2,4\n"), "line 2"),
+            ("empty", HEADER.to_string(), "no columns"),
+        ] {
+            let path = write(name, &text);
+            let err = read_digitized(&path, "nb").err().map(|e| format!("{e:#}"));
+            assert!(
+                err.as_deref().is_some_and(|e| e.contains(says)),
+                "{name}: {err:?}"
+            );
+            let _ = std::fs::remove_file(path);
+        }
+    }
+
+    /// The committed digitisation of the notebook's plot reads whole: about 800 episodes.
+    #[test]
+    fn the_notebooks_digitised_plot_reads() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/docs/experiment/notebook/plot-digitized.csv"
+        );
+        let curve = read_digitized(Path::new(path), "nb").unwrap();
+        assert_eq!(curve.points.len(), 799);
     }
 }

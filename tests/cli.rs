@@ -606,3 +606,87 @@ fn experiment_strong_trains_evaluates_and_reports() {
     assert_eq!(std::fs::read_to_string(&kept).unwrap(), text);
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// The article's experiment (issue 23's command) end to end at a toy budget: the three presets
+/// and an extra pipeline trained, each evaluated both ways, the table and the figure (with the
+/// notebook's digitised curve) written; a bad notebook file fails before anything trains, and
+/// the command run again trains nothing.
+#[test]
+fn experiment_preprocessing_trains_evaluates_and_reports() {
+    let root = tmp("experiment-preprocessing");
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = root.join("tiny.toml");
+    std::fs::write(
+        &cfg,
+        "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n[env]\nmax_episode_steps = 300\n",
+    )
+    .unwrap();
+    let out = root.join("exp");
+    let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
+    let notebook = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/docs/experiment/notebook/plot-digitized.csv"
+    );
+    let args = |nb: &str| -> Vec<String> {
+        [
+            "experiment",
+            "preprocessing",
+            "--episodes",
+            "1",
+            "--seeds",
+            "1",
+            "--eval-episodes",
+            "1",
+            "--pipeline",
+            "stack-running-max",
+            "--jobs",
+            "2",
+            "--config",
+            cfg_s,
+            "--notebook",
+            nb,
+            "--out",
+            out_s,
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+    };
+    let run = |args: &[String]| invaders(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let bad = root.join("bad.csv");
+    std::fs::write(&bad, "episode,reward\n1,2\n").unwrap();
+    fails_with(&run(&args(bad.to_str().unwrap())), "the header must be");
+    assert!(!out.exists(), "nothing made before the inputs are checked");
+
+    let first = ok(&run(&args(notebook)));
+    let table = std::fs::read_to_string(out.join("results.md")).unwrap();
+    for arm in [
+        "article-vanilla",
+        "article",
+        "article-as-written",
+        "article+stack-running-max",
+    ] {
+        let row = table
+            .lines()
+            .find(|l| l.starts_with(&format!("| {arm} | ")))
+            .unwrap_or_else(|| panic!("no row for {arm}:\n{table}"));
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        assert_eq!(cells[2], "1", "seeds: {row}");
+        for (i, what) in [(3, "training"), (4, "evaluation"), (5, "protocol")] {
+            assert!(
+                cells[i].parse::<f64>().is_ok_and(|v| v >= 0.0),
+                "{what} score of {arm}: {row}"
+            );
+        }
+        assert!(out.join(format!("{arm}-seed0.protocol")).exists(), "{arm}");
+    }
+    assert!(std::fs::metadata(out.join("rewards.png")).unwrap().len() > 1000);
+    assert!(first.contains("article-seed0: done"), "{first}");
+    let again = ok(&run(&args(notebook)));
+    assert!(again.contains("article-seed0: already trained"), "{again}");
+    assert_eq!(
+        std::fs::read_to_string(out.join("results.md")).unwrap(),
+        table
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -32,7 +32,8 @@ use invaders::dqn::checkpoint;
 use invaders::dqn::{Config, Preset, STRONG_FRAMES};
 use invaders::env::Pipeline;
 use invaders::plot::{
-    plot_groups, plot_groups_frames, read_frame_metrics, read_metrics, read_references, Group,
+    plot_groups, plot_groups_frames, read_digitized, read_frame_metrics, read_metrics,
+    read_references, Group,
 };
 
 #[derive(Debug, Subcommand)]
@@ -127,6 +128,11 @@ pub struct PreprocessingArgs {
     /// A TOML file of overrides applied to every run (e.g. a shorter ε decay for a small budget).
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// The article's notebook's own curve, digitised from its plot
+    /// (`docs/experiment/notebook/plot-digitized.csv`), drawn as the band its 100-episode mean
+    /// lies in.
+    #[arg(long, value_name = "CSV")]
+    notebook: Option<PathBuf>,
     /// The experiment directory.
     #[arg(long, default_value = "runs/experiment-preprocessing")]
     out: PathBuf,
@@ -180,6 +186,14 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
             std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?
         }
         None => String::new(),
+    };
+    // Read before hours of training, so a bad file fails now.
+    let notebook = match &args.notebook {
+        Some(p) => vec![read_digitized(
+            p,
+            "the article's notebook (stacked, running max), digitised: its mean lies in the band",
+        )?],
+        None => Vec::new(),
     };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
@@ -248,7 +262,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         "Space Invaders: {} episodes, {} seed(s) per configuration",
         args.episodes, args.seeds
     );
-    plot_groups(&groups, &title, 100, &png)?;
+    plot_groups(&groups, &notebook, &title, 100, &png)?;
     let table = format!(
         "# Preprocessing experiment\n\nCommand: `{}`\n\nBudget: {} episodes per run, {} seed(s) per configuration; evaluation over {} episodes with ε = 0.05 in the run's own game (the article's: `v0`), and by the evaluation protocol ({PROTOCOL_EPISODES} episodes of `v5`, ε = {PROTOCOL_EPSILON}, seed {PROTOCOL_SEED}).\n\n| configuration | seeds | mean reward, last 100 episodes | evaluation score | protocol score |\n| --- | --- | --- | --- | --- |\n{}\n\nMeans over seeds ± their standard deviation (population). Figure: `rewards.png`.\n",
         command_line(),

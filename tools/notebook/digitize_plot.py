@@ -1,6 +1,6 @@
 """Digitises the reward curve the article's notebook plots (`plt.plot(history)`, cell 32 of
 TF2_SpaceInvaders_GC.ipynb) from its saved PNG: for each pixel column, the episodes it covers and
-the vertical extent of the line in reward units (see docs/experiment/notebook/README.md).
+the vertical extent of the line in reward units, and one pixel row in reward units (see docs/experiment/notebook/README.md).
 
 usage: python3 tools/notebook/digitize_plot.py PLOT.png [COVERAGE_THRESHOLD] > plot-digitized.csv
 """
@@ -35,5 +35,7 @@ for x in range(34,368):
     import math
     e0=max(0,math.ceil(lo)); e1=math.ceil(hi)-1
     rows.append((x,lo,hi,e0,e1,rw(bot),rw(top)))
-print('pixel_col,episode_x_from,episode_x_to,first_episode_index,last_episode_index,reward_min,reward_max')
-for r in rows: print('%d,%.2f,%.2f,%d,%d,%.1f,%.1f'%r)
+# One pixel row in reward units: every episode lies within a column's extent to about this.
+px=abs(1/sy)
+print('pixel_col,episode_x_from,episode_x_to,first_episode_index,last_episode_index,reward_min,reward_max,reward_per_pixel')
+for r in rows: print('%d,%.2f,%.2f,%d,%d,%.1f,%.1f,%.2f'%(r+(px,)))
