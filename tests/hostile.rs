@@ -382,9 +382,13 @@ fn no_input_panics_aborts_or_hangs() {
 fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
     let root = tmp("experiment-signals");
     std::fs::create_dir_all(&root).unwrap();
-    let cfg = config(&root, FAST);
+    // No periodic checkpoint: the one the test finds must be the stop's.
+    let cfg = config(
+        &root,
+        &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
+    );
     let out = root.join("exp");
-    let mut child = bin()
+    let child = bin()
         .args([
             "experiment",
             "strong",
@@ -403,6 +407,31 @@ fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
+    // Whatever happens below, no process outlives the test: the experiment is asked twice (it
+    // passes both on, which stops its run at once), then the run itself, by its lock's pid.
+    struct Reaper(std::process::Child, PathBuf);
+    impl Drop for Reaper {
+        fn drop(&mut self) {
+            if self.0.try_wait().ok().flatten().is_some() {
+                return;
+            }
+            let group = format!("-{}", self.0.id());
+            for _ in 0..2 {
+                let _ = Command::new("kill").args(["-TERM", "--", &group]).status();
+                std::thread::sleep(std::time::Duration::from_millis(300));
+            }
+            // "pid N, started …", written by the run that holds it.
+            let lock = std::fs::read_to_string(self.1.join("strong-seed1/.lock"));
+            let pid = lock.as_deref().unwrap_or("").strip_prefix("pid ");
+            if let Some(pid) = pid.and_then(|p| p.split(',').next()) {
+                let _ = Command::new("kill").args(["-KILL", pid]).status();
+            }
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let mut guard = Reaper(child, out.clone());
+    let child = &mut guard.0;
     let log = out.join("strong-seed1.log");
     let started = std::time::Instant::now();
     while !std::fs::read_to_string(&log).is_ok_and(|t| t.contains("\nep 3 ")) {
@@ -422,10 +451,10 @@ fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
         if let Some(status) = child.try_wait().unwrap() {
             break status;
         }
-        if waited.elapsed().as_secs() > 120 {
-            child.kill().unwrap();
-            panic!("the experiment did not stop within 120 s of a Ctrl-C");
-        }
+        assert!(
+            waited.elapsed().as_secs() < 120,
+            "the experiment did not stop within 120 s of a Ctrl-C"
+        );
         std::thread::sleep(std::time::Duration::from_millis(100));
     };
     let mut stderr = String::new();

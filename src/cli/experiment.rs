@@ -14,9 +14,18 @@
 //! `results.md` (the table, with the command and budget) into `--out`. Re-running the same
 //! command continues unfinished runs and skips finished ones.
 //!
-//! A Ctrl-C (or SIGTERM) stops the whole experiment and loses nothing: the runs stop after their
-//! episode with a checkpoint, no new run or evaluation starts, and the command exits with 130
-//! (see [`stop`]).
+//! A Ctrl-C (or SIGTERM, or SIGHUP from a closed terminal) before the end stops the whole
+//! experiment and loses nothing: the runs stop after their episode with a checkpoint, no new run
+//! or evaluation starts, and the command exits with 130 (see [`stop`]).
+
+/// A line on stderr, whatever becomes of it: a closed pipe (`… 2>&1 | tee log` after a Ctrl-C)
+/// or a closed terminal makes `eprintln!` panic, and a message must not cost a stop its runs.
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -222,7 +231,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
             });
         }
     }
-    eprintln!(
+    say!(
         "{} runs of {} episodes, into {}",
         jobs.len(),
         args.episodes,
@@ -288,7 +297,8 @@ fn mean_std(xs: &[f64]) -> String {
 }
 
 /// Trains every job to `budget`, `jobs` at a time (default: one per core), each continued if it
-/// exists; fails after all have stopped if any failed.
+/// exists; fails after all have stopped if any failed, and returns [`Interrupted`] if a run was
+/// stopped by a signal (then no further run starts).
 fn train_all(
     exe: &Path,
     jobs: &[Job<'_>],
@@ -337,7 +347,8 @@ fn train_all(
     Ok(())
 }
 
-/// Trains one run to `budget`, continuing it if it exists.
+/// Trains one run to `budget`, continuing it if it exists; [`Interrupted`] if a signal stopped it
+/// (or a stop came before it started).
 fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
     let (label, seed, dir) = (job.label, job.seed, &job.dir);
     let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
@@ -345,9 +356,10 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
     if ckpt.exists() {
         let counters = checkpoint::load(&ckpt)?.counters;
         if budget.done(&counters) {
-            eprintln!(
+            say!(
                 "{label}-seed{seed}: already trained ({} episodes, {} frames)",
-                counters.episodes, counters.frames
+                counters.episodes,
+                counters.frames
             );
             return Ok(());
         }
@@ -376,12 +388,21 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
         .create(true)
         .append(true)
         .open(&log_path)?;
-    eprintln!("{label}-seed{seed}: training (log: {})", log_path.display());
-    let status = stop::run(cmd.stdout(log.try_clone()?).stderr(log))
-        .context("cannot start invaders train")?
-        .status;
+    say!("{label}-seed{seed}: training (log: {})", log_path.display());
+    let Some(out) =
+        stop::run(cmd.stdout(log.try_clone()?).stderr(log)).context("cannot run invaders train")?
+    else {
+        return Err(Interrupted.into());
+    };
+    let status = out.status;
     if status.code() == Some(130) {
-        eprintln!("{label}-seed{seed}: stopped with a checkpoint");
+        say!("{label}-seed{seed}: stopped with a checkpoint");
+        return Err(Interrupted.into());
+    }
+    // Killed by the stop before it could catch it (while it loaded its replay memory, say):
+    // nothing of it was lost, and this is a stop, not a failure.
+    if stop::requested() && std::os::unix::process::ExitStatusExt::signal(&status).is_some() {
+        say!("{label}-seed{seed}: stopped before it trained");
         return Err(Interrupted.into());
     }
     if !status.success() {
@@ -390,7 +411,7 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
             log_path.display()
         ));
     }
-    eprintln!("{label}-seed{seed}: done");
+    say!("{label}-seed{seed}: done");
     Ok(())
 }
 
@@ -402,7 +423,8 @@ fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<
 }
 
 /// Runs `invaders eval` on a run's final checkpoint with `args` (one thread) and returns its
-/// summary line (`… mean M std S min A max B`).
+/// summary line (`… mean M std S min A max B`); [`Interrupted`] if a stop came first or ended
+/// it.
 fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
     let mut cmd = Command::new(exe);
     cmd.args(["eval", "--threads", "1"])
@@ -411,10 +433,10 @@ fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
         .arg(dir)
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped());
-    let out = stop::run(&mut cmd).context("cannot start invaders eval")?;
-    if stop::requested() {
+    let out = stop::run(&mut cmd).context("cannot run invaders eval")?;
+    let Some(out) = out.filter(|_| !stop::requested()) else {
         return Err(stop::stopped());
-    }
+    };
     if !out.status.success() {
         bail!(
             "eval of {} failed: {}",
@@ -517,7 +539,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
             dir: args.out.join(format!("strong-seed{seed}")),
         })
         .collect();
-    eprintln!(
+    say!(
         "{} runs of {} frames, into {}",
         jobs.len(),
         args.frames,
@@ -592,22 +614,48 @@ fn command_line() -> String {
         .join(" ")
 }
 
-/// Stopping an experiment: its child processes run in process groups of their own, so a Ctrl-C
-/// at the terminal reaches this process alone, and it passes each Ctrl-C or SIGTERM on to every
-/// running child exactly once, as SIGTERM. A training takes the first as `train` takes a Ctrl-C
-/// (it stops after the current episode, with a checkpoint) and a second as "stop at once" (its
-/// last checkpoint is kept); an evaluation ends at once and is played again next time.
+/// Stopping an experiment. Its child processes run in process groups of their own, so a Ctrl-C
+/// at the terminal reaches this process alone, and it passes each Ctrl-C, SIGTERM or SIGHUP on to
+/// every running child exactly once, as SIGTERM. A training takes the first as `train` takes a
+/// Ctrl-C (it stops after the current episode, with a checkpoint) and a second as "stop at once"
+/// (its last checkpoint is kept); an evaluation ends at once and is played again next time. On
+/// Linux a child also gets SIGTERM if this process dies without passing anything on (SIGKILL,
+/// the OOM killer). Ctrl-Z suspends this process only: its runs go on training.
+///
+/// A signal to the experiment's process group (`kill -- -PGID`) reaches the experiment alone,
+/// which passes it on once. A signal to every process at once (a service manager stopping a
+/// whole control group) reaches each run twice, directly and passed on: the run then stops at
+/// once and keeps its last periodic checkpoint.
 mod stop {
-    use std::process::{Command, Output};
-    use std::sync::Mutex;
+    use std::process::{Command, Output, Stdio};
+    use std::sync::{Mutex, MutexGuard};
 
-    /// Signals received so far, and the children running now (process ids). One lock for both,
-    /// so that a child started while a signal arrives gets it once, not twice or never.
-    static STATE: Mutex<(u32, Vec<u32>)> = Mutex::new((0, Vec::new()));
+    struct State {
+        /// Signals received so far.
+        signals: u32,
+        /// The children running now (process ids).
+        children: Vec<u32>,
+        /// Whether the handler is in place (else children stay in this process's group, where
+        /// a terminal's Ctrl-C reaches them directly).
+        caught: bool,
+    }
+
+    /// One lock for all of it, so that a child is started only while no stop has been asked
+    /// for, and every child on the list gets each signal once.
+    static STATE: Mutex<State> = Mutex::new(State {
+        signals: 0,
+        children: Vec::new(),
+        caught: false,
+    });
+
+    fn state() -> MutexGuard<'static, State> {
+        STATE.lock().unwrap_or_else(|e| e.into_inner())
+    }
 
     fn term(pid: u32) {
         // SAFETY: `kill` touches no memory of ours. `pid` is a child not reaped yet (`run` takes
-        // it off the list before it reaps it), so it names that child and no other process.
+        // it off the list before it reaps it, and `catch` makes sure the system does not reap
+        // it first), so it names that child and no other process.
         unsafe {
             libc::kill(pid as libc::pid_t, libc::SIGTERM);
         }
@@ -615,47 +663,66 @@ mod stop {
 
     /// Installs the handler (once, before any child starts).
     pub fn catch() {
+        // SAFETY: setting a signal's disposition to the default touches no memory of ours. With
+        // SIGCHLD ignored (a disposition `exec` keeps), the system would reap children itself.
+        unsafe {
+            libc::signal(libc::SIGCHLD, libc::SIG_DFL);
+        }
         let set = ctrlc::set_handler(|| {
-            let mut state = STATE.lock().unwrap_or_else(|e| e.into_inner());
-            state.0 += 1;
-            if state.0 == 1 {
-                eprintln!(
+            // ctrlc runs this on a thread of its own, not in the signal handler: a lock is fine.
+            let first = {
+                let mut s = state();
+                s.signals += 1;
+                s.children.iter().copied().for_each(term);
+                s.signals == 1
+            };
+            if first {
+                say!(
                     "\nstopping: the runs stop after their episode with a checkpoint; the same \
                      command continues them (Ctrl-C again to stop them at once)"
                 );
+            } else {
+                say!("\nstopping the runs at once: each keeps its last checkpoint");
             }
-            state.1.iter().copied().for_each(term);
         });
-        if let Err(e) = set {
-            eprintln!("warning: Ctrl-C will stop the experiment at once ({e})");
+        match set {
+            Ok(()) => state().caught = true,
+            Err(e) => {
+                say!("warning: a Ctrl-C will not reach the runs through the experiment ({e})")
+            }
         }
     }
 
-    /// Whether a Ctrl-C or SIGTERM has arrived.
+    /// Whether a Ctrl-C, SIGTERM or SIGHUP has arrived.
     pub fn requested() -> bool {
-        STATE.lock().unwrap_or_else(|e| e.into_inner()).0 > 0
+        state().signals > 0
     }
 
     /// The error an experiment stopped by a signal returns (the program exits with 130).
     pub fn stopped() -> anyhow::Error {
-        eprintln!("experiment stopped; run the same command again to continue it");
+        say!("experiment stopped; run the same command again to continue it");
         super::Interrupted.into()
     }
 
-    /// Runs `cmd` to its end in a process group of its own, where a stop reaches it, and returns
-    /// its status and whatever output was piped.
-    pub fn run(cmd: &mut Command) -> std::io::Result<Output> {
+    /// Runs `cmd` to its end where a stop reaches it (see the module), with no input, and
+    /// returns its status and whatever output was piped; `None` if a stop came before it could
+    /// start.
+    pub fn run(cmd: &mut Command) -> std::io::Result<Option<Output>> {
         use std::io::Read;
-        use std::os::unix::process::CommandExt;
-        let mut child = cmd.process_group(0).spawn()?;
-        let pid = child.id();
-        {
-            let mut state = STATE.lock().unwrap_or_else(|e| e.into_inner());
-            state.1.push(pid);
-            if state.0 > 0 {
-                term(pid);
+        let mut child = {
+            let mut s = state();
+            if s.signals > 0 {
+                return Ok(None);
             }
-        }
+            if s.caught {
+                std::os::unix::process::CommandExt::process_group(cmd, 0);
+            }
+            die_with_parent(cmd);
+            let child = cmd.stdin(Stdio::null()).spawn()?;
+            s.children.push(child.id());
+            child
+        };
+        let pid = child.id();
         fn drain(pipe: Option<impl Read>) -> Vec<u8> {
             let mut bytes = Vec::new();
             if let Some(mut pipe) = pipe {
@@ -672,8 +739,8 @@ mod stop {
             loop {
                 // SAFETY: a zeroed `siginfo_t` (plain integers) is a valid value, and `info` is
                 // a valid place for `waitid` to write one to.
-                let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
                 let rc = unsafe {
+                    let mut info: libc::siginfo_t = std::mem::zeroed();
                     libc::waitid(
                         libc::P_PID,
                         pid as libc::id_t,
@@ -687,17 +754,37 @@ mod stop {
                     break;
                 }
             }
-            STATE
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .1
-                .retain(|&p| p != pid);
+            state().children.retain(|&p| p != pid);
             let status = child.wait()?;
-            Ok(Output {
+            Ok(Some(Output {
                 status,
                 stdout: stdout.join().unwrap_or_default(),
                 stderr: stderr.join().unwrap_or_default(),
-            })
+            }))
         })
+    }
+
+    /// On Linux, SIGTERM to the child when the thread that started it ends: `run` waits for the
+    /// child on that thread, so only this process's death ends it first.
+    fn die_with_parent(cmd: &mut Command) {
+        #[cfg(target_os = "linux")]
+        {
+            use std::os::unix::process::CommandExt;
+            let parent = std::process::id();
+            // SAFETY: between fork and exec the closure calls only `prctl` and `getppid`, both
+            // async-signal-safe, and allocates nothing.
+            unsafe {
+                cmd.pre_exec(move || {
+                    libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                    // The parent may have died before the request was made.
+                    if libc::getppid() as u32 != parent {
+                        return Err(std::io::Error::from_raw_os_error(libc::ESRCH));
+                    }
+                    Ok(())
+                });
+            }
+        }
+        #[cfg(not(target_os = "linux"))]
+        let _ = cmd;
     }
 }

@@ -103,6 +103,8 @@ const RUN_FILES: [&str; 4] = [
 ];
 
 fn train(args: &TrainArgs) -> anyhow::Result<()> {
+    // First, so that a signal while the run loads (a replay memory takes seconds) stops it too.
+    catch_signals();
     if args.frames == Some(0) {
         bail!("--frames must be at least 1 (without a frame budget, give --episodes)");
     }
@@ -426,16 +428,20 @@ impl std::fmt::Display for Interrupted {
 
 impl std::error::Error for Interrupted {}
 
-/// The first Ctrl-C or SIGTERM asks the run to stop after the current episode; the second stops
-/// the program at once.
+/// A line on stderr that cannot panic: with stderr a closed pipe or terminal, `eprintln!` would,
+/// and a stop must still happen.
+fn say(line: &str) {
+    let _ = writeln!(std::io::stderr(), "{line}");
+}
+
+/// The first Ctrl-C, SIGTERM or SIGHUP asks the run to stop after the current episode; the second
+/// stops the program at once.
 fn catch_signals() {
     let set = ctrlc::set_handler(|| {
         if SIGNALS.fetch_add(1, Ordering::SeqCst) == 0 {
-            eprintln!(
-                "\nstopping after this episode, with a checkpoint (Ctrl-C again to stop at once)"
-            );
+            say("\nstopping after this episode, with a checkpoint (Ctrl-C again to stop at once)");
         } else {
-            eprintln!("\nstopped at once: the last checkpoint is kept");
+            say("\nstopped at once: the last checkpoint is kept");
             std::process::exit(130);
         }
     });
@@ -449,9 +455,15 @@ fn train_loop(
     dir: &Path,
     log_rss: Option<u64>,
 ) -> anyhow::Result<()> {
-    catch_signals();
     let config = agent.config.clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
+    if SIGNALS.load(Ordering::SeqCst) > 0 {
+        say(&format!(
+            "stopped before the first episode; continue with --resume {}",
+            dir.display()
+        ));
+        return Err(Interrupted.into());
+    }
     let mut saved_episode = agent.counters.episodes;
     let (mut metrics, mut points) =
         reopen_metrics(&dir.join("metrics.csv"), agent.counters.episodes)?;
