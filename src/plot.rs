@@ -267,25 +267,34 @@ pub fn read_digitized(path: &Path, label: &str) -> anyhow::Result<Bounded> {
     }
     let mut points: Vec<(f64, f64, f64)> = Vec::new();
     for (n, line) in lines.enumerate() {
-        let bad = || anyhow!("{}: line {} is malformed", path.display(), n + 2);
+        let at = || format!("{} line {}", path.display(), n + 2);
         let f: Vec<f64> = line
             .split(',')
-            .map(|v| v.parse::<f64>().map_err(|_| bad()))
-            .collect::<Result<_, _>>()?;
-        let [_, _, _, first, last, min, max, px] = f[..] else {
-            return Err(bad());
-        };
-        let ordered = first.fract() == 0.0 && first >= 0.0 && last >= first && max >= min;
-        if !(ordered && px.is_finite() && px >= 0.0 && min.is_finite() && max.is_finite()) {
-            return Err(bad());
-        }
-        if points.len() as f64 != first {
+            .map(|v| v.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .ok()
+            .filter(|f: &Vec<f64>| f.len() == 8 && f.iter().all(|v| v.is_finite()))
+            .ok_or_else(|| anyhow!("{}: 8 finite numbers expected", at()))?;
+        let (first, last, min, max, px) = (f[3], f[4], f[5], f[6], f[7]);
+        if first != points.len() as f64 {
             anyhow::bail!(
-                "{}: line {} starts at episode index {first}, not {} (columns must cover the \
+                "{}: the column starts at episode index {first}, not {} (columns cover the \
                  episodes in order, each once)",
-                path.display(),
-                n + 2,
+                at(),
                 points.len()
+            );
+        }
+        // A plot of at most a million episodes: a bad last index must not fill the memory.
+        if last.fract() != 0.0 || last < first || last >= 1e6 {
+            anyhow::bail!(
+                "{}: the last episode index ({last}) must be a whole number from {first} below a million",
+                at()
+            );
+        }
+        if min > max || px < 0.0 {
+            anyhow::bail!(
+                "{}: reward_min ({min}) above reward_max ({max}) or a negative pixel size ({px})",
+                at()
             );
         }
         for _ in first as usize..=last as usize {
@@ -611,8 +620,31 @@ mod tests {
                 "not 2",
             ),
             ("header", "episode,reward\n1,2\n".to_string(), "header"),
-            ("short", format!("{HEADER}1,0,1,0,1,1,2\n"), "line 2"),
-            ("reversed", format!("{HEADER}1,0,1,0,1,5,2,4\n"), "line 2"),
+            (
+                "short",
+                format!("{HEADER}1,0,1,0,1,1,2\n"),
+                "8 finite numbers",
+            ),
+            (
+                "nan",
+                format!("{HEADER}1,0,1,0,1,1,NaN,4\n"),
+                "8 finite numbers",
+            ),
+            (
+                "reversed",
+                format!("{HEADER}1,0,1,0,1,5,2,4\n"),
+                "above reward_max",
+            ),
+            (
+                "fraction",
+                format!("{HEADER}1,0,1,0,1.5,1,2,4\n"),
+                "whole number",
+            ),
+            (
+                "huge",
+                format!("{HEADER}1,0,1,0,1e12,1,2,4\n"),
+                "below a million",
+            ),
             ("empty", HEADER.to_string(), "no columns"),
         ] {
             let path = write(name, &text);
@@ -623,6 +655,30 @@ mod tests {
             );
             let _ = std::fs::remove_file(path);
         }
+    }
+
+    /// The bounded curve is drawn: the same groups with and without it make different images.
+    #[test]
+    fn a_bounded_curve_changes_the_figure() {
+        let groups = [Group {
+            label: "a".to_string(),
+            seeds: vec![(1..=50).map(|e| (e as f64, 100.0)).collect()],
+        }];
+        let bounded = [Bounded {
+            label: "nb".to_string(),
+            points: (1..=50).map(|e| (e as f64, 20.0, 60.0)).collect(),
+        }];
+        let (with, without) = (
+            std::env::temp_dir().join(format!("invaders-plot-{}-with.png", std::process::id())),
+            std::env::temp_dir().join(format!("invaders-plot-{}-without.png", std::process::id())),
+        );
+        plot_groups(&groups, &bounded, "t", 10, &with).unwrap();
+        plot_groups(&groups, &[], "t", 10, &without).unwrap();
+        assert_ne!(
+            std::fs::read(&with).unwrap(),
+            std::fs::read(&without).unwrap()
+        );
+        let _ = (std::fs::remove_file(with), std::fs::remove_file(without));
     }
 
     /// The committed digitisation of the notebook's plot reads whole: about 800 episodes.

@@ -77,16 +77,16 @@ proptest! {
     }
 }
 
-/// Values that are already bf16 multiply exactly: a dot product of small integers is exact on
-/// every path, whatever the order of the sums.
-/// A value of any kind the packing must round: normal over many binades, subnormal, zero of
-/// either sign, infinite, NaN, and values halfway between two bf16 values (ties to even).
+/// A value of any kind the packing must round: normal over many binades, subnormal, zero and
+/// infinity of either sign, quiet and signalling NaNs of either sign, and values halfway between
+/// two bf16 values (ties to even).
 fn any_f32(r: &mut impl Rng) -> f32 {
+    let sign = |r: &mut dyn rand::RngCore| if r.random::<bool>() { 0x8000_0000 } else { 0 };
     match r.random_range(0..8) {
-        0 => f32::from_bits(r.random_range(1..0x0080_0000)), // subnormal
+        0 => f32::from_bits(r.random_range(1..0x0080_0000) | sign(r)), // subnormal
         1 => [0.0, -0.0, f32::INFINITY, f32::NEG_INFINITY][r.random_range(0..4)],
-        2 => f32::from_bits(0x7FC0_0000 | r.random_range(0..0x0040_0000)), // NaN
-        3 => f32::from_bits((r.random::<u32>() & 0xFFFF_0000) | 0x8000),   // a tie
+        2 => f32::from_bits(0x7F80_0000 | r.random_range(1..0x0080_0000) | sign(r)), // NaN
+        3 => f32::from_bits((r.random::<u32>() & 0xFFFF_0000) | 0x8000),             // a tie
         _ => draw(r),
     }
 }
@@ -132,6 +132,8 @@ proptest! {
     }
 }
 
+/// Values that are already bf16 multiply exactly: a dot product of small integers is exact on
+/// every path, whatever the order of the sums.
 #[test]
 fn exact_operands_give_exact_sums() {
     let a: Vec<f32> = (0..77).map(|i| (i % 13) as f32 - 6.0).collect();

@@ -684,6 +684,10 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
     assert!(first.contains("article-seed0: done"), "{first}");
     let again = ok(&run(&args(notebook)));
     assert!(again.contains("article-seed0: already trained"), "{again}");
+    assert!(
+        !again.contains(": training (log"),
+        "nothing trains again: {again}"
+    );
     assert_eq!(
         std::fs::read_to_string(out.join("results.md")).unwrap(),
         table

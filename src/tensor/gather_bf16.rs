@@ -174,8 +174,9 @@ fn pair_word(lo: f32, hi: f32) -> u32 {
     u32::from(to_bf16(lo)) | u32::from(to_bf16(hi)) << 16
 }
 
-/// `dst` as 32-bit words, one per pair, if it is aligned for them (a buffer from the allocator
-/// always is); written a word at a time, the packing loops below run 16 pairs wide.
+/// `dst` as 32-bit words, one per pair, on a little-endian CPU when `dst` is aligned for them and
+/// of even length (a whole buffer from the allocator always is); written a word at a time, the
+/// packing loops below run 16 pairs wide. `None` otherwise, and they write `u16` by `u16`.
 fn pair_words(dst: &mut [u16]) -> Option<&mut [u32]> {
     if cfg!(target_endian = "little") {
         bytemuck::try_cast_slice_mut(dst).ok()
@@ -599,5 +600,26 @@ mod tests {
         assert_eq!(pack_pairs(&src, 3, 2, 3, &mut dst), 2);
         let f: Vec<f32> = dst.iter().map(|&b| from_bf16(b)).collect();
         assert_eq!(f, [1.0, 3.0, 2.0, 4.0, 5.0, 0.0, 6.0, 0.0]);
+    }
+
+    /// The packing loops give the same bits written a pair word at a time (an aligned buffer)
+    /// and `u16` by `u16` (the same buffer one place on, misaligned for words).
+    #[test]
+    fn word_and_halfword_packing_agree() {
+        let src: Vec<f32> = (0..7 * 5).map(|i| (i as f32 - 11.3) * 0.37).collect();
+        let (rows, cols, ld) = (7usize, 4, 5);
+        let len = 2 * rows.div_ceil(2) * cols;
+        let (mut words, mut halves) = (vec![0u16; len], vec![0u16; len + 1]);
+        assert!(pair_words(&mut words).is_some() && pair_words(&mut halves[1..]).is_none());
+        pack_rows(&src, rows, cols, ld, &mut words);
+        pack_rows(&src, rows, cols, ld, &mut halves[1..]);
+        assert_eq!(words, halves[1..]);
+        for d in [0, 3, 34, 35, 40] {
+            let (mut words, mut halves) =
+                (vec![0u16; 2 * src.len()], vec![0u16; 2 * src.len() + 1]);
+            pack_shift(&src, d, &mut words);
+            pack_shift(&src, d, &mut halves[1..]);
+            assert_eq!(words, halves[1..], "d = {d}");
+        }
     }
 }
