@@ -238,7 +238,15 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     train_all(&exe, &jobs, args.jobs, Budget::Episodes(args.episodes))?;
-    // Evaluate every final checkpoint, then the figure and the table.
+    // Evaluate every final checkpoint both ways (side by side), then the figure and the table.
+    let scores = for_all(&jobs, worker_count(args.jobs), |job| {
+        let eval = evaluate(&exe, &job.dir, args.eval_episodes, 1000 + job.seed)?;
+        Ok((
+            eval,
+            evaluate_protocol(&exe, &job.dir, PROTOCOL_EPISODES)?.mean,
+        ))
+    })?;
+    let mut scores = scores.into_iter();
     let mut rows = Vec::new();
     let mut groups = Vec::new();
     for arm in &arms {
@@ -249,8 +257,9 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
             let points = read_metrics(&dir.join("metrics.csv"))?;
             let tail = &points[points.len().saturating_sub(100)..];
             last100.push(tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64);
-            evals.push(evaluate(&exe, &dir, args.eval_episodes, 1000 + seed)?);
-            protocol.push(evaluate_protocol(&exe, &dir, PROTOCOL_EPISODES)?.mean);
+            let (eval, by_protocol) = scores.next().expect("a score per run, in the runs' order");
+            evals.push(eval);
+            protocol.push(by_protocol);
             seeds.push(points);
         }
         rows.push(format!(
@@ -305,13 +314,7 @@ fn train_all(
     workers: Option<usize>,
     budget: Budget,
 ) -> anyhow::Result<()> {
-    let workers = workers
-        .unwrap_or_else(|| {
-            std::thread::available_parallelism()
-                .map(|n| n.get())
-                .unwrap_or(1)
-        })
-        .max(1);
+    let workers = worker_count(workers);
     let queue = Mutex::new(jobs.iter());
     let failures = Mutex::new(Vec::new());
     // A run stopped by a signal (ours, passed on, or one sent to it alone) stops the experiment:
@@ -345,6 +348,44 @@ fn train_all(
         return Err(stop::stopped());
     }
     Ok(())
+}
+
+/// `--jobs`, or one per core.
+fn worker_count(jobs: Option<usize>) -> usize {
+    jobs.unwrap_or_else(|| {
+        std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1)
+    })
+    .max(1)
+}
+
+/// `f` of every job, `workers` at a time, in the jobs' order; the first error (in that order)
+/// if any failed. The evaluations are one process each, so they can run side by side as the
+/// trainings do; a stop ends those running and starts no more.
+fn for_all<T: Send>(
+    jobs: &[Job<'_>],
+    workers: usize,
+    f: impl Fn(&Job<'_>) -> anyhow::Result<T> + Sync,
+) -> anyhow::Result<Vec<T>> {
+    let next = Mutex::new(0..jobs.len());
+    let results: Vec<Mutex<Option<anyhow::Result<T>>>> =
+        jobs.iter().map(|_| Mutex::new(None)).collect();
+    std::thread::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|| loop {
+                let Some(i) = next.lock().expect("queue").next() else {
+                    break;
+                };
+                let r = f(&jobs[i]);
+                *results[i].lock().expect("result") = Some(r);
+            });
+        }
+    });
+    results
+        .into_iter()
+        .map(|r| r.into_inner().expect("result").expect("every job was run"))
+        .collect()
 }
 
 /// Trains one run to `budget`, continuing it if it exists; [`Interrupted`] if a signal stopped it
@@ -546,13 +587,15 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     train_all(&exe, &jobs, args.jobs, Budget::Frames(args.frames))?;
+    let scores = for_all(&jobs, worker_count(args.jobs), |job| {
+        evaluate_protocol(&exe, &job.dir, args.eval_episodes)
+    })?;
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
-    for job in &jobs {
+    for (job, s) in jobs.iter().zip(scores) {
         let c = checkpoint::load(&job.dir.join(checkpoint::CHECKPOINT_FILE))?.counters;
         let points = read_frame_metrics(&job.dir.join("metrics.csv"))?;
         let tail = &points[points.len().saturating_sub(100)..];
         let last100 = tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64;
-        let s = evaluate_protocol(&exe, &job.dir, args.eval_episodes)?;
         rows.push(format!(
             "| {} | {} | {:.2} | {:.0} | {:.1} | {:.1} ± {:.1} ({:.0}–{:.0}) |",
             job.seed,
