@@ -508,3 +508,24 @@ fn max_pooled_observation_in_nature_mode() {
         assert!(e.observation() == out.as_slice());
     }
 }
+
+/// An evaluation in another mode plays that mode's game on the frames the network was trained
+/// on: the protocol's `v5` keeps a run's max-pooling of the last two frames (and its
+/// downsampling), and does not add it to a run trained without.
+#[test]
+fn an_evaluation_keeps_what_the_network_sees() {
+    let pooled = EnvConfig {
+        max_pool_last_two: true,
+        downsample: invaders::env::preprocess::Downsample::Max,
+        ..mode(EnvMode::V0)
+    };
+    let v5 = pooled.for_evaluation(EnvMode::V5);
+    assert!(v5.max_pool_last_two);
+    assert_eq!(v5.downsample, invaders::env::preprocess::Downsample::Max);
+    assert_eq!((v5.frame_skip_min, v5.frame_skip_max), (4, 4));
+    assert_eq!(v5.sticky_prob, 0.25);
+    assert_eq!(v5.max_episode_steps, Some(27_000));
+    let plain = mode(EnvMode::V5).for_evaluation(EnvMode::Nature);
+    assert!(!plain.max_pool_last_two, "nature's pooling is not added");
+    assert_eq!(plain.noop_max, 30);
+}

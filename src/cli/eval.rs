@@ -200,7 +200,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     let mut env_config = config.env.clone();
     if let Some(mode) = plan.mode {
         // The game's dynamics change; the preprocessing the network was trained on does not.
-        env_config = env_config.with_mode(mode);
+        env_config = env_config.for_evaluation(mode);
     }
     if args.rom.is_some() {
         env_config.rom = args.rom.clone();

@@ -126,6 +126,18 @@ impl EnvConfig {
         }
     }
 
+    /// The game an evaluation in `mode` plays: `mode`'s dynamics ([`EnvConfig::with_mode`]),
+    /// but the frames the network sees made as in training. Max-pooling the last two frames
+    /// changes no dynamics, only what the network sees (Space Invaders draws some shots on
+    /// alternate frames, `examples/flicker.rs`): a network trained on pooled frames is evaluated
+    /// on pooled frames, whatever the mode, and one trained without, without.
+    pub fn for_evaluation(&self, mode: EnvMode) -> EnvConfig {
+        EnvConfig {
+            max_pool_last_two: self.max_pool_last_two,
+            ..self.with_mode(mode)
+        }
+    }
+
     /// Checks that every value is in range.
     pub fn validate(&self) -> Result<(), EnvError> {
         let bad = |m: String| Err(EnvError::InvalidConfig(m));
