@@ -59,8 +59,7 @@ fn main() {
             .collect();
         pairs.iter().sum::<f64>() / pairs.len() as f64
     };
-    for y in 0..88 {
-        let (e, o) = (rows[0][y], rows[1][y]);
+    for (y, (&e, &o)) in rows[0].iter().zip(&rows[1]).enumerate() {
         if e.abs_diff(o) * 20 > (e + o).max(1) {
             println!("row {y}: lit at even frames {e}, odd frames {o}");
         }
