@@ -549,6 +549,7 @@ fn experiment_strong_trains_evaluates_and_reports() {
         &run(&with(&["--eval-episodes", "50"])),
         "at least 100 episodes",
     );
+    fails_with(&run(&with(&["--threads", "0"])), "--threads must be");
     let bad = root.join("bad.csv");
     std::fs::write(&bad, "agent,frames\nx,1\n").unwrap();
     fails_with(
@@ -564,9 +565,22 @@ fn experiment_strong_trains_evaluates_and_reports() {
         env!("CARGO_MANIFEST_DIR"),
         "/docs/strong/dopamine-spaceinvaders.csv"
     );
-    let args = with(&["--reference", reference, "--agents", "Dopamine DQN"]);
+    // One run alone on two threads, the budget's other way.
+    let args = with(&[
+        "--reference",
+        reference,
+        "--agents",
+        "Dopamine DQN",
+        "--threads",
+        "2",
+        "--jobs",
+        "1",
+    ]);
     let first = ok(&run(&args));
+    let log = std::fs::read_to_string(out.join("strong-seed1.log")).unwrap();
+    assert!(log.contains("on 2 thread(s)"), "{log}");
     let table = std::fs::read_to_string(out.join("results.md")).unwrap();
+    assert!(table.contains("2 thread(s) each, 1 at a time"), "{table}");
     let row = table
         .lines()
         .find(|l| l.starts_with("| 1 | "))

@@ -10,7 +10,7 @@
 //! per second beside its score.
 //!
 //! Runs are separate `invaders train` processes side by side (one per core, one kernel thread
-//! each). Each experiment writes `rewards.png` (mean over seeds with a min–max band) and
+//! each; `strong --threads 2 --jobs 1` trains them one at a time on two). Each experiment writes `rewards.png` (mean over seeds with a min–max band) and
 //! `results.md` (the table, with the command and budget) into `--out`. Re-running the same
 //! command continues unfinished runs and skips finished ones.
 //!
@@ -64,6 +64,10 @@ pub struct StrongArgs {
     /// Runs trained at once (default: the number of cores).
     #[arg(long)]
     jobs: Option<usize>,
+    /// Kernel threads per run: 1 for runs side by side, 2 for one run alone on this machine
+    /// (with `--jobs 1`), the two ways the preset's budget allows.
+    #[arg(long, default_value_t = 1)]
+    threads: usize,
     /// Protocol episodes per final network (at least 100).
     #[arg(long, default_value_t = 100)]
     eval_episodes: u32,
@@ -114,6 +118,8 @@ struct Job<'a> {
     seed: u64,
     cfg: PathBuf,
     dir: PathBuf,
+    /// Kernel threads of its training (`train --threads`).
+    threads: usize,
 }
 
 #[derive(Debug, Args)]
@@ -228,6 +234,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
                 seed,
                 cfg: cfg_path.clone(),
                 dir: args.out.join(format!("{}-seed{seed}", arm.label)),
+                threads: 1,
             });
         }
     }
@@ -422,7 +429,8 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
         .arg("--out")
         .arg(dir);
     }
-    cmd.args(budget.flag()).args(["--threads", "1"]);
+    cmd.args(budget.flag())
+        .args(["--threads", &job.threads.to_string()]);
     std::fs::create_dir_all(dir.parent().unwrap_or(Path::new(".")))?;
     let log_path = dir.with_extension("log");
     let log = std::fs::OpenOptions::new()
@@ -546,8 +554,8 @@ fn parse_scores(last: &str) -> anyhow::Result<Scores> {
 
 /// `experiment strong`: the preset with seeds 1..=N, each evaluated by the protocol.
 fn strong(args: &StrongArgs) -> anyhow::Result<()> {
-    if args.seeds == 0 || args.frames == 0 {
-        bail!("--seeds and --frames must be at least 1");
+    if args.seeds == 0 || args.frames == 0 || args.threads == 0 {
+        bail!("--seeds, --frames and --threads must be at least 1");
     }
     if args.eval_episodes < PROTOCOL_EPISODES {
         bail!(
@@ -578,6 +586,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
             seed,
             cfg: cfg.clone(),
             dir: args.out.join(format!("strong-seed{seed}")),
+            threads: args.threads,
         })
         .collect();
     say!(
@@ -624,10 +633,11 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         &args.out.join("rewards.png"),
     )?;
     let table = format!(
-        "# The strong preset over {} seeds\n\nCommand: `{}`\n\nBudget: {} frames per run, one thread each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}.\n\n| seed | frames | wall hours | agent steps/s | training return, last 100 episodes | protocol score: mean ± std (min–max) |\n| --- | --- | --- | --- | --- | --- |\n{}\n\nMean protocol score over the seeds: {}. Figure: `rewards.png`.\n",
+        "# The strong preset over {} seeds\n\nCommand: `{}`\n\nBudget: {} frames per run, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}.\n\n| seed | frames | wall hours | agent steps/s | training return, last 100 episodes | protocol score: mean ± std (min–max) |\n| --- | --- | --- | --- | --- | --- |\n{}\n\nMean protocol score over the seeds: {}. Figure: `rewards.png`.\n",
         args.seeds,
         command_line(),
         args.frames,
+        args.threads,
         args.jobs.map_or("one per core".to_string(), |j| j.to_string()),
         args.eval_episodes,
         rows.join("\n"),

@@ -489,7 +489,7 @@ fn train_loop(
         "episodes"
     };
     eprintln!(
-        "training preset {} (seed {}) into {} for {} {unit}",
+        "training preset {} (seed {}) into {} for {} {unit} on {} thread(s)",
         config.preset.name(),
         config.seed,
         dir.display(),
@@ -498,6 +498,7 @@ fn train_loop(
         } else {
             total.to_string()
         },
+        rayon::current_num_threads(),
     );
     let started = Instant::now();
     let steps_at_start = agent.counters.agent_steps;
