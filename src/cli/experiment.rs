@@ -18,15 +18,6 @@
 //! experiment and loses nothing: the runs stop after their episode with a checkpoint, no new run
 //! or evaluation starts, and the command exits with 130 (see [`stop`]).
 
-/// A line on stderr, whatever becomes of it: a closed pipe (`… 2>&1 | tee log` after a Ctrl-C)
-/// or a closed terminal makes `eprintln!` panic, and a message must not cost a stop its runs.
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stderr(), $($arg)*);
-    }};
-}
-
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};

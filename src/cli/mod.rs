@@ -4,6 +4,16 @@
 use anyhow::{bail, Context};
 use clap::{Parser, Subcommand};
 
+/// A line on stderr, whatever becomes of it: a closed pipe (`… 2>&1 | tee log` after a Ctrl-C)
+/// or a closed terminal makes `eprintln!` panic, and a message must not cost a stop its work
+/// (`train`'s and `experiment`'s signal handlers and messages print with it).
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
+
 mod bench;
 mod eval;
 mod experiment;

@@ -428,20 +428,14 @@ impl std::fmt::Display for Interrupted {
 
 impl std::error::Error for Interrupted {}
 
-/// A line on stderr that cannot panic: with stderr a closed pipe or terminal, `eprintln!` would,
-/// and a stop must still happen.
-fn say(line: &str) {
-    let _ = writeln!(std::io::stderr(), "{line}");
-}
-
 /// The first Ctrl-C, SIGTERM or SIGHUP asks the run to stop after the current episode; the second
 /// stops the program at once.
 fn catch_signals() {
     let set = ctrlc::set_handler(|| {
         if SIGNALS.fetch_add(1, Ordering::SeqCst) == 0 {
-            say("\nstopping after this episode, with a checkpoint (Ctrl-C again to stop at once)");
+            say!("\nstopping after this episode, with a checkpoint (Ctrl-C again to stop at once)");
         } else {
-            say("\nstopped at once: the last checkpoint is kept");
+            say!("\nstopped at once: the last checkpoint is kept");
             std::process::exit(130);
         }
     });
@@ -458,10 +452,10 @@ fn train_loop(
     let config = agent.config.clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
     if SIGNALS.load(Ordering::SeqCst) > 0 {
-        say(&format!(
+        say!(
             "stopped before the first episode; continue with --resume {}",
             dir.display()
-        ));
+        );
         return Err(Interrupted.into());
     }
     let mut saved_episode = agent.counters.episodes;
