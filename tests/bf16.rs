@@ -9,7 +9,7 @@ use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::tensor::bf16::to_bf16;
 use invaders::tensor::bf16::{dot_bf16, dot_bf16_reference, dot_error_bound, round_bf16};
 use invaders::tensor::cpu::Family;
-use invaders::tensor::gather_bf16::{pack_pairs, pack_shifted, to_bf16_vec};
+use invaders::tensor::gather_bf16::{pack_pairs, pack_shifted, pair_shifted, to_bf16_vec};
 use invaders::tensor::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, pad_input, ConvGeom, Padding, Tensor,
@@ -94,7 +94,7 @@ fn any_f32(r: &mut impl Rng) -> f32 {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(common::cases(64)))]
 
-    /// `pack_pairs` and `pack_shifted` (written a pair word at a time so that they run wide)
+    /// `pack_pairs`, `pack_shifted` and `pair_shifted` (written a pair word at a time so that they run wide)
     /// against their definitions, element by element with `to_bf16`: odd row counts, row strides
     /// above the width, shifts from 0 past the end, and every kind of value.
     #[test]
@@ -129,6 +129,11 @@ proptest! {
             prop_assert_eq!(shifted[2 * i], to_bf16(src[i]), "value {}", i);
             prop_assert_eq!(shifted[2 * i + 1], partner, "partner of {}", i);
         }
+        // Pairing the values once rounded gives the same bits.
+        let rounded: Vec<u16> = src.iter().map(|&x| to_bf16(x)).collect();
+        let mut paired = vec![7u16; 5];
+        pair_shifted(&rounded, d, &mut paired);
+        prop_assert_eq!(paired, shifted);
     }
 }
 

@@ -33,12 +33,26 @@ pub struct Dense<T> {
     sparse: bool,
     nz: Nonzeros<T>,
     /// The training products' arithmetic ([`Layer::set_precision`]), and the bf16 operands
-    /// ([`Kernel::GatherBf16`]): the gathered one, the packed one, pair and row tables.
+    /// ([`Kernel::GatherBf16`]) and their pair and row tables.
     precision: Precision,
-    bf_a: Vec<u16>,
-    bf_b: Vec<u16>,
+    bf: Bf16Operands,
     bf_q: Vec<usize>,
     bf_p: Vec<usize>,
+}
+
+/// The bf16 operands of a dense layer's three products, a buffer each so that none is regrown
+/// (and zero-filled) from one product to the next: dense1's weights are 0.9 M values.
+#[derive(Default)]
+struct Bf16Operands {
+    /// Forward: `x`, and `W` in pairs of rows.
+    x: Vec<u16>,
+    w_pairs: Vec<u16>,
+    /// Weight gradient: `x` and `dY` in pairs of samples.
+    x_pairs: Vec<u16>,
+    dy_pairs: Vec<u16>,
+    /// Input gradient: `W`, and `dYᵀ` in pairs of rows.
+    w: Vec<u16>,
+    dyt_pairs: Vec<u16>,
 }
 
 impl<T: Float> Dense<T> {
@@ -75,8 +89,7 @@ impl<T: Float> Dense<T> {
             sparse: false,
             nz: Nonzeros::default(),
             precision: Precision::F32,
-            bf_a: Vec::new(),
-            bf_b: Vec::new(),
+            bf: Bf16Operands::default(),
             bf_q: Vec::new(),
             bf_p: Vec::new(),
         }
@@ -105,19 +118,19 @@ impl<T: Float> Dense<T> {
         let (n, ni, no) = (x.batch(), self.n_in, self.n_out);
         fill_iota(&mut self.x_rows, n, ni);
         fill_iota(&mut self.bf_q, ni / 2, 2);
-        to_bf16_vec(f32s(x.data()), &mut self.bf_a);
+        to_bf16_vec(f32s(x.data()), &mut self.bf.x);
         pack_pairs(
             f32s(self.params[0].value.data()),
             ni,
             no,
             no,
-            &mut self.bf_b,
+            &mut self.bf.w_pairs,
         );
         gather_gemm_bf16(GatherGemmBf16 {
-            a: &self.bf_a,
+            a: &self.bf.x,
             p: &self.x_rows,
             q: &self.bf_q,
-            b: &self.bf_b,
+            b: &self.bf.w_pairs,
             ldb: no,
             n: no,
             c: f32s_mut(self.y.data_mut()),
@@ -134,15 +147,15 @@ impl<T: Float> Dense<T> {
     fn backward_bf16(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         let (n, ni, no) = (x.batch(), self.n_in, self.n_out);
         // dW[i, j] += Σ_u x2[u, i]·dY2[u, j]: rows i (pair offsets 2i), steps u (2u·In).
-        let pairs = pack_pairs(f32s(x.data()), n, ni, ni, &mut self.bf_a);
-        pack_pairs(f32s(dy.data()), n, no, no, &mut self.bf_b);
+        let pairs = pack_pairs(f32s(x.data()), n, ni, ni, &mut self.bf.x_pairs);
+        pack_pairs(f32s(dy.data()), n, no, no, &mut self.bf.dy_pairs);
         fill_iota(&mut self.bf_p, ni, 2);
         fill_iota(&mut self.bf_q, pairs, 2 * ni);
         gather_gemm_bf16(GatherGemmBf16 {
-            a: &self.bf_a,
+            a: &self.bf.x_pairs,
             p: &self.bf_p,
             q: &self.bf_q,
-            b: &self.bf_b,
+            b: &self.bf.dy_pairs,
             ldb: no,
             n: no,
             c: f32s_mut(self.params[0].grad.data_mut()),
@@ -161,16 +174,16 @@ impl<T: Float> Dense<T> {
             // dXᵀ[i, n] = Σ_u W[i, 2u..2u + 2]·dYᵀ2[u, n]: W's rows read in place, as in f32.
             self.dyt.resize(no * n, T::zero());
             transpose(dy.data(), n, no, &mut self.dyt);
-            to_bf16_vec(f32s(self.params[0].value.data()), &mut self.bf_a);
-            pack_pairs(f32s(&self.dyt), no, n, n, &mut self.bf_b);
+            to_bf16_vec(f32s(self.params[0].value.data()), &mut self.bf.w);
+            pack_pairs(f32s(&self.dyt), no, n, n, &mut self.bf.dyt_pairs);
             fill_iota(&mut self.x_rows, ni, no);
             fill_iota(&mut self.bf_q, no / 2, 2);
             self.dxt.resize(ni * n, T::zero());
             gather_gemm_bf16(GatherGemmBf16 {
-                a: &self.bf_a,
+                a: &self.bf.w,
                 p: &self.x_rows,
                 q: &self.bf_q,
-                b: &self.bf_b,
+                b: &self.bf.dyt_pairs,
                 ldb: n,
                 n,
                 c: f32s_mut(&mut self.dxt),

@@ -269,6 +269,35 @@ pub fn pack_shifted(src: &[f32], d: usize, dst: &mut Vec<u16>) {
     pack_shift(src, d, dst);
 }
 
+avx512_twin! {
+    /// `dst[2i] = src[i]`, `dst[2i + 1] = src[i + d]` (0 past the end): [`pack_shift`] of values
+    /// already in bf16, so no rounding, only the pairing.
+    fn pair_shift(src: &[u16], d: usize, dst: &mut [u16]) {
+        if let Some(words) = pair_words(dst) {
+            let (both, alone) = words.split_at_mut(src.len().saturating_sub(d));
+            for ((o, &lo), &hi) in both.iter_mut().zip(src).zip(&src[d.min(src.len())..]) {
+                *o = u32::from(lo) | u32::from(hi) << 16;
+            }
+            for (o, &lo) in alone.iter_mut().zip(&src[both.len()..]) {
+                *o = u32::from(lo);
+            }
+            return;
+        }
+        for (i, o) in dst.chunks_exact_mut(2).enumerate() {
+            o[0] = src[i];
+            o[1] = src.get(i + d).copied().unwrap_or(0);
+        }
+    }
+}
+
+/// [`pack_shifted`] of values already rounded to bf16: `pair_shifted(bf16(x))` is
+/// `pack_shifted(x)` bit for bit, reading half the bytes. A convolution's weight gradient pairs
+/// the input its forward pass already rounded.
+pub fn pair_shifted(src: &[u16], d: usize, dst: &mut Vec<u16>) {
+    dst.resize(2 * src.len(), 0);
+    pair_shift(src, d, dst);
+}
+
 /// The f32 values of a slice of `T` that is f32 (what the bf16 kernels read and write: the
 /// plan picks them for f32 layers only).
 ///
@@ -620,6 +649,13 @@ mod tests {
             pack_shift(&src, d, &mut words);
             pack_shift(&src, d, &mut halves[1..]);
             assert_eq!(words, halves[1..], "d = {d}");
+            // Pairing values already in bf16 gives the same bits, by words or by halves.
+            let bf: Vec<u16> = src.iter().map(|&x| to_bf16(x)).collect();
+            let mut paired = vec![0u16; 2 * src.len() + 1];
+            pair_shift(&bf, d, &mut paired[1..]);
+            assert_eq!(words, paired[1..], "d = {d}, halves");
+            pair_shift(&bf, d, &mut paired[..2 * src.len()]);
+            assert_eq!(words, paired[..2 * src.len()], "d = {d}, words");
         }
     }
 }

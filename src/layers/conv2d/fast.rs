@@ -11,7 +11,7 @@
 
 use super::Conv2d;
 use crate::tensor::gather_bf16::{
-    f32s, f32s_mut, pack_pairs, pack_shifted, pair_steps, to_bf16_vec,
+    f32s, f32s_mut, pack_pairs, pack_shifted, pair_shifted, pair_steps, round_into, to_bf16_vec,
 };
 use crate::tensor::plan::{self, ConvPlan, Kernel};
 use crate::tensor::{
@@ -59,12 +59,19 @@ pub(super) struct Scratch<T> {
     sp_taps: Vec<usize>,
     /// Background acting.
     bg: Background<T>,
-    /// The bf16 products ([`Kernel::GatherBf16`], [`Kernel::PhasesBf16`]): the gathered
-    /// operand in bf16 (the input, the input paired with the next output pixel's, or `dZ` in
-    /// its border), the packed right operand (`W`, `dZ`, a phase's taps), the pair table and
-    /// the weight gradient's row table (patch offsets doubled: pairs are two values wide).
-    bf_a: Vec<u16>,
-    bf_b: Vec<u16>,
+    /// The bf16 products ([`Kernel::GatherBf16`], [`Kernel::PhasesBf16`]), a buffer per operand
+    /// so that none is regrown (and zero-filled) from one product to the next: the forward
+    /// pass's input in bf16 (kept: the weight gradient pairs it as it is) and its packed `W`;
+    /// the weight gradient's input paired with the next output pixel's and its packed `dZ`; the
+    /// input gradient's `dZ` inside its zero border, in bf16, and a phase's packed taps; the
+    /// pair table and the weight gradient's row table (patch offsets doubled: pairs are two
+    /// values wide).
+    bf_x: Vec<u16>,
+    bf_w: Vec<u16>,
+    bf_xs: Vec<u16>,
+    bf_dz: Vec<u16>,
+    bf_dzpad: Vec<u16>,
+    bf_taps: Vec<u16>,
     bf_q: Vec<usize>,
     bf_p: Vec<usize>,
 }
@@ -107,32 +114,27 @@ impl<T: Float> Conv2d<T> {
         let (tj, tl) = (g.kh.div_ceil(sh) - 1, g.kw.div_ceil(sw) - 1);
         let hz = tj + g.oh.max((g.h - 1) / sh + 1);
         let wz = tl + g.ow.max((g.w - 1) / sw + 1);
-        // Every place written on every call (the interior copied, the border zeroed), so the
-        // buffer is reused without clearing it first.
-        self.fast.dzpad.resize(n * hz * wz * co, T::zero());
-        self.fast
-            .dzpad
-            .par_chunks_mut(hz * wz * co)
-            .zip(dz.par_chunks(g.out_pixels() * co))
-            .for_each(|(pad, img)| {
-                for (zy, row) in pad.chunks_exact_mut(wz * co).enumerate() {
-                    match zy.checked_sub(tj).filter(|&oy| oy < g.oh) {
-                        Some(oy) => {
-                            let (left, rest) = row.split_at_mut(tl * co);
-                            let (mid, right) = rest.split_at_mut(g.ow * co);
-                            left.fill(T::zero());
-                            mid.copy_from_slice(&img[oy * g.ow * co..][..g.ow * co]);
-                            right.fill(T::zero());
-                        }
-                        None => row.fill(T::zero()),
-                    }
-                }
+        // In bf16 the border is written in bf16 straight away (rounded once, read half as
+        // wide), not as f32 first.
+        let pad = Padded {
+            rows: g.oh,
+            row: g.ow * co,
+            above: tj,
+            left: tl * co,
+            height: hz,
+            width: wz * co,
+        };
+        if bf16 {
+            pad.write(f32s(dz), n, 0, &mut self.fast.bf_dzpad, |d, s| {
+                round_into(s, d)
             });
+        } else {
+            pad.write(dz, n, T::zero(), &mut self.fast.dzpad, |d, s| {
+                d.copy_from_slice(s)
+            });
+        }
         let w = self.params[0].value.data();
         let b = self.in_border;
-        if bf16 {
-            to_bf16_vec(f32s(&self.fast.dzpad), &mut self.fast.bf_a);
-        }
         for py in 0..sh.min(g.h) {
             for px in 0..sw.min(g.w) {
                 // Taps of this phase (none if the filter is smaller than the stride).
@@ -176,12 +178,12 @@ impl<T: Float> Conv2d<T> {
                         "{}: phase taps",
                         self.name
                     );
-                    pack_pairs(f32s(&f.ph_w), f.ph_q.len(), ci, ci, &mut f.bf_b);
+                    pack_pairs(f32s(&f.ph_w), f.ph_q.len(), ci, ci, &mut f.bf_taps);
                     gather_gemm_bf16(GatherGemmBf16 {
-                        a: &f.bf_a,
+                        a: &f.bf_dzpad,
                         p: &f.ph_p,
                         q: &f.bf_q,
-                        b: &f.bf_b,
+                        b: &f.bf_taps,
                         ldb: ci,
                         n: ci,
                         c: f32s_mut(self.dx.data_mut()),
@@ -237,14 +239,14 @@ impl<T: Float> Conv2d<T> {
                 "{}: patch pairs",
                 self.name
             );
-            to_bf16_vec(f32s(a), &mut self.fast.bf_a);
+            to_bf16_vec(f32s(a), &mut self.fast.bf_x);
             let w = f32s(self.params[0].value.data());
-            pack_pairs(w, g.patch_len(), g.cout, g.cout, &mut self.fast.bf_b);
+            pack_pairs(w, g.patch_len(), g.cout, g.cout, &mut self.fast.bf_w);
             gather_gemm_bf16(GatherGemmBf16 {
-                a: &self.fast.bf_a,
+                a: &self.fast.bf_x,
                 p: &self.fast.pixels,
                 q: &self.fast.bf_q,
-                b: &self.fast.bf_b,
+                b: &self.fast.bf_w,
                 ldb: g.cout,
                 n: g.cout,
                 c: f32s_mut(self.y.data_mut()),
@@ -341,13 +343,19 @@ impl<T: Float> Conv2d<T> {
                 self.fast
                     .bf_p
                     .extend(self.fast.patch.iter().map(|&k| 2 * k));
-                pack_shifted(f32s(a), d, &mut self.fast.bf_a);
-                pack_pairs(f32s(dz), m, g.cout, g.cout, &mut self.fast.bf_b);
+                if plan.forward() == Kernel::GatherBf16 {
+                    // The forward pass rounded this input already: pair it as it is.
+                    assert_eq!(self.fast.bf_x.len(), a.len(), "{}: bf16 input", self.name);
+                    pair_shifted(&self.fast.bf_x, d, &mut self.fast.bf_xs);
+                } else {
+                    pack_shifted(f32s(a), d, &mut self.fast.bf_xs);
+                }
+                pack_pairs(f32s(dz), m, g.cout, g.cout, &mut self.fast.bf_dz);
                 gather_gemm_bf16(GatherGemmBf16 {
-                    a: &self.fast.bf_a,
+                    a: &self.fast.bf_xs,
                     p: &self.fast.bf_p,
                     q: &self.fast.bf_q,
-                    b: &self.fast.bf_b,
+                    b: &self.fast.bf_dz,
                     ldb: g.cout,
                     n: g.cout,
                     c: f32s_mut(self.params[0].grad.data_mut()),
@@ -602,5 +610,49 @@ impl<T: Float> Conv2d<T> {
         self.fast.pixels.clear();
         self.cols.clear();
         true
+    }
+}
+
+/// Where `dZ` goes inside a zero border (the input gradient by phases): each of an image's
+/// `rows` rows (`row` values) lands `above` rows down and `left` values in, in an image of
+/// `height` rows of `width` values.
+struct Padded {
+    rows: usize,
+    row: usize,
+    above: usize,
+    left: usize,
+    height: usize,
+    width: usize,
+}
+
+impl Padded {
+    /// `dst` = the `n` images of `src` inside their border, `put` writing (copying or rounding)
+    /// one row's interior. Every place is written on every call (the border with `zero`), so
+    /// the buffer is reused without clearing it first.
+    fn write<S: Sync, E: Copy + Send + Sync>(
+        &self,
+        src: &[S],
+        n: usize,
+        zero: E,
+        dst: &mut Vec<E>,
+        put: impl Fn(&mut [E], &[S]) + Sync,
+    ) {
+        dst.resize(n * self.height * self.width, zero);
+        dst.par_chunks_mut(self.height * self.width)
+            .zip(src.par_chunks(self.rows * self.row))
+            .for_each(|(pad, img)| {
+                for (zy, out) in pad.chunks_exact_mut(self.width).enumerate() {
+                    match zy.checked_sub(self.above).filter(|&y| y < self.rows) {
+                        Some(y) => {
+                            let (left, rest) = out.split_at_mut(self.left);
+                            let (mid, right) = rest.split_at_mut(self.row);
+                            left.fill(zero);
+                            put(mid, &img[y * self.row..][..self.row]);
+                            right.fill(zero);
+                        }
+                        None => out.fill(zero),
+                    }
+                }
+            });
     }
 }
