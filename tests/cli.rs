@@ -61,6 +61,52 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<String>> {
         .collect()
 }
 
+/// `bench --precision bf16 --json` says which kernel family ran: AVX512-BF16 where the CPU has
+/// it, else the f32 kernels, with one note on stderr saying why. `INVADERS_NO_BF16=1` makes an
+/// AVX512-BF16 host an AVX-512 one without it (Intel Skylake-SP to Ice Lake), so both kinds are
+/// checked here.
+#[test]
+fn bench_in_bf16_says_which_kernels_ran() {
+    use invaders::tensor::cpu;
+    for no_bf16 in [false, true] {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_invaders"));
+        cmd.args(["bench", "--threads", "1", "--steps", "1", "--json"])
+            .args(["--precision", "bf16"])
+            .env_remove("RUST_BACKTRACE");
+        if no_bf16 {
+            cmd.env("INVADERS_NO_BF16", "1");
+        }
+        let out = cmd.output().expect("the binary runs");
+        let (stdout, stderr) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        assert!(out.status.success(), "{stderr}");
+        let json: serde_json::Value = serde_json::from_str(stdout.trim()).expect(&stdout);
+        // The child inherits this process's environment, so this process's check applies to it.
+        let runs = cpu::avx512_bf16() && !no_bf16;
+        let family = if runs {
+            "avx512-bf16"
+        } else if cpu::avx512() {
+            "avx512-f32"
+        } else {
+            "portable-f32"
+        };
+        assert_eq!(json["kernel_family"], family, "{stdout}");
+        assert_eq!(json["precision"], "bf16", "{stdout}");
+        let conv = json["kernels"]["conv_forward"].as_str().unwrap_or_default();
+        assert_eq!(conv.contains("Bf16"), runs, "{stdout}");
+        assert_eq!(
+            stderr.matches("bf16 asked for").count(),
+            usize::from(!runs),
+            "one note exactly when bf16 does not run: {stderr}"
+        );
+        if no_bf16 && cpu::avx512() {
+            assert!(stderr.contains("INVADERS_NO_BF16 is set"), "{stderr}");
+        }
+    }
+}
+
 /// A run bounded by emulator frames instead of episodes starts, stops on its budget and saves
 /// its configuration (it once panicked writing `config.toml`: the unbounded episode count did
 /// not fit TOML's integers).

@@ -81,8 +81,7 @@ pub fn note_precision(precision: invaders::tensor::plan::Precision) {
     static NOTE: std::sync::Once = std::sync::Once::new();
     if precision == Precision::Bf16 && !bf16_runs(precision) {
         NOTE.call_once(|| {
-            let why = invaders::tensor::cpu::why_portable()
-                .unwrap_or_else(|| "this CPU has no AVX512-BF16".to_string());
+            let why = invaders::tensor::cpu::why_no_bf16().unwrap_or_default();
             eprintln!("note: bf16 asked for, but {why}: the products run in f32");
         });
     }

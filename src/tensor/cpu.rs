@@ -5,8 +5,10 @@
 //! and background products, the transposes) need AVX-512F and FMA. [`avx512`] says whether they
 //! may run: this CPU has both, and `INVADERS_NO_SIMD` is unset. That variable is the switch back
 //! to the portable code on an AVX-512 host (im2col + faer in the layers, the portable loops in
-//! the kernels), for A/B timing in one session and for testing the portable path there. It is
-//! read once, at the first call, so a process runs one way throughout.
+//! the kernels), for A/B timing in one session and for testing the portable path there.
+//! `INVADERS_NO_BF16` is the narrower switch: the AVX-512 kernels stay, AVX512-BF16 goes, as on
+//! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32. Both
+//! are read once, at the first call, so a process runs one way throughout.
 //!
 //! The kernels are selected by [`crate::tensor::plan`]; nothing else asks the CPU.
 //!
@@ -23,7 +25,8 @@ use std::sync::OnceLock;
 pub struct Features {
     /// AVX-512F and FMA, and `INVADERS_NO_SIMD` unset: the AVX-512 kernels run.
     pub avx512: bool,
-    /// That, and AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later).
+    /// That, AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later), and
+    /// `INVADERS_NO_BF16` unset.
     pub avx512_bf16: bool,
 }
 
@@ -34,7 +37,9 @@ pub fn features() -> Features {
         let avx512 = detect_avx512() && std::env::var_os("INVADERS_NO_SIMD").is_none();
         Features {
             avx512,
-            avx512_bf16: avx512 && detect_avx512_bf16(),
+            avx512_bf16: avx512
+                && detect_avx512_bf16()
+                && std::env::var_os("INVADERS_NO_BF16").is_none(),
         }
     })
 }
@@ -93,6 +98,21 @@ pub fn why_portable() -> Option<String> {
     }
     #[cfg(not(target_arch = "x86_64"))]
     Some(format!("{} is not x86_64", std::env::consts::ARCH))
+}
+
+/// Why the AVX512-BF16 kernels do not run on this host, or `None` if they do: why the AVX-512
+/// ones do not ([`why_portable`]), `INVADERS_NO_BF16`, or the missing feature.
+pub fn why_no_bf16() -> Option<String> {
+    if avx512_bf16() {
+        return None;
+    }
+    why_portable().or_else(|| {
+        Some(if std::env::var_os("INVADERS_NO_BF16").is_some() {
+            "INVADERS_NO_BF16 is set".into()
+        } else {
+            "this CPU lacks avx512bf16".into()
+        })
+    })
 }
 
 /// A kernel family that picks, call by call, between an AVX-512 loop and a portable one.
