@@ -416,6 +416,28 @@ fn conv_case(
     conv2d_reference_backward(&valid, n, &xa, &wa, &dya, &mut dxa, &mut dwa, &mut dba);
     within_bounds("dw", layer.params()[0].grad.data(), &dw, &bound(&dwa))?;
     within_bounds("dx", layer.input_grad().data(), &dx, &bound(&dxa))?;
+    // The same convolution on the unpadded input: the layer pads a copy, whose bf16 rounding
+    // the weight gradient pairs. After a pass at another batch size, so that every buffer is
+    // reused at a new size without being cleared.
+    let x1 = uniform::<f32>(&[n + 1, h, w, cin], &mut r);
+    let dy1 = uniform::<f32>(&[n + 1, g.oh, g.ow, cout], &mut r);
+    layer.forward(&x1);
+    layer.backward(&x1, &dy1, true);
+    layer.params_mut()[0].grad.fill_zero();
+    layer.forward(&x);
+    layer.backward(&x, &dy, true);
+    within_bounds(
+        "y, padded by the layer",
+        layer.output().data(),
+        &y,
+        &bound(&ya),
+    )?;
+    within_bounds(
+        "dw, padded by the layer",
+        layer.params()[0].grad.data(),
+        &dw,
+        &bound(&dwa),
+    )?;
     Ok(())
 }
 

@@ -28,6 +28,8 @@ pub struct Features {
     /// That, AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later), and
     /// `INVADERS_NO_BF16` unset.
     pub avx512_bf16: bool,
+    /// Whether `INVADERS_NO_BF16` turned AVX512-BF16 off on a CPU that runs it.
+    pub bf16_switched_off: bool,
 }
 
 /// The features of this CPU (detected on the first call, then cached).
@@ -35,11 +37,12 @@ pub fn features() -> Features {
     static FEATURES: OnceLock<Features> = OnceLock::new();
     *FEATURES.get_or_init(|| {
         let avx512 = detect_avx512() && std::env::var_os("INVADERS_NO_SIMD").is_none();
+        let bf16 = avx512 && detect_avx512_bf16();
+        let off = std::env::var_os("INVADERS_NO_BF16").is_some();
         Features {
             avx512,
-            avx512_bf16: avx512
-                && detect_avx512_bf16()
-                && std::env::var_os("INVADERS_NO_BF16").is_none(),
+            avx512_bf16: bf16 && !off,
+            bf16_switched_off: bf16 && off,
         }
     })
 }
@@ -54,7 +57,8 @@ fn detect_avx512_bf16() -> bool {
     false
 }
 
-/// Whether the AVX512-BF16 kernels may run (AVX-512 as [`avx512`], and AVX512-BF16).
+/// Whether the AVX512-BF16 kernels may run (AVX-512 as [`avx512`], AVX512-BF16, and
+/// `INVADERS_NO_BF16` unset).
 #[inline]
 pub fn avx512_bf16() -> bool {
     features().avx512_bf16
@@ -107,7 +111,7 @@ pub fn why_no_bf16() -> Option<String> {
         return None;
     }
     why_portable().or_else(|| {
-        Some(if std::env::var_os("INVADERS_NO_BF16").is_some() {
+        Some(if features().bf16_switched_off {
             "INVADERS_NO_BF16 is set".into()
         } else {
             "this CPU lacks avx512bf16".into()

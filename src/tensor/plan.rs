@@ -173,6 +173,12 @@ impl ConvPlan {
     pub fn input_grad(&self) -> Kernel {
         ran(Product::ConvInputGrad, self.input_grad)
     }
+
+    /// The forward product's kernel, not recorded: for a backward pass that asks what its
+    /// forward pass ran.
+    pub fn planned_forward(&self) -> Kernel {
+        self.forward
+    }
 }
 
 /// The kernels for a convolution of (input) geometry `g` on a batch of `n` in precision `T`,

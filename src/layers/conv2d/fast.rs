@@ -67,6 +67,9 @@ pub(super) struct Scratch<T> {
     /// pair table and the weight gradient's row table (patch offsets doubled: pairs are two
     /// values wide).
     bf_x: Vec<u16>,
+    /// The input `bf_x` was rounded from (its address and length), so that the weight gradient
+    /// pairs it only for that input.
+    bf_x_of: Option<(usize, usize)>,
     bf_w: Vec<u16>,
     bf_xs: Vec<u16>,
     bf_dz: Vec<u16>,
@@ -223,6 +226,7 @@ impl<T: Float> Conv2d<T> {
             &self.fast.xpad
         };
         g.gather_offsets(n, &mut self.fast.pixels, &mut self.fast.patch);
+        self.fast.bf_x_of = None;
         let c_rows = if self.border.is_none() {
             None
         } else {
@@ -240,6 +244,7 @@ impl<T: Float> Conv2d<T> {
                 self.name
             );
             to_bf16_vec(f32s(a), &mut self.fast.bf_x);
+            self.fast.bf_x_of = Some((x.data().as_ptr() as usize, x.len()));
             let w = f32s(self.params[0].value.data());
             pack_pairs(w, g.patch_len(), g.cout, g.cout, &mut self.fast.bf_w);
             gather_gemm_bf16(GatherGemmBf16 {
@@ -343,7 +348,8 @@ impl<T: Float> Conv2d<T> {
                 self.fast
                     .bf_p
                     .extend(self.fast.patch.iter().map(|&k| 2 * k));
-                if plan.forward() == Kernel::GatherBf16 {
+                let rounded = Some((x.data().as_ptr() as usize, x.len()));
+                if plan.planned_forward() == Kernel::GatherBf16 && self.fast.bf_x_of == rounded {
                     // The forward pass rounded this input already: pair it as it is.
                     assert_eq!(self.fast.bf_x.len(), a.len(), "{}: bf16 input", self.name);
                     pair_shifted(&self.fast.bf_x, d, &mut self.fast.bf_xs);
