@@ -130,12 +130,26 @@ pub fn plot_rewards(
         .iter()
         .flat_map(|c| c.points.iter().map(|p| p.1))
         .fold(10.0, f64::max);
+    let ink = Ink {
+        points: curves
+            .iter()
+            .flat_map(|c| {
+                let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
+                c.points
+                    .iter()
+                    .map(|p| p.0)
+                    .zip(moving_average(&ys, window))
+            })
+            .collect(),
+        legend_rows: curves.len(),
+    };
     figure(
         out,
         title,
         "episode",
         "reward per episode",
         (max_x, max_y),
+        ink,
         |chart| {
             for (i, c) in curves.iter().enumerate() {
                 let color = Palette99::pick(i);
@@ -162,14 +176,47 @@ type Chart<'a, 'b> =
 type DrawResult =
     Result<(), DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>>;
 
-/// A 1000x600 figure of reward against `x_desc` with axes up to `max` and a legend; `draw` adds
-/// the series. Every figure of the project goes through here.
+/// Where a figure's drawn lines are, and how many rows its legend has: the legend goes where it
+/// hides the fewest of them ([`legend_corner`]).
+struct Ink {
+    points: Vec<(f64, f64)>,
+    legend_rows: usize,
+}
+
+/// The corner of the plot whose legend box (`rows` rows of about 19 pixels, 45 % of the plot's
+/// width) covers the fewest of `points`, in the order upper left, upper right, lower right,
+/// lower left when several tie. `max` is the axes' extent, `height` the plot's in pixels.
+fn legend_corner(points: &[(f64, f64)], max: (f64, f64), rows: usize, height: f64) -> usize {
+    let (w, h) = (
+        0.45 * max.0,
+        ((rows as f64 * 19.0 + 12.0) / height).min(1.0) * max.1,
+    );
+    let boxes = [
+        (0.0, w, max.1 - h, max.1),           // upper left
+        (max.0 - w, max.0, max.1 - h, max.1), // upper right
+        (max.0 - w, max.0, 0.0, h),           // lower right
+        (0.0, w, 0.0, h),                     // lower left
+    ];
+    let covered = |b: &(f64, f64, f64, f64)| {
+        points
+            .iter()
+            .filter(|p| p.0 >= b.0 && p.0 <= b.1 && p.1 >= b.2 && p.1 <= b.3)
+            .count()
+    };
+    (0..boxes.len())
+        .min_by_key(|&i| (covered(&boxes[i]), i))
+        .expect("four corners")
+}
+
+/// A 1000x600 figure of reward against `x_desc` with axes up to `max` and a legend where `ink`
+/// is thinnest; `draw` adds the series. Every figure of the project goes through here.
 fn figure(
     out: &Path,
     title: &str,
     x_desc: &str,
     y_desc: &str,
     max: (f64, f64),
+    ink: Ink,
     draw: impl FnOnce(&mut Chart<'_, '_>) -> DrawResult,
 ) -> anyhow::Result<()> {
     register_fonts();
@@ -203,12 +250,19 @@ fn figure(
         .draw()
         .map_err(e)?;
     draw(&mut chart).map_err(e)?;
+    let height = chart.plotting_area().dim_in_pixel().1 as f64;
+    let corner = legend_corner(&ink.points, (max.0, max.1 * 1.05), ink.legend_rows, height);
     chart
         .configure_series_labels()
         .label_font(sans(12.0))
         .background_style(WHITE.mix(0.8))
         .border_style(BLACK)
-        .position(SeriesLabelPosition::UpperLeft)
+        .position(match corner {
+            0 => SeriesLabelPosition::UpperLeft,
+            1 => SeriesLabelPosition::UpperRight,
+            2 => SeriesLabelPosition::LowerRight,
+            _ => SeriesLabelPosition::LowerLeft,
+        })
         .draw()
         .map_err(e)?;
     root.present()
@@ -355,30 +409,52 @@ pub fn plot_groups(
         .chain(limits.iter().flat_map(|b| b.iter().map(|p| p.2)))
         .fold(10.0, f64::max);
     let y_desc = format!("reward per episode ({window}-episode moving average)");
-    figure(out, title, "episode", &y_desc, (max_x, max_y), |chart| {
-        for (b, limit) in bounded.iter().zip(&limits) {
-            let grey = RGBColor(110, 110, 110);
-            let mut outline: Vec<(f64, f64)> = limit.iter().map(|p| (p.0, p.2)).collect();
-            outline.extend(limit.iter().rev().map(|p| (p.0, p.1)));
-            chart.draw_series(std::iter::once(Polygon::new(outline, grey.mix(0.18))))?;
-            for edge in [1, 2] {
-                let line = limit
+    let ink = Ink {
+        points: bands
+            .iter()
+            .flatten()
+            .flat_map(|p| [(p.0, p.1), (p.0, p.2), (p.0, p.3)])
+            .chain(
+                limits
                     .iter()
-                    .map(|p| (p.0, if edge == 1 { p.1 } else { p.2 }));
-                let series = chart.draw_series(LineSeries::new(line, grey.stroke_width(1)))?;
-                if edge == 1 {
-                    series.label(b.label.clone()).legend(move |(x, y)| {
-                        Rectangle::new([(x, y - 5), (x + 20, y + 5)], grey.mix(0.35).filled())
-                    });
+                    .flatten()
+                    .flat_map(|p| [(p.0, p.1), (p.0, p.2)]),
+            )
+            .collect(),
+        legend_rows: groups.len() + bounded.len(),
+    };
+    figure(
+        out,
+        title,
+        "episode",
+        &y_desc,
+        (max_x, max_y),
+        ink,
+        |chart| {
+            for (b, limit) in bounded.iter().zip(&limits) {
+                let grey = RGBColor(110, 110, 110);
+                let mut outline: Vec<(f64, f64)> = limit.iter().map(|p| (p.0, p.2)).collect();
+                outline.extend(limit.iter().rev().map(|p| (p.0, p.1)));
+                chart.draw_series(std::iter::once(Polygon::new(outline, grey.mix(0.18))))?;
+                for edge in [1, 2] {
+                    let line = limit
+                        .iter()
+                        .map(|p| (p.0, if edge == 1 { p.1 } else { p.2 }));
+                    let series = chart.draw_series(LineSeries::new(line, grey.stroke_width(1)))?;
+                    if edge == 1 {
+                        series.label(b.label.clone()).legend(move |(x, y)| {
+                            Rectangle::new([(x, y - 5), (x + 20, y + 5)], grey.mix(0.35).filled())
+                        });
+                    }
                 }
             }
-        }
-        for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
-            let label = format!("{} (mean of {} seeds)", g.label, g.seeds.len());
-            draw_band(chart, band, Palette99::pick(i), label)?;
-        }
-        Ok(())
-    })
+            for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
+                let label = format!("{} (mean of {} seeds)", g.label, g.seeds.len());
+                draw_band(chart, band, Palette99::pick(i), label)?;
+            }
+            Ok(())
+        },
+    )
 }
 
 /// Draws one group's `(x, mean, low, high)` points: the mean as a bold line with `label` in the
@@ -521,12 +597,35 @@ pub fn plot_groups_frames(
         .chain(refs.iter().flatten().map(|p| p.1))
         .fold(10.0, f64::max);
     let y_desc = format!("reward per episode ({window}-episode moving average)");
+    // The references' dashed lines, as points every twentieth of each segment.
+    let dashes = refs.iter().flat_map(|r| {
+        r.windows(2).flat_map(|w| {
+            (0..20).map(move |k| {
+                let t = k as f64 / 20.0;
+                (
+                    w[0].0 + t * (w[1].0 - w[0].0),
+                    w[0].1 + t * (w[1].1 - w[0].1),
+                )
+            })
+        })
+    });
+    let ink = Ink {
+        points: bands
+            .iter()
+            .flatten()
+            .flat_map(|p| [(p.0, p.1), (p.0, p.2), (p.0, p.3)])
+            .chain(refs.iter().flatten().copied())
+            .chain(dashes)
+            .collect(),
+        legend_rows: groups.len() + references.len(),
+    };
     figure(
         out,
         title,
         "emulator frames",
         &y_desc,
         (max_x, max_y),
+        ink,
         |chart| {
             for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
                 let label = match g.seeds.len() {
@@ -556,6 +655,29 @@ pub fn plot_groups_frames(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Lines that rise from the lower left fill the upper-left corner of a wide legend less than
+    /// a flat line near the top does; the corner covering fewest points wins, upper left on ties.
+    #[test]
+    fn the_legend_goes_where_it_hides_the_least() {
+        let max = (100.0, 100.0);
+        assert_eq!(legend_corner(&[], max, 5, 500.0), 0, "a tie: upper left");
+        let rising: Vec<(f64, f64)> = (0..100).map(|x| (x as f64, x as f64)).collect();
+        assert_eq!(legend_corner(&rising, max, 5, 500.0), 0);
+        let early: Vec<(f64, f64)> = (0..40).map(|x| (x as f64, 95.0)).collect();
+        assert_eq!(legend_corner(&early, max, 5, 500.0), 1, "upper right");
+        let top: Vec<(f64, f64)> = (0..=100).map(|x| (x as f64, 95.0)).collect();
+        let bottom_left: Vec<(f64, f64)> = (0..40).map(|x| (x as f64, 5.0)).collect();
+        let both: Vec<(f64, f64)> = top.iter().chain(&bottom_left).copied().collect();
+        assert_eq!(legend_corner(&both, max, 5, 500.0), 2, "lower right");
+        let low: Vec<(f64, f64)> = (0..=100).map(|x| (x as f64, 5.0)).collect();
+        let all: Vec<(f64, f64)> = top.iter().chain(&low).copied().collect();
+        assert_eq!(
+            legend_corner(&all, max, 2, 500.0),
+            0,
+            "all covered alike: upper left"
+        );
+    }
 
     /// Two seeds whose episodes end at different frames: the grid reads each seed's latest
     /// average, and stops where the shorter seed stops.
