@@ -130,18 +130,28 @@ pub fn plot_rewards(
         .iter()
         .flat_map(|c| c.points.iter().map(|p| p.1))
         .fold(10.0, f64::max);
+    let averages: Vec<Vec<(f64, f64)>> = curves
+        .iter()
+        .map(|c| {
+            let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
+            c.points
+                .iter()
+                .map(|p| p.0)
+                .zip(moving_average(&ys, window))
+                .collect()
+        })
+        .collect();
+    let labels: Vec<String> = curves
+        .iter()
+        .map(|c| format!("{} ({window}-episode mean)", c.label))
+        .collect();
     let ink = Ink {
         points: curves
             .iter()
-            .flat_map(|c| {
-                let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
-                c.points
-                    .iter()
-                    .map(|p| p.0)
-                    .zip(moving_average(&ys, window))
-            })
+            .flat_map(|c| c.points.iter().copied())
+            .chain(averages.iter().flatten().copied())
             .collect(),
-        legend_rows: curves.len(),
+        labels: labels.clone(),
     };
     figure(
         out,
@@ -151,17 +161,12 @@ pub fn plot_rewards(
         (max_x, max_y),
         ink,
         |chart| {
-            for (i, c) in curves.iter().enumerate() {
+            for (i, ((c, avg), label)) in curves.iter().zip(averages).zip(labels).enumerate() {
                 let color = Palette99::pick(i);
-                let ys: Vec<f64> = c.points.iter().map(|p| p.1).collect();
-                let avg = moving_average(&ys, window);
                 chart.draw_series(LineSeries::new(c.points.iter().copied(), color.mix(0.25)))?;
                 chart
-                    .draw_series(LineSeries::new(
-                        c.points.iter().zip(avg).map(|(p, a)| (p.0, a)),
-                        color.stroke_width(3),
-                    ))?
-                    .label(format!("{} ({window}-episode mean)", c.label))
+                    .draw_series(LineSeries::new(avg, color.stroke_width(3)))?
+                    .label(label)
                     .legend(move |(x, y)| {
                         PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(3))
                     });
@@ -176,21 +181,28 @@ type Chart<'a, 'b> =
 type DrawResult =
     Result<(), DrawingAreaErrorKind<<BitMapBackend<'static> as DrawingBackend>::ErrorType>>;
 
-/// Where a figure's drawn lines are, and how many rows its legend has: the legend goes where it
-/// hides the fewest of them ([`legend_corner`]).
+/// Where a figure's drawn lines are, and its legend's labels: the legend goes where it hides the
+/// fewest of those points ([`legend_corner`]).
 struct Ink {
     points: Vec<(f64, f64)>,
-    legend_rows: usize,
+    labels: Vec<String>,
 }
 
-/// The corner of the plot whose legend box (`rows` rows of about 19 pixels, 45 % of the plot's
-/// width) covers the fewest of `points`, in the order upper left, upper right, lower right,
-/// lower left when several tie. `max` is the axes' extent, `height` the plot's in pixels.
-fn legend_corner(points: &[(f64, f64)], max: (f64, f64), rows: usize, height: f64) -> usize {
-    let (w, h) = (
-        0.45 * max.0,
-        ((rows as f64 * 19.0 + 12.0) / height).min(1.0) * max.1,
-    );
+/// The legend's size in pixels at 12-pixel labels (plotters' layout: rows 15 pixels apart,
+/// 10-pixel margins, a 20-pixel key beside each label), with about 6.5 pixels a character.
+fn legend_pixels(labels: &[String]) -> (f64, f64) {
+    let longest = labels.iter().map(|l| l.chars().count()).max().unwrap_or(0);
+    (
+        longest as f64 * 6.5 + 55.0,
+        labels.len() as f64 * 15.0 + 25.0,
+    )
+}
+
+/// The corner of the plot whose legend box (`size`, as fractions of the plot's width and
+/// height) covers the fewest of `points`, in the order upper left, upper right, lower right,
+/// lower left when several tie. `max` is the axes' extent.
+fn legend_corner(points: &[(f64, f64)], max: (f64, f64), size: (f64, f64)) -> usize {
+    let (w, h) = (size.0.min(1.0) * max.0, size.1.min(1.0) * max.1);
     let boxes = [
         (0.0, w, max.1 - h, max.1),           // upper left
         (max.0 - w, max.0, max.1 - h, max.1), // upper right
@@ -250,8 +262,13 @@ fn figure(
         .draw()
         .map_err(e)?;
     draw(&mut chart).map_err(e)?;
-    let height = chart.plotting_area().dim_in_pixel().1 as f64;
-    let corner = legend_corner(&ink.points, (max.0, max.1 * 1.05), ink.legend_rows, height);
+    let (width, height) = chart.plotting_area().dim_in_pixel();
+    let (lw, lh) = legend_pixels(&ink.labels);
+    let corner = legend_corner(
+        &ink.points,
+        (max.0, max.1 * 1.05),
+        (lw / width as f64, lh / height as f64),
+    );
     chart
         .configure_series_labels()
         .label_font(sans(12.0))
@@ -409,6 +426,10 @@ pub fn plot_groups(
         .chain(limits.iter().flat_map(|b| b.iter().map(|p| p.2)))
         .fold(10.0, f64::max);
     let y_desc = format!("reward per episode ({window}-episode moving average)");
+    let group_labels: Vec<String> = groups
+        .iter()
+        .map(|g| format!("{} (mean of {} seeds)", g.label, g.seeds.len()))
+        .collect();
     let ink = Ink {
         points: bands
             .iter()
@@ -421,7 +442,11 @@ pub fn plot_groups(
                     .flat_map(|p| [(p.0, p.1), (p.0, p.2)]),
             )
             .collect(),
-        legend_rows: groups.len() + bounded.len(),
+        labels: bounded
+            .iter()
+            .map(|b| b.label.clone())
+            .chain(group_labels.iter().cloned())
+            .collect(),
     };
     figure(
         out,
@@ -448,8 +473,7 @@ pub fn plot_groups(
                     }
                 }
             }
-            for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
-                let label = format!("{} (mean of {} seeds)", g.label, g.seeds.len());
+            for (i, (band, label)) in bands.iter().zip(group_labels).enumerate() {
                 draw_band(chart, band, Palette99::pick(i), label)?;
             }
             Ok(())
@@ -597,6 +621,13 @@ pub fn plot_groups_frames(
         .chain(refs.iter().flatten().map(|p| p.1))
         .fold(10.0, f64::max);
     let y_desc = format!("reward per episode ({window}-episode moving average)");
+    let group_labels: Vec<String> = groups
+        .iter()
+        .map(|g| match g.seeds.len() {
+            1 => g.label.clone(),
+            n => format!("{} (mean of {n} seeds, min-max band)", g.label),
+        })
+        .collect();
     // The references' dashed lines, as points every twentieth of each segment.
     let dashes = refs.iter().flat_map(|r| {
         r.windows(2).flat_map(|w| {
@@ -617,7 +648,11 @@ pub fn plot_groups_frames(
             .chain(refs.iter().flatten().copied())
             .chain(dashes)
             .collect(),
-        legend_rows: groups.len() + references.len(),
+        labels: group_labels
+            .iter()
+            .cloned()
+            .chain(references.iter().map(|r| r.label.clone()))
+            .collect(),
     };
     figure(
         out,
@@ -627,11 +662,7 @@ pub fn plot_groups_frames(
         (max_x, max_y),
         ink,
         |chart| {
-            for (i, (g, band)) in groups.iter().zip(&bands).enumerate() {
-                let label = match g.seeds.len() {
-                    1 => g.label.clone(),
-                    n => format!("{} (mean of {n} seeds, min-max band)", g.label),
-                };
+            for (i, (band, label)) in bands.iter().zip(group_labels).enumerate() {
                 draw_band(chart, band, Palette99::pick(i), label)?;
             }
             for (i, (r, pts)) in references.iter().zip(&refs).enumerate() {
@@ -656,26 +687,47 @@ pub fn plot_groups_frames(
 mod tests {
     use super::*;
 
-    /// Lines that rise from the lower left fill the upper-left corner of a wide legend less than
-    /// a flat line near the top does; the corner covering fewest points wins, upper left on ties.
+    /// The legend goes to the corner whose box covers the fewest drawn points, upper left when
+    /// corners tie. Boxes here are 45 % of the width and 20 % of the height of a 100x100 plot.
     #[test]
     fn the_legend_goes_where_it_hides_the_least() {
-        let max = (100.0, 100.0);
-        assert_eq!(legend_corner(&[], max, 5, 500.0), 0, "a tie: upper left");
-        let rising: Vec<(f64, f64)> = (0..100).map(|x| (x as f64, x as f64)).collect();
-        assert_eq!(legend_corner(&rising, max, 5, 500.0), 0);
-        let early: Vec<(f64, f64)> = (0..40).map(|x| (x as f64, 95.0)).collect();
-        assert_eq!(legend_corner(&early, max, 5, 500.0), 1, "upper right");
-        let top: Vec<(f64, f64)> = (0..=100).map(|x| (x as f64, 95.0)).collect();
-        let bottom_left: Vec<(f64, f64)> = (0..40).map(|x| (x as f64, 5.0)).collect();
-        let both: Vec<(f64, f64)> = top.iter().chain(&bottom_left).copied().collect();
-        assert_eq!(legend_corner(&both, max, 5, 500.0), 2, "lower right");
-        let low: Vec<(f64, f64)> = (0..=100).map(|x| (x as f64, 5.0)).collect();
-        let all: Vec<(f64, f64)> = top.iter().chain(&low).copied().collect();
+        let (max, size) = ((100.0, 100.0), (0.45, 0.2));
+        let line = |xs: std::ops::RangeInclusive<i32>, y: f64| -> Vec<(f64, f64)> {
+            xs.map(|x| (x as f64, y)).collect()
+        };
         assert_eq!(
-            legend_corner(&all, max, 2, 500.0),
+            legend_corner(&[], max, size),
             0,
-            "all covered alike: upper left"
+            "nothing drawn: upper left"
+        );
+        let rising: Vec<(f64, f64)> = (0..=100).map(|x| (x as f64, x as f64)).collect();
+        assert_eq!(legend_corner(&rising, max, size), 0, "a rising line: a tie");
+        assert_eq!(
+            legend_corner(&line(0..=40, 95.0), max, size),
+            1,
+            "upper right"
+        );
+        let top_and_low_left = [line(0..=100, 95.0), line(0..=40, 5.0)].concat();
+        assert_eq!(
+            legend_corner(&top_and_low_left, max, size),
+            2,
+            "lower right"
+        );
+        let top_and_low_right = [line(0..=100, 95.0), line(60..=100, 5.0)].concat();
+        assert_eq!(
+            legend_corner(&top_and_low_right, max, size),
+            3,
+            "lower left"
+        );
+        let everywhere = [line(0..=100, 95.0), line(0..=100, 5.0)].concat();
+        assert_eq!(legend_corner(&everywhere, max, size), 0, "four ties");
+        // The box's height counts: a line at 70 is clear of a 20 % box, not of a 40 % one.
+        let high_and_low_left = [line(0..=100, 70.0), line(0..=40, 5.0)].concat();
+        assert_eq!(legend_corner(&high_and_low_left, max, (0.45, 0.2)), 0);
+        assert_eq!(legend_corner(&high_and_low_left, max, (0.45, 0.4)), 2);
+        assert_eq!(
+            legend_pixels(&["ab".into(), "abcd".into()]),
+            (4.0 * 6.5 + 55.0, 55.0)
         );
     }
 
