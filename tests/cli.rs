@@ -611,22 +611,15 @@ fn experiment_strong_trains_evaluates_and_reports() {
         env!("CARGO_MANIFEST_DIR"),
         "/docs/strong/dopamine-spaceinvaders.csv"
     );
-    // One run alone on two threads, the budget's other way.
-    let args = with(&[
-        "--reference",
-        reference,
-        "--agents",
-        "Dopamine DQN",
-        "--threads",
-        "2",
-        "--jobs",
-        "1",
-    ]);
+    // The defaults: two threads per run, as many runs at once as the cores hold.
+    let args = with(&["--reference", reference, "--agents", "Dopamine DQN"]);
     let first = ok(&run(&args));
     let log = std::fs::read_to_string(out.join("strong-seed1.log")).unwrap();
     assert!(log.contains("on 2 thread(s)"), "{log}");
     let table = std::fs::read_to_string(out.join("results.md")).unwrap();
-    assert!(table.contains("2 thread(s) each, 1 at a time"), "{table}");
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let at_once = format!("2 thread(s) each, {} at a time", (cores / 2).max(1));
+    assert!(table.contains(&at_once), "{table}");
     let row = table
         .lines()
         .find(|l| l.starts_with("| 1 | "))

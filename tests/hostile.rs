@@ -396,6 +396,8 @@ fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
             "2",
             "--jobs",
             "1",
+            "--threads",
+            "1",
             "--frames",
             "100000000",
             "--config",

@@ -9,8 +9,9 @@
 //! network by the evaluation protocol and reports each run's frames, wall time and agent steps
 //! per second beside its score.
 //!
-//! Runs are separate `invaders train` processes side by side (`preprocessing`: one per core, one
-//! kernel thread each; `strong`: by default one at a time on two threads, as its budget needs).
+//! Runs are separate `invaders train` processes (`preprocessing`: one per core side by side, one
+//! kernel thread each; `strong`: two kernel threads each, as many at a time as the cores hold,
+//! so one at a time on a 2-core machine, as its budget needs).
 //! Each experiment writes `rewards.png` (mean over seeds with a min–max band) and
 //! `results.md` (the table, with the command and budget) into `--out`. Re-running the same
 //! command continues unfinished runs and skips finished ones.
@@ -53,11 +54,11 @@ pub struct StrongArgs {
     /// Emulator frames per run.
     #[arg(long, default_value_t = STRONG_FRAMES)]
     frames: u64,
-    /// Runs trained at once (default: the cores divided by `--threads`).
+    /// Runs trained at once (default: the cores divided by `--threads`, at least one).
     #[arg(long)]
     jobs: Option<usize>,
-    /// Kernel threads per run: 2 for one run alone on this machine (the preset's 12 million
-    /// frames take about 2.1 hours so), 1 for runs side by side (with a smaller `--frames`).
+    /// Kernel threads per run: 2 for one run alone on a 2-core machine (the preset's 12 million
+    /// frames took about 2.1 hours so on an AVX512-BF16 host), 1 for runs side by side.
     #[arg(long, default_value_t = 2)]
     threads: usize,
     /// Protocol episodes per final network (at least 100).
@@ -587,11 +588,13 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         args.frames,
         args.out.display()
     );
+    // Runs at once: as many as the cores hold at `--threads` each, unless `--jobs` says.
     let workers = args
         .jobs
-        .or(Some((worker_count(None) / args.threads).max(1)));
-    train_all(&exe, &jobs, workers, Budget::Frames(args.frames))?;
-    let scores = for_all(&jobs, worker_count(workers), |job| {
+        .unwrap_or_else(|| (worker_count(None) / args.threads).max(1));
+    train_all(&exe, &jobs, Some(workers), Budget::Frames(args.frames))?;
+    // Each evaluation plays on one thread: one per core.
+    let scores = for_all(&jobs, worker_count(None), |job| {
         evaluate_protocol(&exe, &job.dir, args.eval_episodes)
     })?;
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
@@ -633,7 +636,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         command_line(),
         args.frames,
         args.threads,
-        args.jobs.map_or("one per core".to_string(), |j| j.to_string()),
+        workers,
         args.eval_episodes,
         rows.join("\n"),
         mean_std(&means)

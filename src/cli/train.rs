@@ -49,8 +49,9 @@ pub struct TrainArgs {
     /// Seed of every random generator.
     #[arg(long)]
     seed: Option<u64>,
-    /// The training products' arithmetic (default: the preset's, f32): bf16 rounds their
-    /// operands to bfloat16 and keeps f32 sums, on CPUs with AVX512-BF16.
+    /// The training products' arithmetic (default: the preset's: bf16 for `strong`, f32 for the
+    /// article's): bf16 rounds their operands to bfloat16 and keeps f32 sums, on CPUs with
+    /// AVX512-BF16 (elsewhere f32).
     #[arg(long, value_enum, conflicts_with = "resume")]
     precision: Option<Precision>,
     /// Worker threads for the kernels (default: all cores).
