@@ -660,6 +660,99 @@ fn experiment_strong_trains_evaluates_and_reports() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// `experiment ablation` end to end at a tiny budget, with two arms: an unknown arm and a
+/// `--config` that already switches the arm's component off are refused before anything trains;
+/// each arm's config file is the overrides plus its own switch, and its run trains with it; the
+/// table sets each arm against the preset, which is always trained; run again, nothing trains.
+#[test]
+fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
+    let root = tmp("experiment-ablation");
+    std::fs::create_dir_all(&root).unwrap();
+    let tiny = "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n";
+    let cfg = root.join("tiny.toml");
+    std::fs::write(&cfg, tiny).unwrap();
+    let out = root.join("exp");
+    let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
+    let args = [
+        "experiment",
+        "ablation",
+        "--frames",
+        "2000",
+        "--arms",
+        "no-dueling",
+        "--config",
+        cfg_s,
+        "--out",
+        out_s,
+    ];
+    let mut unknown = args;
+    unknown[5] = "no-such-arm";
+    fails_with(
+        &invaders(&unknown),
+        "no arm `no-such-arm` (--arms); the arms are strong, ",
+    );
+    let already = root.join("already.toml");
+    std::fs::write(&already, format!("{tiny}dueling = false\n")).unwrap();
+    let mut same = args;
+    same[7] = already.to_str().unwrap();
+    fails_with(&invaders(&same), "would train the preset itself");
+    assert!(
+        !out.join("strong-seed1").exists() && !out.join("no-dueling-seed1").exists(),
+        "nothing trained before the inputs are checked"
+    );
+
+    let first = ok(&invaders(&args));
+    assert!(first.contains("2 runs of 2000 frames (seed 1)"), "{first}");
+    let arm_cfg = std::fs::read_to_string(out.join("no-dueling.toml")).unwrap();
+    assert!(
+        arm_cfg.contains("dueling = false") && arm_cfg.contains("batch_size = 8"),
+        "{arm_cfg}"
+    );
+    let trained =
+        |arm: &str| std::fs::read_to_string(out.join(format!("{arm}-seed1/config.toml"))).unwrap();
+    assert!(trained("no-dueling").contains("dueling = false"));
+    assert!(trained("strong").contains("dueling = true"));
+    let log = std::fs::read_to_string(out.join("no-dueling-seed1.log")).unwrap();
+    assert!(log.contains("on 1 thread(s)"), "{log}");
+    let table = std::fs::read_to_string(out.join("results.md")).unwrap();
+    let row = |arm: &str| -> Vec<String> {
+        let line = table
+            .lines()
+            .find(|l| l.starts_with(&format!("| {arm} | ")))
+            .unwrap_or_else(|| panic!("no row for {arm}:\n{table}"));
+        line.split('|').map(|c| c.trim().to_string()).collect()
+    };
+    let (preset, arm) = (row("strong"), row("no-dueling"));
+    assert_eq!(preset[2], "nothing (the preset)");
+    assert!(arm[2].starts_with("the dueling head"), "{arm:?}");
+    assert_eq!((preset[7].as_str(), preset[9].as_str()), ("+0.0", "+0.0"));
+    // Each Δ is the arm's figure less the preset's.
+    let num = |s: &str| s.split_whitespace().next().unwrap().parse::<f64>().unwrap();
+    let delta = num(&arm[6]) - num(&preset[6]);
+    assert!(
+        (num(&arm[7]) - delta).abs() < 0.11,
+        "{arm:?} against {preset:?}"
+    );
+    let delta = num(&arm[8]) - num(&preset[8]);
+    assert!(
+        (num(&arm[9]) - delta).abs() < 0.11,
+        "{arm:?} against {preset:?}"
+    );
+    assert!(arm[8].contains(" ± ") && arm[8].contains('–'), "{arm:?}");
+    assert!(std::fs::metadata(out.join("rewards.png")).unwrap().len() > 1000);
+    // Again: nothing to train or play, the same table.
+    let again = ok(&invaders(&args));
+    assert!(
+        again.contains("no-dueling-seed1: already trained"),
+        "{again}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("results.md")).unwrap(),
+        table
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 /// The article's experiment (issue 23's command) end to end at a toy budget: the three presets
 /// and an extra pipeline trained, each evaluated both ways, the table and the figure (with the
 /// notebook's digitised curve) written; a bad notebook file fails before anything trains, and

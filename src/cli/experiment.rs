@@ -9,9 +9,13 @@
 //! network by the evaluation protocol and reports each run's frames, wall time and agent steps
 //! per second beside its score.
 //!
-//! Runs are separate `invaders train` processes (`preprocessing`: one per core side by side, one
-//! kernel thread each; `strong`: two kernel threads each, as many at a time as the cores hold,
-//! so one at a time on a 2-core machine, as its budget needs).
+//! `ablation`, what each of the `strong` preset's components is worth: the preset and, for each
+//! component in [`ABLATIONS`], the preset with that one switched off, all with one seed at a
+//! reduced budget, each evaluated by the protocol and set against the preset.
+//!
+//! Runs are separate `invaders train` processes (`preprocessing` and `ablation`: one per core
+//! side by side, one kernel thread each; `strong`: two kernel threads each, as many at a time as
+//! the cores hold, so one at a time on a 2-core machine, as its budget needs).
 //! Each experiment writes `rewards.png` (mean over seeds with a min–max band) and
 //! `results.md` (the table, with the command and budget) into `--out`. Re-running the same
 //! command continues unfinished runs and skips finished ones.
@@ -31,7 +35,7 @@ use clap::{Args, Subcommand, ValueEnum};
 use super::eval::{PROTOCOL_EPISODES, PROTOCOL_EPSILON, PROTOCOL_SEED};
 use super::Interrupted;
 use invaders::dqn::checkpoint;
-use invaders::dqn::{Config, Preset, STRONG_FRAMES};
+use invaders::dqn::{merge_toml, Config, Preset, STRONG_FRAMES};
 use invaders::env::Pipeline;
 use invaders::plot::{
     plot_groups, plot_groups_frames, read_digitized, read_frame_metrics, read_metrics,
@@ -44,6 +48,82 @@ pub enum Experiment {
     Preprocessing(PreprocessingArgs),
     /// The `strong` preset over several training seeds, each evaluated by the protocol.
     Strong(StrongArgs),
+    /// The `strong` preset with each of its components switched off in turn.
+    Ablation(AblationArgs),
+}
+
+/// The ablation's arms: a name, what it switches off, and the TOML keys that do it (over the
+/// `strong` preset). The first, with no keys, is the preset itself.
+///
+/// The falling learning rate is not among them: its schedule starts at agent step 250 000 (1 M
+/// frames) and has barely moved by the ablation's budget, so it is measured at full budget
+/// instead (docs/strong.md).
+pub const ABLATIONS: &[(&str, &str, &str)] = &[
+    ("strong", "nothing (the preset)", ""),
+    (
+        "no-dueling",
+        "the dueling head (a plain dense head instead)",
+        "dueling = false",
+    ),
+    ("n-step-1", "3-step returns (1-step instead)", "n_step = 1"),
+    (
+        "no-double",
+        "Double DQN (the target network's own max instead)",
+        "double_dqn = false",
+    ),
+    (
+        "no-life-loss",
+        "a lost life ending bootstrapping (only the game's end does)",
+        "life_loss_terminal = false",
+    ),
+    (
+        "no-reward-clip",
+        "reward clipping to ±1 (the game's rewards instead)",
+        "clip_rewards = false",
+    ),
+    (
+        "mse",
+        "the Huber loss (squared error instead)",
+        "loss = \"mse\"",
+    ),
+    (
+        "small-replay",
+        "the 400 000-transition replay (100 000 instead)",
+        "replay_capacity = 100000",
+    ),
+    (
+        "pick-pixels",
+        "max-pooled downsampling (each 2x2 block's top-left pixel instead)",
+        "[env]\ndownsample = \"pick\"",
+    ),
+];
+
+#[derive(Debug, Args)]
+pub struct AblationArgs {
+    /// The training seed of every arm (the protocol plays on seed 1 000 000, never this one).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Emulator frames per run.
+    #[arg(long, default_value_t = 1_500_000)]
+    frames: u64,
+    /// The arms to train, by name (default: all; `strong`, the preset, is always among them).
+    #[arg(long, value_delimiter = ',')]
+    arms: Vec<String>,
+    /// Runs trained at once (default: the cores divided by `--threads`, at least one).
+    #[arg(long)]
+    jobs: Option<usize>,
+    /// Kernel threads per run.
+    #[arg(long, default_value_t = 1)]
+    threads: usize,
+    /// Protocol episodes per final network (at least 100).
+    #[arg(long, default_value_t = 100)]
+    eval_episodes: u32,
+    /// A TOML file of overrides applied to every arm before its own switch.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// The experiment directory.
+    #[arg(long, default_value = "runs/experiment-ablation")]
+    out: PathBuf,
 }
 
 #[derive(Debug, Args)]
@@ -182,6 +262,7 @@ pub fn run(e: &Experiment) -> anyhow::Result<()> {
     match e {
         Experiment::Preprocessing(args) => preprocessing(args),
         Experiment::Strong(args) => strong(args),
+        Experiment::Ablation(args) => ablation(args),
     }
 }
 
@@ -189,12 +270,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
     if args.episodes == 0 || args.seeds == 0 || args.eval_episodes == 0 {
         bail!("--episodes, --seeds and --eval-episodes must be at least 1");
     }
-    let overrides = match &args.config {
-        Some(p) => {
-            std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?
-        }
-        None => String::new(),
-    };
+    let overrides = read_overrides(args.config.as_deref())?;
     // Read before hours of training, so a bad file fails now.
     let notebook = match &args.notebook {
         Some(p) => vec![read_digitized(
@@ -205,7 +281,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
     };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let exe = std::env::current_exe().context("cannot find the invaders executable")?;
+    let exe = exe_path()?;
     let arms = arms(args);
     // Every run's config file, checked before anything starts.
     let mut jobs = Vec::new();
@@ -545,6 +621,45 @@ fn parse_scores(last: &str) -> anyhow::Result<Scores> {
     })
 }
 
+/// The `--config` file's text (empty without one).
+fn read_overrides(path: Option<&Path>) -> anyhow::Result<String> {
+    match path {
+        Some(p) => {
+            std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))
+        }
+        None => Ok(String::new()),
+    }
+}
+
+/// What a finished run reports beside its score.
+struct RunSummary {
+    frames: u64,
+    hours: f64,
+    steps_per_second: f64,
+    /// The mean reward of its last 100 training episodes.
+    last100: f64,
+    /// Its training curve: (frames, reward) per episode.
+    points: Vec<(f64, f64)>,
+}
+
+fn summarize(dir: &Path) -> anyhow::Result<RunSummary> {
+    let c = checkpoint::load(&dir.join(checkpoint::CHECKPOINT_FILE))?.counters;
+    let points = read_frame_metrics(&dir.join("metrics.csv"))?;
+    let tail = &points[points.len().saturating_sub(100)..];
+    Ok(RunSummary {
+        frames: c.frames,
+        hours: c.wall_seconds / 3600.0,
+        steps_per_second: c.agent_steps as f64 / c.wall_seconds.max(1e-9),
+        last100: tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64,
+        points,
+    })
+}
+
+/// A protocol score as the tables print it: `mean ± std (min–max)`.
+fn scores_cell(s: &Scores) -> String {
+    format!("{:.1} ± {:.1} ({:.0}–{:.0})", s.mean, s.std, s.min, s.max)
+}
+
 /// `experiment strong`: the preset with seeds 1..=N, each evaluated by the protocol.
 fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     if args.seeds == 0 || args.frames == 0 || args.threads == 0 {
@@ -555,12 +670,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
             "the evaluation protocol plays at least {PROTOCOL_EPISODES} episodes (--eval-episodes)"
         );
     }
-    let text = match &args.config {
-        Some(p) => {
-            std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?
-        }
-        None => String::new(),
-    };
+    let text = read_overrides(args.config.as_deref())?;
     Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
     // The references are read before hours of training, so a bad file fails now.
     let references = match &args.reference {
@@ -571,7 +681,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let cfg = args.out.join("strong.toml");
     std::fs::write(&cfg, &text).with_context(|| format!("cannot write {}", cfg.display()))?;
-    let exe = std::env::current_exe().context("cannot find the invaders executable")?;
+    let exe = exe_path()?;
     let jobs: Vec<Job<'_>> = (1..=args.seeds)
         .map(|seed| Job {
             label: "strong",
@@ -599,24 +709,18 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     })?;
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
     for (job, s) in jobs.iter().zip(scores) {
-        let c = checkpoint::load(&job.dir.join(checkpoint::CHECKPOINT_FILE))?.counters;
-        let points = read_frame_metrics(&job.dir.join("metrics.csv"))?;
-        let tail = &points[points.len().saturating_sub(100)..];
-        let last100 = tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64;
+        let r = summarize(&job.dir)?;
         rows.push(format!(
-            "| {} | {} | {:.2} | {:.0} | {:.1} | {:.1} ± {:.1} ({:.0}–{:.0}) |",
+            "| {} | {} | {:.2} | {:.0} | {:.1} | {} |",
             job.seed,
-            c.frames,
-            c.wall_seconds / 3600.0,
-            c.agent_steps as f64 / c.wall_seconds.max(1e-9),
-            last100,
-            s.mean,
-            s.std,
-            s.min,
-            s.max
+            r.frames,
+            r.hours,
+            r.steps_per_second,
+            r.last100,
+            scores_cell(&s)
         ));
         means.push(s.mean);
-        seeds.push(points);
+        seeds.push(r.points);
     }
     let groups = [Group {
         label: "strong".to_string(),
@@ -644,6 +748,127 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     std::fs::write(args.out.join("results.md"), &table).context("cannot write results.md")?;
     println!("{table}");
     Ok(())
+}
+
+/// `experiment ablation`: the preset and the arms of [`ABLATIONS`] that `--arms` names (all by
+/// default), with one seed and budget, each evaluated by the protocol and set against the
+/// preset.
+fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
+    if args.frames == 0 || args.threads == 0 {
+        bail!("--frames and --threads must be at least 1");
+    }
+    if args.eval_episodes < PROTOCOL_EPISODES {
+        bail!(
+            "the evaluation protocol plays at least {PROTOCOL_EPISODES} episodes (--eval-episodes)"
+        );
+    }
+    let names: Vec<&str> = ABLATIONS.iter().map(|a| a.0).collect();
+    if let Some(bad) = args.arms.iter().find(|a| !names.contains(&a.as_str())) {
+        bail!("no arm `{bad}` (--arms); the arms are {}", names.join(", "));
+    }
+    let arms: Vec<&(&str, &str, &str)> = ABLATIONS
+        .iter()
+        .filter(|(name, _, keys)| {
+            keys.is_empty() || args.arms.is_empty() || args.arms.iter().any(|a| a == name)
+        })
+        .collect();
+    let text = read_overrides(args.config.as_deref())?;
+    let overrides: toml::Table = text.parse().context("--config is not valid TOML")?;
+    let preset =
+        Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
+    // Every arm's config file, checked before anything trains: each must differ from the preset
+    // (a `--config` that already switches the component off would make the arm the preset).
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let mut jobs = Vec::new();
+    for &&(name, what, keys) in &arms {
+        let mut table = overrides.clone();
+        merge_toml(&mut table, keys.parse().expect("ABLATIONS' keys are TOML"));
+        let arm_text = toml::to_string(&table)?;
+        let config = Config::resolve(Some(Preset::Strong), Some(&arm_text))
+            .with_context(|| format!("configuration of {name}"))?;
+        if !keys.is_empty() && config == preset {
+            bail!(
+                "arm `{name}` would train the preset itself: --config already switches off {what}"
+            );
+        }
+        let cfg = args.out.join(format!("{name}.toml"));
+        std::fs::write(&cfg, &arm_text)
+            .with_context(|| format!("cannot write {}", cfg.display()))?;
+        jobs.push(Job {
+            label: name,
+            preset: Preset::Strong,
+            seed: args.seed,
+            cfg,
+            dir: args.out.join(format!("{name}-seed{}", args.seed)),
+            threads: args.threads,
+        });
+    }
+    let workers = args
+        .jobs
+        .unwrap_or_else(|| (worker_count(None) / args.threads).max(1));
+    say!(
+        "{} runs of {} frames (seed {}), {} at a time, into {}",
+        jobs.len(),
+        args.frames,
+        args.seed,
+        workers,
+        args.out.display()
+    );
+    let exe = exe_path()?;
+    train_all(&exe, &jobs, Some(workers), Budget::Frames(args.frames))?;
+    let scores = for_all(&jobs, worker_count(None), |job| {
+        evaluate_protocol(&exe, &job.dir, args.eval_episodes)
+    })?;
+    let summaries = jobs
+        .iter()
+        .map(|job| summarize(&job.dir))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    // The preset is the first arm.
+    let (base_return, base_score) = (summaries[0].last100, scores[0].mean);
+    let mut rows = Vec::new();
+    let mut groups = Vec::new();
+    for (((job, &(_, what, _)), r), s) in jobs.iter().zip(&arms).zip(summaries).zip(&scores) {
+        rows.push(format!(
+            "| {} | {} | {} | {:.2} | {:.0} | {:.1} | {:+.1} | {} | {:+.1} |",
+            job.label,
+            what,
+            r.frames,
+            r.hours,
+            r.steps_per_second,
+            r.last100,
+            r.last100 - base_return,
+            scores_cell(s),
+            s.mean - base_score
+        ));
+        groups.push(Group {
+            label: job.label.to_string(),
+            seeds: vec![r.points],
+        });
+    }
+    let title = format!(
+        "Space Invaders, strong preset ablation: seed {}, {} frames",
+        args.seed, args.frames
+    );
+    plot_groups_frames(&groups, &[], &title, 100, &args.out.join("rewards.png"))?;
+    let table = format!(
+        "# The strong preset, each component switched off in turn\n\nCommand: `{}`\n\nBudget: {} frames per run, seed {}, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}. Δ: against the preset (`strong`).\n\n| arm | switched off | frames | wall hours | agent steps/s | training return, last 100 episodes | Δ | protocol score: mean ± std (min–max) | Δ |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n{}\n\nOne seed per arm: a difference smaller than about 50 is within what one checkpoint's score moves from the next. Figure: `rewards.png`.\n",
+        command_line(),
+        args.frames,
+        args.seed,
+        args.threads,
+        workers,
+        args.eval_episodes,
+        rows.join("\n"),
+    );
+    std::fs::write(args.out.join("results.md"), &table).context("cannot write results.md")?;
+    println!("{table}");
+    Ok(())
+}
+
+/// This program, which each run and evaluation runs again as a child process.
+fn exe_path() -> anyhow::Result<PathBuf> {
+    std::env::current_exe().context("cannot find the invaders executable")
 }
 
 /// This command as a shell would take it back: `invaders` and its arguments, each quoted where

@@ -337,7 +337,7 @@ impl Config {
                     .expect("an env config serialises"),
             );
         }
-        merge(&mut base, file.clone());
+        merge_toml(&mut base, file.clone());
         base.insert("preset".into(), toml::Value::String(p.name().into()));
         // Deserialising from text (not from the table) makes errors quote the offending line.
         let merged = toml::to_string(&base).expect("a table serialises");
@@ -562,10 +562,10 @@ fn key_line(text: &str, table: Option<&str>, key: &str) -> Option<usize> {
 }
 
 /// Overlays `top` on `base`, recursing into tables (so `[env]` keys override one by one).
-fn merge(base: &mut toml::Table, top: toml::Table) {
+pub fn merge_toml(base: &mut toml::Table, top: toml::Table) {
     for (k, v) in top {
         match (base.get_mut(&k), v) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => merge(b, t),
+            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => merge_toml(b, t),
             (_, v) => {
                 base.insert(k, v);
             }

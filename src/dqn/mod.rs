@@ -9,7 +9,7 @@ mod replay;
 mod sumtree;
 
 pub use agent::{greedy, play_evaluation_episode, random_play_inputs, Agent, EpisodeRow};
-pub use config::{Config, Preset, ARTICLE_HIDDEN, NO_EPISODE_LIMIT, STRONG_FRAMES};
+pub use config::{merge_toml, Config, Preset, ARTICLE_HIDDEN, NO_EPISODE_LIMIT, STRONG_FRAMES};
 pub use learner::{argmax, greedy_atoms, Batch, Learner, StepStats};
 pub use qnet::{article_qnet, input_border, qnet, Head};
 pub use replay::{Replay, FLAG_ACTED, FLAG_DONE, FLAG_START};
