@@ -239,23 +239,42 @@ pub fn pack_pairs(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut Ve
     pairs
 }
 
+/// A value as the bf16 bits a pair holds: an f32 rounded to nearest even, a bf16 as it is.
+trait AsBf16: Copy {
+    fn bf16(self) -> u16;
+}
+
+impl AsBf16 for f32 {
+    #[inline(always)]
+    fn bf16(self) -> u16 {
+        to_bf16(self)
+    }
+}
+
+impl AsBf16 for u16 {
+    #[inline(always)]
+    fn bf16(self) -> u16 {
+        self
+    }
+}
+
 avx512_twin! {
     /// `dst[2i] = bf16(src[i])`, `dst[2i + 1] = bf16(src[i + d])` (0 past the end).
-    fn pack_shift(src: &[f32], d: usize, dst: &mut [u16]) {
+    fn shift_pairs<T: AsBf16>(src: &[T], d: usize, dst: &mut [u16]) {
         if let Some(words) = pair_words(dst) {
             // The pairs with a partner, then the last `d` values alone.
             let (both, alone) = words.split_at_mut(src.len().saturating_sub(d));
             for ((o, &lo), &hi) in both.iter_mut().zip(src).zip(&src[d.min(src.len())..]) {
-                *o = pair_word(lo, hi);
+                *o = u32::from(lo.bf16()) | u32::from(hi.bf16()) << 16;
             }
             for (o, &lo) in alone.iter_mut().zip(&src[both.len()..]) {
-                *o = u32::from(to_bf16(lo));
+                *o = u32::from(lo.bf16());
             }
             return;
         }
         for (i, o) in dst.chunks_exact_mut(2).enumerate() {
-            o[0] = to_bf16(src[i]);
-            o[1] = src.get(i + d).map_or(0, |&v| to_bf16(v));
+            o[0] = src[i].bf16();
+            o[1] = src.get(i + d).map_or(0, |&v| v.bf16());
         }
     }
 }
@@ -266,36 +285,15 @@ avx512_twin! {
 /// input at two output pixels `d = SW·Cin` apart, as one pair of reduction steps.
 pub fn pack_shifted(src: &[f32], d: usize, dst: &mut Vec<u16>) {
     dst.resize(2 * src.len(), 0);
-    pack_shift(src, d, dst);
+    shift_pairs(src, d, dst);
 }
 
-avx512_twin! {
-    /// `dst[2i] = src[i]`, `dst[2i + 1] = src[i + d]` (0 past the end): [`pack_shift`] of values
-    /// already in bf16, so no rounding, only the pairing.
-    fn pair_shift(src: &[u16], d: usize, dst: &mut [u16]) {
-        if let Some(words) = pair_words(dst) {
-            let (both, alone) = words.split_at_mut(src.len().saturating_sub(d));
-            for ((o, &lo), &hi) in both.iter_mut().zip(src).zip(&src[d.min(src.len())..]) {
-                *o = u32::from(lo) | u32::from(hi) << 16;
-            }
-            for (o, &lo) in alone.iter_mut().zip(&src[both.len()..]) {
-                *o = u32::from(lo);
-            }
-            return;
-        }
-        for (i, o) in dst.chunks_exact_mut(2).enumerate() {
-            o[0] = src[i];
-            o[1] = src.get(i + d).copied().unwrap_or(0);
-        }
-    }
-}
-
-/// [`pack_shifted`] of values already rounded to bf16: `pair_shifted(bf16(x))` is
-/// `pack_shifted(x)` bit for bit, reading half the bytes. A convolution's weight gradient pairs
-/// the input its forward pass already rounded.
+/// [`pack_shifted`] of values already rounded to bf16 (no rounding, only the pairing):
+/// `pair_shifted(bf16(x))` is `pack_shifted(x)` bit for bit, reading half the bytes. A
+/// convolution's weight gradient pairs the input its forward pass already rounded.
 pub fn pair_shifted(src: &[u16], d: usize, dst: &mut Vec<u16>) {
     dst.resize(2 * src.len(), 0);
-    pair_shift(src, d, dst);
+    shift_pairs(src, d, dst);
 }
 
 /// The f32 values of a slice of `T` that is f32 (what the bf16 kernels read and write: the
@@ -646,15 +644,15 @@ mod tests {
         for d in [0, 3, 34, 35, 40] {
             let (mut words, mut halves) =
                 (vec![0u16; 2 * src.len()], vec![0u16; 2 * src.len() + 1]);
-            pack_shift(&src, d, &mut words);
-            pack_shift(&src, d, &mut halves[1..]);
+            shift_pairs(&src, d, &mut words);
+            shift_pairs(&src, d, &mut halves[1..]);
             assert_eq!(words, halves[1..], "d = {d}");
             // Pairing values already in bf16 gives the same bits, by words or by halves.
             let bf: Vec<u16> = src.iter().map(|&x| to_bf16(x)).collect();
             let mut paired = vec![0u16; 2 * src.len() + 1];
-            pair_shift(&bf, d, &mut paired[1..]);
+            shift_pairs(&bf, d, &mut paired[1..]);
             assert_eq!(words, paired[1..], "d = {d}, halves");
-            pair_shift(&bf, d, &mut paired[..2 * src.len()]);
+            shift_pairs(&bf, d, &mut paired[..2 * src.len()]);
             assert_eq!(words, paired[..2 * src.len()], "d = {d}, words");
         }
     }
