@@ -660,8 +660,9 @@ fn experiment_strong_trains_evaluates_and_reports() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// `experiment ablation` end to end at a tiny budget, with two arms: an unknown arm and a
-/// `--config` that already switches the arm's component off are refused before anything trains;
+/// `experiment ablation` end to end at a tiny budget, with two arms: an unknown arm, a seed TOML
+/// cannot hold and a `--config` that already switches the arm's component off are refused before
+/// anything trains;
 /// each arm's config file is the overrides plus its own switch, and its run trains with it; the
 /// table sets each arm against the preset, which is always trained; run again, nothing trains.
 #[test]
@@ -696,6 +697,9 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
     let mut same = args;
     same[7] = already.to_str().unwrap();
     fails_with(&invaders(&same), "would train the preset itself");
+    let mut big = args.to_vec();
+    big.extend(["--seed", "9223372036854775808"]);
+    fails_with(&invaders(&big), "at most 9223372036854775807");
     assert!(
         !out.join("strong-seed1").exists() && !out.join("no-dueling-seed1").exists(),
         "nothing trained before the inputs are checked"

@@ -776,6 +776,12 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
     let overrides: toml::Table = text.parse().context("--config is not valid TOML")?;
     let preset =
         Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
+    Config {
+        seed: args.seed,
+        ..preset.clone()
+    }
+    .validate()
+    .context("--seed")?;
     // Every arm's config file, checked before anything trains: each must differ from the preset
     // (a `--config` that already switches the component off would make the arm the preset).
     std::fs::create_dir_all(&args.out)
