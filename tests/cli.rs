@@ -596,6 +596,9 @@ fn experiment_strong_trains_evaluates_and_reports() {
         "at least 100 episodes",
     );
     fails_with(&run(&with(&["--threads", "0"])), "--threads must be");
+    let mut big = with(&[]);
+    big[3] = "9223372036854775808".into(); // --seeds
+    fails_with(&run(&big), "at most 9223372036854775807");
     let bad = root.join("bad.csv");
     std::fs::write(&bad, "agent,frames\nx,1\n").unwrap();
     fails_with(
@@ -660,9 +663,9 @@ fn experiment_strong_trains_evaluates_and_reports() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// `experiment ablation` end to end at a tiny budget, with two arms: an unknown arm, a seed TOML
-/// cannot hold and a `--config` that already switches the arm's component off are refused before
-/// anything trains;
+/// `experiment ablation` end to end at a tiny budget, with two arms: an unknown arm, a seed or
+/// budget TOML cannot hold, the protocol's own seed and a `--config` that already switches the
+/// arm's component off are refused before anything is written;
 /// each arm's config file is the overrides plus its own switch, and its run trains with it; the
 /// table sets each arm against the preset, which is always trained; run again, nothing trains.
 #[test]
@@ -690,19 +693,39 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
     unknown[5] = "no-such-arm";
     fails_with(
         &invaders(&unknown),
-        "no arm `no-such-arm` (--arms); the arms are strong, ",
+        "[possible values: strong, no-dueling, n-step-1",
     );
     let already = root.join("already.toml");
     std::fs::write(&already, format!("{tiny}dueling = false\n")).unwrap();
     let mut same = args;
     same[7] = already.to_str().unwrap();
-    fails_with(&invaders(&same), "would train the preset itself");
-    let mut big = args.to_vec();
-    big.extend(["--seed", "9223372036854775808"]);
-    fails_with(&invaders(&big), "at most 9223372036854775807");
+    fails_with(
+        &invaders(&same),
+        "arm `no-dueling` would not switch off the dueling head",
+    );
+    for (flag, value, needle) in [
+        (
+            "--seed",
+            "9223372036854775808",
+            "at most 9223372036854775807",
+        ),
+        (
+            "--frames",
+            "9223372036854775808",
+            "at most 9223372036854775807",
+        ),
+        ("--seed", "1000000", "the seed the protocol plays on"),
+    ] {
+        let mut bad = args.to_vec();
+        match bad.iter().position(|&a| a == flag) {
+            Some(i) => bad[i + 1] = value,
+            None => bad.extend([flag, value]),
+        }
+        fails_with(&invaders(&bad), needle);
+    }
     assert!(
-        !out.join("strong-seed1").exists() && !out.join("no-dueling-seed1").exists(),
-        "nothing trained before the inputs are checked"
+        !out.exists(),
+        "nothing written before the inputs are checked"
     );
 
     let first = ok(&invaders(&args));

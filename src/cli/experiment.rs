@@ -30,13 +30,15 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use anyhow::{anyhow, bail, Context};
+use clap::builder::PossibleValuesParser;
 use clap::{Args, Subcommand, ValueEnum};
 
 use super::eval::{PROTOCOL_EPISODES, PROTOCOL_EPSILON, PROTOCOL_SEED};
 use super::Interrupted;
 use invaders::dqn::checkpoint;
 use invaders::dqn::{merge_toml, Config, Preset, STRONG_FRAMES};
-use invaders::env::Pipeline;
+use invaders::env::{Downsample, Pipeline};
+use invaders::layers::loss::LossKind;
 use invaders::plot::{
     plot_groups, plot_groups_frames, read_digitized, read_frame_metrics, read_metrics,
     read_references, Group,
@@ -52,62 +54,101 @@ pub enum Experiment {
     Ablation(AblationArgs),
 }
 
-/// The ablation's arms: a name, what it switches off, and the TOML keys that do it (over the
-/// `strong` preset). The first, with no keys, is the preset itself.
-///
-/// The falling learning rate is not among them: its schedule starts at agent step 250 000 (1 M
+/// One arm of the ablation: the `strong` preset with one component switched off.
+pub struct Ablation {
+    /// Its name (`--arms`, the run directory `NAME-seedS`).
+    pub name: &'static str,
+    /// What it switches off, and what takes its place.
+    pub what: &'static str,
+    /// The TOML keys that do it, over the preset and `--config`.
+    pub keys: &'static str,
+    /// Whether the arm's configuration really switches the component off against the preset's
+    /// (`--config` may already have, or made it moot: the loss, say, under a quantile head).
+    pub switches: fn(arm: &Config, preset: &Config) -> bool,
+}
+
+/// The ablation's arms; the first, with no keys, is the preset itself. The others are the
+/// preset's on/off components and its replay size; its other settings (Adam's, the target
+/// period, the batch, one update per 4 agent steps) are the published agents' and not ablated.
+/// The falling learning rate is left out too: its schedule starts at agent step 250 000 (1 M
 /// frames) and has barely moved by the ablation's budget, so it is measured at full budget
 /// instead (docs/strong.md).
-pub const ABLATIONS: &[(&str, &str, &str)] = &[
-    ("strong", "nothing (the preset)", ""),
-    (
-        "no-dueling",
-        "the dueling head (a plain dense head instead)",
-        "dueling = false",
-    ),
-    ("n-step-1", "3-step returns (1-step instead)", "n_step = 1"),
-    (
-        "no-double",
-        "Double DQN (the target network's own max instead)",
-        "double_dqn = false",
-    ),
-    (
-        "no-life-loss",
-        "a lost life ending bootstrapping (only the game's end does)",
-        "life_loss_terminal = false",
-    ),
-    (
-        "no-reward-clip",
-        "reward clipping to ±1 (the game's rewards instead)",
-        "clip_rewards = false",
-    ),
-    (
-        "mse",
-        "the Huber loss (squared error instead)",
-        "loss = \"mse\"",
-    ),
-    (
-        "small-replay",
-        "the 400 000-transition replay (100 000 instead)",
-        "replay_capacity = 100000",
-    ),
-    (
-        "pick-pixels",
-        "max-pooled downsampling (each 2x2 block's top-left pixel instead)",
-        "[env]\ndownsample = \"pick\"",
-    ),
+pub const ABLATIONS: &[Ablation] = &[
+    Ablation {
+        name: "strong",
+        what: "nothing (the preset)",
+        keys: "",
+        switches: |_, _| true,
+    },
+    Ablation {
+        name: "no-dueling",
+        what: "the dueling head (a plain dense head instead)",
+        keys: "dueling = false",
+        switches: |a, p| p.dueling && !a.dueling,
+    },
+    Ablation {
+        name: "n-step-1",
+        what: "3-step returns (1-step instead)",
+        keys: "n_step = 1",
+        switches: |a, p| p.n_step > 1 && a.n_step == 1,
+    },
+    Ablation {
+        name: "no-double",
+        what: "Double DQN (the target network's own max instead)",
+        keys: "double_dqn = false",
+        switches: |a, p| p.double_dqn && !a.double_dqn,
+    },
+    Ablation {
+        name: "no-life-loss",
+        what: "a lost life ending bootstrapping (only the game's end does)",
+        keys: "life_loss_terminal = false",
+        switches: |a, p| p.life_loss_terminal && !a.life_loss_terminal,
+    },
+    Ablation {
+        name: "no-reward-clip",
+        what: "reward clipping to ±1 (the game's rewards instead)",
+        keys: "clip_rewards = false",
+        switches: |a, p| p.clip_rewards && !a.clip_rewards,
+    },
+    Ablation {
+        name: "mse",
+        what: "the Huber loss (squared error instead)",
+        keys: "loss = \"mse\"",
+        switches: |a, p| p.loss == LossKind::Huber && a.loss == LossKind::Mse && p.quantiles == 0,
+    },
+    Ablation {
+        name: "no-grad-clip",
+        what: "clipping the gradient's norm to 10 (no clipping)",
+        keys: "clip_grad_norm = 0.0",
+        switches: |a, p| p.clip_grad_norm > 0.0 && a.clip_grad_norm == 0.0,
+    },
+    Ablation {
+        name: "small-replay",
+        what: "the 400 000-transition replay (100 000 instead)",
+        keys: "replay_capacity = 100000",
+        switches: |a, p| a.replay_capacity < p.replay_capacity,
+    },
+    Ablation {
+        name: "pick-pixels",
+        what: "max-pooled downsampling (each 2x2 block's top-left pixel instead)",
+        keys: "[env]\ndownsample = \"pick\"",
+        switches: |a, p| {
+            p.env.downsample == Downsample::Max && a.env.downsample == Downsample::Pick
+        },
+    },
 ];
 
 #[derive(Debug, Args)]
 pub struct AblationArgs {
-    /// The training seed of every arm (the protocol plays on seed 1 000 000, never this one).
+    /// The training seed of every arm (not 1 000 000, the seed the protocol plays on).
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Emulator frames per run.
     #[arg(long, default_value_t = 1_500_000)]
     frames: u64,
-    /// The arms to train, by name (default: all; `strong`, the preset, is always among them).
-    #[arg(long, value_delimiter = ',')]
+    /// The arms to train, by name (default: all; `strong`, the preset, is always trained).
+    #[arg(long, value_delimiter = ',',
+          value_parser = PossibleValuesParser::new(ABLATIONS.iter().map(|a| a.name)))]
     arms: Vec<String>,
     /// Runs trained at once (default: the cores divided by `--threads`, at least one).
     #[arg(long)]
@@ -128,7 +169,7 @@ pub struct AblationArgs {
 
 #[derive(Debug, Args)]
 pub struct StrongArgs {
-    /// Training seeds 1, 2, … (the protocol plays on seed 1 000 000, never one of them).
+    /// Training seeds 1, 2, … (the protocol plays on seed 1 000 000).
     #[arg(long, default_value_t = 3)]
     seeds: u64,
     /// Emulator frames per run.
@@ -671,7 +712,15 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         );
     }
     let text = read_overrides(args.config.as_deref())?;
-    Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
+    let config =
+        Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
+    Config {
+        seed: args.seeds,
+        max_frames: args.frames,
+        ..config
+    }
+    .validate()
+    .context("--seeds or --frames")?;
     // The references are read before hours of training, so a bad file fails now.
     let references = match &args.reference {
         Some(r) => read_references(r, &args.agents)?,
@@ -701,7 +750,8 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     // Runs at once: as many as the cores hold at `--threads` each, unless `--jobs` says.
     let workers = args
         .jobs
-        .unwrap_or_else(|| (worker_count(None) / args.threads).max(1));
+        .unwrap_or_else(|| worker_count(None) / args.threads)
+        .max(1);
     train_all(&exe, &jobs, Some(workers), Budget::Frames(args.frames))?;
     // Each evaluation plays on one thread: one per core.
     let scores = for_all(&jobs, worker_count(None), |job| {
@@ -762,15 +812,12 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
             "the evaluation protocol plays at least {PROTOCOL_EPISODES} episodes (--eval-episodes)"
         );
     }
-    let names: Vec<&str> = ABLATIONS.iter().map(|a| a.0).collect();
-    if let Some(bad) = args.arms.iter().find(|a| !names.contains(&a.as_str())) {
-        bail!("no arm `{bad}` (--arms); the arms are {}", names.join(", "));
+    if args.seed == PROTOCOL_SEED {
+        bail!("--seed {PROTOCOL_SEED} is the seed the protocol plays on; train with another");
     }
-    let arms: Vec<&(&str, &str, &str)> = ABLATIONS
+    let arms: Vec<&Ablation> = ABLATIONS
         .iter()
-        .filter(|(name, _, keys)| {
-            keys.is_empty() || args.arms.is_empty() || args.arms.iter().any(|a| a == name)
-        })
+        .filter(|a| a.keys.is_empty() || args.arms.is_empty() || args.arms.contains(&a.name.into()))
         .collect();
     let text = read_overrides(args.config.as_deref())?;
     let overrides: toml::Table = text.parse().context("--config is not valid TOML")?;
@@ -778,41 +825,52 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
     Config {
         seed: args.seed,
+        max_frames: args.frames,
         ..preset.clone()
     }
     .validate()
-    .context("--seed")?;
-    // Every arm's config file, checked before anything trains: each must differ from the preset
-    // (a `--config` that already switches the component off would make the arm the preset).
+    .context("--seed or --frames")?;
+    // Every arm's configuration, checked before anything is written or trained: each must
+    // switch its component off against the preset (`--config` may already have).
+    let mut texts = Vec::new();
+    for arm in &arms {
+        let mut table = overrides.clone();
+        merge_toml(
+            &mut table,
+            arm.keys.parse().expect("ABLATIONS' keys are TOML"),
+        );
+        let arm_text = toml::to_string(&table)?;
+        let config = Config::resolve(Some(Preset::Strong), Some(&arm_text))
+            .with_context(|| format!("configuration of {}", arm.name))?;
+        if !(arm.switches)(&config, &preset) {
+            bail!(
+                "arm `{}` would not switch off {} against the preset with --config's keys",
+                arm.name,
+                arm.what
+            );
+        }
+        texts.push(arm_text);
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let mut jobs = Vec::new();
-    for &&(name, what, keys) in &arms {
-        let mut table = overrides.clone();
-        merge_toml(&mut table, keys.parse().expect("ABLATIONS' keys are TOML"));
-        let arm_text = toml::to_string(&table)?;
-        let config = Config::resolve(Some(Preset::Strong), Some(&arm_text))
-            .with_context(|| format!("configuration of {name}"))?;
-        if !keys.is_empty() && config == preset {
-            bail!(
-                "arm `{name}` would train the preset itself: --config already switches off {what}"
-            );
-        }
-        let cfg = args.out.join(format!("{name}.toml"));
+    for (arm, arm_text) in arms.iter().zip(texts) {
+        let cfg = args.out.join(format!("{}.toml", arm.name));
         std::fs::write(&cfg, &arm_text)
             .with_context(|| format!("cannot write {}", cfg.display()))?;
         jobs.push(Job {
-            label: name,
+            label: arm.name,
             preset: Preset::Strong,
             seed: args.seed,
             cfg,
-            dir: args.out.join(format!("{name}-seed{}", args.seed)),
+            dir: args.out.join(format!("{}-seed{}", arm.name, args.seed)),
             threads: args.threads,
         });
     }
     let workers = args
         .jobs
-        .unwrap_or_else(|| (worker_count(None) / args.threads).max(1));
+        .unwrap_or_else(|| worker_count(None) / args.threads)
+        .max(1);
     say!(
         "{} runs of {} frames (seed {}), {} at a time, into {}",
         jobs.len(),
@@ -834,11 +892,11 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
     let (base_return, base_score) = (summaries[0].last100, scores[0].mean);
     let mut rows = Vec::new();
     let mut groups = Vec::new();
-    for (((job, &(_, what, _)), r), s) in jobs.iter().zip(&arms).zip(summaries).zip(&scores) {
+    for (((job, arm), r), s) in jobs.iter().zip(&arms).zip(summaries).zip(&scores) {
         rows.push(format!(
             "| {} | {} | {} | {:.2} | {:.0} | {:.1} | {:+.1} | {} | {:+.1} |",
             job.label,
-            what,
+            arm.what,
             r.frames,
             r.hours,
             r.steps_per_second,
@@ -858,7 +916,7 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
     );
     plot_groups_frames(&groups, &[], &title, 100, &args.out.join("rewards.png"))?;
     let table = format!(
-        "# The strong preset, each component switched off in turn\n\nCommand: `{}`\n\nBudget: {} frames per run, seed {}, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}. Δ: against the preset (`strong`).\n\n| arm | switched off | frames | wall hours | agent steps/s | training return, last 100 episodes | Δ | protocol score: mean ± std (min–max) | Δ |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n{}\n\nOne seed per arm: a difference smaller than about 50 is within what one checkpoint's score moves from the next. Figure: `rewards.png`.\n",
+        "# The strong preset, each component switched off in turn\n\nCommand: `{}`\n\nBudget: {} frames per run, seed {}, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}. Δ: against the preset (`strong`).\n\n| arm | switched off | frames | wall hours | agent steps/s | training return, last 100 episodes | Δ | protocol score: mean ± std (min–max) | Δ |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n{}\n\nOne seed per arm: one network's protocol score moves by about ±50 from one checkpoint to the next, and seeds of one configuration differed by up to about 90 in training return at 1.5 M frames (docs/strong.md), so only larger differences say something. Figure: `rewards.png`.\n",
         command_line(),
         args.frames,
         args.seed,
@@ -1068,5 +1126,62 @@ mod stop {
         }
         #[cfg(not(target_os = "linux"))]
         let _ = cmd;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The `(key, value)` leaves of a configuration, `[env]`'s keys as `env.KEY`.
+    fn leaves(c: &Config) -> Vec<(String, toml::Value)> {
+        let mut out = Vec::new();
+        for (k, v) in toml::Table::try_from(c).expect("a config serialises") {
+            match v {
+                toml::Value::Table(t) => {
+                    out.extend(t.into_iter().map(|(k2, v2)| (format!("{k}.{k2}"), v2)))
+                }
+                v => out.push((k, v)),
+            }
+        }
+        out
+    }
+
+    /// Each arm over the bare preset changes exactly the one setting its keys name, and its
+    /// check says it switches that off; over an arm's own keys the check refuses it.
+    #[test]
+    fn every_arm_switches_off_one_setting_of_the_preset() {
+        let preset = Config::preset(Preset::Strong);
+        assert!(ABLATIONS[0].keys.is_empty() && ABLATIONS[0].name == "strong");
+        for arm in &ABLATIONS[1..] {
+            let config = Config::resolve(Some(Preset::Strong), Some(arm.keys)).unwrap();
+            let changed: Vec<String> = leaves(&config)
+                .into_iter()
+                .zip(leaves(&preset))
+                .filter(|(a, p)| a != p)
+                .map(|(a, _)| a.0)
+                .collect();
+            let key = arm
+                .keys
+                .rsplit('\n')
+                .next()
+                .unwrap()
+                .split(" = ")
+                .next()
+                .unwrap();
+            assert_eq!(changed.len(), 1, "{}: {changed:?}", arm.name);
+            assert!(changed[0].ends_with(key), "{}: {changed:?}", arm.name);
+            assert!((arm.switches)(&config, &preset), "{}", arm.name);
+            assert!(
+                !(arm.switches)(&config, &config),
+                "{}: already off",
+                arm.name
+            );
+        }
+        let names: Vec<&str> = ABLATIONS.iter().map(|a| a.name).collect();
+        let mut unique = names.clone();
+        unique.sort_unstable();
+        unique.dedup();
+        assert_eq!(unique.len(), names.len(), "{names:?}");
     }
 }
