@@ -178,8 +178,8 @@ pub struct StrongArgs {
     /// Runs trained at once (default: the cores divided by `--threads`, at least one).
     #[arg(long)]
     jobs: Option<usize>,
-    /// Kernel threads per run: 2 for one run alone on a 2-core machine (the preset's 12 million
-    /// frames took about 2.1 hours so on an AVX512-BF16 host), 1 for runs side by side.
+    /// Kernel threads per run: 2 for one run alone on a 2-core machine (the preset's 13.5 million
+    /// frames took 2.25–2.32 hours so on an AVX512-BF16 host), 1 for runs side by side.
     #[arg(long, default_value_t = 2)]
     threads: usize,
     /// Protocol episodes per final network (at least 100).

@@ -32,7 +32,7 @@ pub enum Preset {
     /// Beyond the article, chosen by measurement to play well within an afternoon on a 2-core
     /// machine: the `v5` game, Double DQN with a dueling head, 3-step returns, life loss ending
     /// bootstrapping, clipped rewards, Huber loss, a 400 000-transition memory, a slower target,
-    /// a faster ε schedule, a learning rate falling to a tenth, bf16 products and 12 million
+    /// a faster ε schedule, a learning rate falling to a tenth, bf16 products and 13.5 million
     /// frames (`docs/strong.md`).
     Strong,
 }
@@ -52,9 +52,9 @@ impl Preset {
 /// Adam's ε unless a config says otherwise (TensorFlow 1's default).
 pub const ADAM_EPSILON: f64 = 1e-8;
 
-/// The `strong` preset's budget in emulator frames: 3 million agent steps, about 2.1 hours alone
-/// on two threads of this machine in bf16 (docs/strong.md).
-pub const STRONG_FRAMES: u64 = 12_000_000;
+/// The `strong` preset's budget in emulator frames: 3.375 million agent steps, about 2.3 hours
+/// alone on two threads of this machine in bf16 (docs/strong.md).
+pub const STRONG_FRAMES: u64 = 13_500_000;
 
 /// The bound of every knob counted in agent steps or episodes (`train_every`, `learning_starts`,
 /// `target_update`, `epsilon_decay_steps`, `checkpoint_every`, `plot_every`): ten billion, beyond
