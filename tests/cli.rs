@@ -777,6 +777,77 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
         std::fs::read_to_string(out.join("results.md")).unwrap(),
         table
     );
+
+    // --keep: each finished run's record. With the run directories gone (another machine),
+    // nothing trains or plays and the arms' rows are the same.
+    let keep = root.join("keep");
+    let with_keep: Vec<&str> = args
+        .iter()
+        .copied()
+        .chain(["--keep", keep.to_str().unwrap()])
+        .collect();
+    let recorded = ok(&invaders(&with_keep));
+    assert!(
+        recorded.contains("no-dueling-seed1: recorded in"),
+        "{recorded}"
+    );
+    for arm in ["strong", "no-dueling"] {
+        for file in ["result.toml", "metrics.csv", "config.toml"] {
+            let path = keep.join(format!("{arm}-seed1")).join(file);
+            assert!(path.is_file(), "{}", path.display());
+        }
+    }
+    let rows = |t: &str| -> Vec<String> {
+        t.lines()
+            .filter(|l| l.starts_with("| strong |") || l.starts_with("| no-dueling |"))
+            .map(String::from)
+            .collect()
+    };
+    assert_eq!(rows(&table).len(), 2);
+    std::fs::remove_dir_all(&out).unwrap();
+    let kept = ok(&invaders(&with_keep));
+    assert!(
+        kept.contains("strong-seed1: kept in") && kept.contains("no-dueling-seed1: kept in"),
+        "{kept}"
+    );
+    assert!(!kept.contains(": training (log"), "nothing trains: {kept}");
+    assert!(!out.join("strong-seed1").exists());
+    let results = || std::fs::read_to_string(out.join("results.md")).unwrap();
+    assert_eq!(rows(&results()), rows(&table));
+    // A record of another question (here another seed) is not taken: that run trains and is
+    // evaluated again (the same run: training is deterministic), and its record replaced.
+    let record = keep.join("strong-seed1/result.toml");
+    let text = std::fs::read_to_string(&record).unwrap();
+    assert!(text.contains("\nseed = 1\n"), "{text}");
+    std::fs::write(&record, text.replace("\nseed = 1\n", "\nseed = 7\n")).unwrap();
+    let other = ok(&invaders(&with_keep));
+    assert!(
+        other.contains("strong-seed1: the record in") && other.contains("strong-seed1: training"),
+        "{other}"
+    );
+    assert!(other.contains("no-dueling-seed1: kept in"), "{other}");
+    // All but the wall time (and the speed drawn from it) is the same.
+    let timeless = |t: &str| -> Vec<String> {
+        t.lines()
+            .filter(|l| !l.starts_with("wall_seconds"))
+            .map(String::from)
+            .collect()
+    };
+    let record_text = std::fs::read_to_string(&record).unwrap();
+    assert_eq!(timeless(&record_text), timeless(&text));
+    let cells = |rows: Vec<String>| -> Vec<Vec<String>> {
+        rows.iter()
+            .map(|r| {
+                let mut c: Vec<String> = r.split('|').map(|c| c.trim().to_string()).collect();
+                c.drain(4..6); // wall hours, agent steps/s
+                c
+            })
+            .collect()
+    };
+    assert_eq!(cells(rows(&results())), cells(rows(&table)));
+    // A file that is not a record is refused, saying what to do.
+    std::fs::write(&record, "protocol = 3\n").unwrap();
+    fails_with(&invaders(&with_keep), "is not a run's record; delete");
     let _ = std::fs::remove_dir_all(&root);
 }
 

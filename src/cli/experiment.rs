@@ -16,9 +16,16 @@
 //! Runs are separate `invaders train` processes (`preprocessing` and `ablation`: one per core
 //! side by side, one kernel thread each; `strong`: two kernel threads each, as many at a time as
 //! the cores hold, so one at a time on a 2-core machine, as its budget needs).
-//! Each experiment writes `rewards.png` (mean over seeds with a min–max band) and
-//! `results.md` (the table, with the command and budget) into `--out`. Re-running the same
-//! command continues unfinished runs and skips finished ones.
+//! Each run is evaluated as soon as it has trained, while the others go on training. Each
+//! experiment writes `rewards.png` (mean over seeds with a min–max band) and `results.md` (the
+//! table, with the command and budget) into `--out`. Re-running the same command continues
+//! unfinished runs and skips finished ones.
+//!
+//! A run directory does not outlive its machine (its replay memory alone is gigabytes), so
+//! `--keep DIR` keeps each finished run's record there (see [`Record`]: its scores, counters,
+//! `metrics.csv` and `config.toml`, small enough to commit), and a run recorded there for the
+//! same preset, seed, overrides, budget and evaluation is not trained or played again: an
+//! experiment of several days can go on across machines from a repository.
 //!
 //! A Ctrl-C (or SIGTERM, or SIGHUP from a closed terminal) before the end stops the whole
 //! experiment and loses nothing: the runs stop after their episode with a checkpoint, no new run
@@ -32,6 +39,7 @@ use std::sync::Mutex;
 use anyhow::{anyhow, bail, Context};
 use clap::builder::PossibleValuesParser;
 use clap::{Args, Subcommand, ValueEnum};
+use serde::{Deserialize, Serialize};
 
 use super::eval::{PROTOCOL_EPISODES, PROTOCOL_EPSILON, PROTOCOL_SEED};
 use super::Interrupted;
@@ -162,6 +170,12 @@ pub struct AblationArgs {
     /// A TOML file of overrides applied to every arm before its own switch.
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// Keep each finished run's record in DIR (`DIR/NAME-seedS/`: its scores and counters,
+    /// `metrics.csv` and `config.toml`, small enough to commit), and take a run recorded there
+    /// for the same configuration, budget and evaluation as finished, even where its run
+    /// directory is gone (another machine).
+    #[arg(long, value_name = "DIR")]
+    keep: Option<PathBuf>,
     /// The experiment directory.
     #[arg(long, default_value = "runs/experiment-ablation")]
     out: PathBuf,
@@ -195,6 +209,12 @@ pub struct StrongArgs {
     /// The reference agents to draw (default: all in the file).
     #[arg(long, value_delimiter = ',')]
     agents: Vec<String>,
+    /// Keep each finished run's record in DIR (`DIR/NAME-seedS/`: its scores and counters,
+    /// `metrics.csv` and `config.toml`, small enough to commit), and take a run recorded there
+    /// for the same configuration, budget and evaluation as finished, even where its run
+    /// directory is gone (another machine).
+    #[arg(long, value_name = "DIR")]
+    keep: Option<PathBuf>,
     /// The experiment directory.
     #[arg(long, default_value = "runs/experiment-strong")]
     out: PathBuf,
@@ -262,6 +282,12 @@ pub struct PreprocessingArgs {
     /// lies in.
     #[arg(long, value_name = "CSV")]
     notebook: Option<PathBuf>,
+    /// Keep each finished run's record in DIR (`DIR/NAME-seedS/`: its scores and counters,
+    /// `metrics.csv` and `config.toml`, small enough to commit), and take a run recorded there
+    /// for the same configuration, budget and evaluation as finished, even where its run
+    /// directory is gone (another machine).
+    #[arg(long, value_name = "DIR")]
+    keep: Option<PathBuf>,
     /// The experiment directory.
     #[arg(long, default_value = "runs/experiment-preprocessing")]
     out: PathBuf,
@@ -320,6 +346,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         )?],
         None => Vec::new(),
     };
+    make_keep(args.keep.as_deref())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let exe = exe_path()?;
@@ -354,29 +381,32 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         args.episodes,
         args.out.display()
     );
-    train_all(&exe, &jobs, args.jobs, Budget::Episodes(args.episodes))?;
-    // Evaluate every final checkpoint both ways (side by side), then the figure and the table.
-    let scores = for_all(&jobs, worker_count(args.jobs), |job| {
-        let eval = evaluate(&exe, &job.dir, args.eval_episodes, 1000 + job.seed)?;
-        Ok((
-            eval,
-            evaluate_protocol(&exe, &job.dir, PROTOCOL_EPISODES)?.mean,
-        ))
-    })?;
-    let mut scores = scores.into_iter();
+    // Every final checkpoint is evaluated both ways as soon as it has trained.
+    let evals = Evals {
+        protocol: PROTOCOL_EPISODES,
+        own_game: Some(args.eval_episodes),
+    };
+    let finished = run_all(
+        &exe,
+        &jobs,
+        args.jobs,
+        Budget::Episodes(args.episodes),
+        evals,
+        args.keep.as_deref(),
+    )?;
+    let mut finished = finished.into_iter();
     let mut rows = Vec::new();
     let mut groups = Vec::new();
     for arm in &arms {
         let (mut last100, mut evals, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
         let mut protocol = Vec::new();
-        for seed in 0..args.seeds {
-            let dir = args.out.join(format!("{}-seed{seed}", arm.label));
-            let points = read_metrics(&dir.join("metrics.csv"))?;
+        for _ in 0..args.seeds {
+            let run = finished.next().expect("a run per seed, in the jobs' order");
+            let points = read_metrics(&run.metrics)?;
             let tail = &points[points.len().saturating_sub(100)..];
             last100.push(tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64);
-            let (eval, by_protocol) = scores.next().expect("a score per run, in the runs' order");
-            evals.push(eval);
-            protocol.push(by_protocol);
+            evals.push(run.own_game.expect("evaluated in its own game").mean);
+            protocol.push(run.protocol.mean);
             seeds.push(points);
         }
         rows.push(format!(
@@ -422,18 +452,67 @@ fn mean_std(xs: &[f64]) -> String {
     }
 }
 
-/// Trains every job to `budget`, `jobs` at a time (default: one per core), each continued if it
-/// exists; fails after all have stopped if any failed, and returns [`Interrupted`] if a run was
-/// stopped by a signal (then no further run starts).
-fn train_all(
+/// What an experiment asks of each finished run's final network.
+#[derive(Clone, Copy)]
+struct Evals {
+    /// Protocol episodes (`eval --protocol`).
+    protocol: u32,
+    /// `preprocessing`: episodes in the run's own game with ε = 0.05, on seed 1000 + the run's
+    /// seed.
+    own_game: Option<u32>,
+}
+
+/// A run trained to its budget and evaluated.
+struct Finished {
+    counters: checkpoint::Counters,
+    protocol: Scores,
+    own_game: Option<Scores>,
+    /// Its per-episode `metrics.csv` (in its run directory, or in its `--keep` record).
+    metrics: PathBuf,
+}
+
+/// The file of a `--keep` record (`KEEP/LABEL-seedS/`), beside a copy of the run's `metrics.csv`
+/// and `config.toml`.
+const RECORD_FILE: &str = "result.toml";
+
+/// A finished run as `--keep` keeps it: what the tables need of it, and the question it
+/// answers (preset, seed, overrides, budget reached, evaluations), so that a record is taken
+/// only for the same question. A few hundred kilobytes with its metrics, meant to be committed:
+/// a run directory (its replay memory alone is gigabytes) does not outlive its machine.
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Record {
+    preset: String,
+    seed: u64,
+    /// The TOML overrides the run trained with (`--config` and the arm's own keys).
+    overrides: String,
+    protocol_episodes: u32,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    own_game_episodes: Option<u32>,
+    counters: checkpoint::Counters,
+    protocol: Scores,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    own_game: Option<Scores>,
+}
+
+/// Trains every job to `budget` (each continued if it exists), `workers` at a time, and
+/// evaluates each as soon as it has trained, while the others train; with `keep`, a job whose
+/// record there answers the same question is taken as it is, and each newly finished job's
+/// record is written there. Returns the jobs in their order; fails after all have stopped if
+/// any failed, and returns [`Interrupted`] if a run or evaluation was stopped by a signal (then
+/// nothing further starts).
+fn run_all(
     exe: &Path,
     jobs: &[Job<'_>],
     workers: Option<usize>,
     budget: Budget,
-) -> anyhow::Result<()> {
+    evals: Evals,
+    keep: Option<&Path>,
+) -> anyhow::Result<Vec<Finished>> {
     let workers = worker_count(workers);
-    let queue = Mutex::new(jobs.iter());
-    let failures = Mutex::new(Vec::new());
+    let next = Mutex::new(0..jobs.len());
+    let results: Vec<Mutex<Option<anyhow::Result<Finished>>>> =
+        jobs.iter().map(|_| Mutex::new(None)).collect();
     // A run stopped by a signal (ours, passed on, or one sent to it alone) stops the experiment:
     // no further run starts.
     let stopped = AtomicBool::new(false);
@@ -443,26 +522,150 @@ fn train_all(
                 if stopped.load(Ordering::SeqCst) || stop::requested() {
                     break;
                 }
-                let Some(job) = queue.lock().expect("queue").next() else {
+                let Some(i) = next.lock().expect("queue").next() else {
                     break;
                 };
-                match train_one(exe, job, budget) {
-                    Err(err) if err.is::<Interrupted>() => stopped.store(true, Ordering::SeqCst),
-                    Err(err) => failures
-                        .lock()
-                        .expect("failures")
-                        .push(format!("{}-seed{}: {err:#}", job.label, job.seed)),
-                    Ok(()) => {}
+                let r = finish_one(exe, &jobs[i], budget, evals, keep);
+                if matches!(&r, Err(e) if e.is::<Interrupted>()) {
+                    stopped.store(true, Ordering::SeqCst);
                 }
+                *results[i].lock().expect("result") = Some(r);
             });
         }
     });
-    let failures = failures.into_inner().expect("failures");
+    let mut failures = Vec::new();
+    let mut finished = Vec::new();
+    for (job, r) in jobs.iter().zip(results) {
+        match r.into_inner().expect("result") {
+            Some(Ok(f)) => finished.push(f),
+            Some(Err(err)) if err.is::<Interrupted>() => {}
+            Some(Err(err)) => failures.push(format!("{}-seed{}: {err:#}", job.label, job.seed)),
+            None => {}
+        }
+    }
     if !failures.is_empty() {
         bail!("some runs failed:\n{}", failures.join("\n"));
     }
-    if stopped.into_inner() || stop::requested() {
+    if stopped.into_inner() || stop::requested() || finished.len() < jobs.len() {
         return Err(stop::stopped());
+    }
+    Ok(finished)
+}
+
+/// One job of [`run_all`]: its `--keep` record if that answers the same question, else trained,
+/// evaluated and (with `keep`) recorded.
+fn finish_one(
+    exe: &Path,
+    job: &Job<'_>,
+    budget: Budget,
+    evals: Evals,
+    keep: Option<&Path>,
+) -> anyhow::Result<Finished> {
+    let name = format!("{}-seed{}", job.label, job.seed);
+    let overrides = std::fs::read_to_string(&job.cfg)
+        .with_context(|| format!("cannot read {}", job.cfg.display()))?;
+    let kept = keep.map(|k| k.join(&name));
+    if let Some(k) = &kept {
+        if let Some(r) = read_record(k)? {
+            if r.preset == job.preset.name()
+                && r.seed == job.seed
+                && r.overrides == overrides
+                && r.protocol_episodes == evals.protocol
+                && r.own_game_episodes == evals.own_game
+                && budget.done(&r.counters)
+            {
+                say!(
+                    "{name}: kept in {} ({} episodes, {} frames, evaluated)",
+                    k.display(),
+                    r.counters.episodes,
+                    r.counters.frames
+                );
+                return Ok(Finished {
+                    counters: r.counters,
+                    protocol: r.protocol,
+                    own_game: r.own_game,
+                    metrics: k.join("metrics.csv"),
+                });
+            }
+            say!(
+                "{name}: the record in {} is of another configuration, budget or evaluation; \
+                 it is replaced when the run has trained and been evaluated",
+                k.display()
+            );
+        }
+    }
+    train_one(exe, job, budget)?;
+    let counters = checkpoint::load(&job.dir.join(checkpoint::CHECKPOINT_FILE))?.counters;
+    let own_game = match evals.own_game {
+        Some(episodes) => Some(evaluate(exe, &job.dir, episodes, 1000 + job.seed)?),
+        None => None,
+    };
+    let protocol = evaluate_protocol(exe, &job.dir, evals.protocol)?;
+    let record = Record {
+        preset: job.preset.name().to_string(),
+        seed: job.seed,
+        overrides,
+        protocol_episodes: evals.protocol,
+        own_game_episodes: evals.own_game,
+        counters,
+        protocol,
+        own_game,
+    };
+    if let Some(k) = &kept {
+        write_record(k, &job.dir, &record)?;
+        say!("{name}: recorded in {}", k.display());
+    }
+    Ok(Finished {
+        counters: record.counters,
+        protocol: record.protocol,
+        own_game: record.own_game,
+        metrics: job.dir.join("metrics.csv"),
+    })
+}
+
+/// The record in `dir`, if there is one; an error if it cannot be read.
+fn read_record(dir: &Path) -> anyhow::Result<Option<Record>> {
+    let path = dir.join(RECORD_FILE);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+    };
+    let fail = || {
+        format!(
+            "{} is not a run's record; delete {} to train and evaluate that run again",
+            path.display(),
+            dir.display()
+        )
+    };
+    let record: Record = toml::from_str(&text).with_context(fail)?;
+    if !dir.join("metrics.csv").is_file() {
+        return Err(anyhow!("its metrics.csv is missing")).with_context(fail);
+    }
+    Ok(Some(record))
+}
+
+/// Writes a run's record into `dir`: its `metrics.csv` and `config.toml` first, the record last,
+/// each atomically, so a record is there only with its metrics.
+fn write_record(dir: &Path, run: &Path, record: &Record) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    for file in ["metrics.csv", "config.toml"] {
+        let from = run.join(file);
+        let bytes =
+            std::fs::read(&from).with_context(|| format!("cannot read {}", from.display()))?;
+        checkpoint::write_atomic(&dir.join(file), &bytes)?;
+    }
+    let text = format!(
+        "# A finished run of `invaders experiment` (see --keep): what it was asked and its scores.\n{}",
+        toml::to_string(record)?
+    );
+    checkpoint::write_atomic(&dir.join(RECORD_FILE), text.as_bytes())
+}
+
+/// `--keep`'s directory, made before anything trains so a bad path fails now.
+fn make_keep(keep: Option<&Path>) -> anyhow::Result<()> {
+    if let Some(k) = keep {
+        std::fs::create_dir_all(k).with_context(|| format!("cannot create {}", k.display()))?;
     }
     Ok(())
 }
@@ -475,34 +678,6 @@ fn worker_count(jobs: Option<usize>) -> usize {
             .unwrap_or(1)
     })
     .max(1)
-}
-
-/// `f` of every job, `workers` at a time, in the jobs' order; the first error (in that order)
-/// if any failed. The evaluations are one process each, so they can run side by side as the
-/// trainings do; a stop ends those running and starts no more.
-fn for_all<T: Send>(
-    jobs: &[Job<'_>],
-    workers: usize,
-    f: impl Fn(&Job<'_>) -> anyhow::Result<T> + Sync,
-) -> anyhow::Result<Vec<T>> {
-    let next = Mutex::new(0..jobs.len());
-    let results: Vec<Mutex<Option<anyhow::Result<T>>>> =
-        jobs.iter().map(|_| Mutex::new(None)).collect();
-    std::thread::scope(|s| {
-        for _ in 0..workers {
-            s.spawn(|| loop {
-                let Some(i) = next.lock().expect("queue").next() else {
-                    break;
-                };
-                let r = f(&jobs[i]);
-                *results[i].lock().expect("result") = Some(r);
-            });
-        }
-    });
-    results
-        .into_iter()
-        .map(|r| r.into_inner().expect("result").expect("every job was run"))
-        .collect()
 }
 
 /// Trains one run to `budget`, continuing it if it exists; [`Interrupted`] if a signal stopped it
@@ -574,11 +749,11 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The mean evaluation score of a run's final checkpoint.
-fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<f64> {
+/// The evaluation of a run's final checkpoint in its own game (its own `env` settings, ε = 0.05).
+fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<Scores> {
     let (episodes, seed) = (episodes.to_string(), seed.to_string());
     let last = run_eval(exe, dir, &["--episodes", &episodes, "--seed", &seed])?;
-    Ok(parse_scores(&last)?.mean)
+    parse_scores(&last)
 }
 
 /// Runs `invaders eval` on a run's final checkpoint with `args` (one thread) and returns its
@@ -594,7 +769,7 @@ fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
         .stderr(std::process::Stdio::piped());
     let out = stop::run(&mut cmd).context("cannot run invaders eval")?;
     let Some(out) = out.filter(|_| !stop::requested()) else {
-        return Err(stop::stopped());
+        return Err(Interrupted.into());
     };
     if !out.status.success() {
         bail!(
@@ -607,7 +782,9 @@ fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
     Ok(text.lines().last().unwrap_or_default().to_string())
 }
 
-/// A protocol evaluation's summary.
+/// An evaluation's summary.
+#[derive(Clone, Copy, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 struct Scores {
     mean: f64,
     std: f64,
@@ -683,9 +860,9 @@ struct RunSummary {
     points: Vec<(f64, f64)>,
 }
 
-fn summarize(dir: &Path) -> anyhow::Result<RunSummary> {
-    let c = checkpoint::load(&dir.join(checkpoint::CHECKPOINT_FILE))?.counters;
-    let points = read_frame_metrics(&dir.join("metrics.csv"))?;
+fn summarize(run: &Finished) -> anyhow::Result<RunSummary> {
+    let c = run.counters;
+    let points = read_frame_metrics(&run.metrics)?;
     let tail = &points[points.len().saturating_sub(100)..];
     Ok(RunSummary {
         frames: c.frames,
@@ -726,6 +903,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         Some(r) => read_references(r, &args.agents)?,
         None => Vec::new(),
     };
+    make_keep(args.keep.as_deref())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let cfg = args.out.join("strong.toml");
@@ -752,14 +930,21 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         .jobs
         .unwrap_or_else(|| worker_count(None) / args.threads)
         .max(1);
-    train_all(&exe, &jobs, Some(workers), Budget::Frames(args.frames))?;
-    // Each evaluation plays on one thread: one per core.
-    let scores = for_all(&jobs, worker_count(None), |job| {
-        evaluate_protocol(&exe, &job.dir, args.eval_episodes)
-    })?;
+    let evals = Evals {
+        protocol: args.eval_episodes,
+        own_game: None,
+    };
+    let finished = run_all(
+        &exe,
+        &jobs,
+        Some(workers),
+        Budget::Frames(args.frames),
+        evals,
+        args.keep.as_deref(),
+    )?;
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
-    for (job, s) in jobs.iter().zip(scores) {
-        let r = summarize(&job.dir)?;
+    for (job, run) in jobs.iter().zip(&finished) {
+        let (r, s) = (summarize(run)?, run.protocol);
         rows.push(format!(
             "| {} | {} | {:.2} | {:.0} | {:.1} | {} |",
             job.seed,
@@ -851,6 +1036,7 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         }
         texts.push(arm_text);
     }
+    make_keep(args.keep.as_deref())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let mut jobs = Vec::new();
@@ -880,13 +1066,22 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     let exe = exe_path()?;
-    train_all(&exe, &jobs, Some(workers), Budget::Frames(args.frames))?;
-    let scores = for_all(&jobs, worker_count(None), |job| {
-        evaluate_protocol(&exe, &job.dir, args.eval_episodes)
-    })?;
-    let summaries = jobs
+    let evals = Evals {
+        protocol: args.eval_episodes,
+        own_game: None,
+    };
+    let finished = run_all(
+        &exe,
+        &jobs,
+        Some(workers),
+        Budget::Frames(args.frames),
+        evals,
+        args.keep.as_deref(),
+    )?;
+    let scores: Vec<Scores> = finished.iter().map(|f| f.protocol).collect();
+    let summaries = finished
         .iter()
-        .map(|job| summarize(&job.dir))
+        .map(summarize)
         .collect::<anyhow::Result<Vec<_>>>()?;
     // The preset is the first arm.
     let (base_return, base_score) = (summaries[0].last100, scores[0].mean);
