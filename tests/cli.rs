@@ -561,8 +561,8 @@ fn the_shipped_model_plays() {
 /// `experiment strong` end to end at a tiny budget: refuses a protocol below 100 episodes and a
 /// bad reference file before training anything; trains the seeds, evaluates each by the
 /// protocol and writes a table with each seed's frames, wall time, speed and score, the mean over
-/// seeds, the command and the figure; run again, it trains and plays nothing and reports the same
-/// runs.
+/// seeds, the command and the figure, also when its program's file is deleted while it runs; run
+/// again, it trains and plays nothing and reports the same runs.
 #[test]
 fn experiment_strong_trains_evaluates_and_reports() {
     let root = tmp("experiment-strong");
@@ -614,9 +614,21 @@ fn experiment_strong_trains_evaluates_and_reports() {
         env!("CARGO_MANIFEST_DIR"),
         "/docs/strong/dopamine-spaceinvaders.csv"
     );
-    // The defaults: two threads per run, as many runs at once as the cores hold.
+    // The defaults: two threads per run, as many runs at once as the cores hold. Started from a
+    // copy of the program that is deleted as soon as it runs (as a `cargo build` replaces it
+    // during an experiment of hours): its runs and evaluations still start.
     let args = with(&["--reference", reference, "--agents", "Dopamine DQN"]);
-    let first = ok(&run(&args));
+    let copy = root.join("invaders-copy");
+    std::fs::copy(env!("CARGO_BIN_EXE_invaders"), &copy).unwrap();
+    let child = Command::new(&copy)
+        .args(&args)
+        .env_remove("RUST_BACKTRACE")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap(); // returns once the copy is executing
+    std::fs::remove_file(&copy).unwrap();
+    let first = ok(&child.wait_with_output().unwrap());
     let log = std::fs::read_to_string(out.join("strong-seed1.log")).unwrap();
     assert!(log.contains("on 2 thread(s)"), "{log}");
     let table = std::fs::read_to_string(out.join("results.md")).unwrap();

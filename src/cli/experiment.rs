@@ -405,8 +405,8 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
             let points = read_metrics(&run.metrics)?;
             let tail = &points[points.len().saturating_sub(100)..];
             last100.push(tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64);
-            evals.push(run.own_game.expect("evaluated in its own game").mean);
-            protocol.push(run.protocol.mean);
+            evals.push(run.record.own_game.expect("evaluated in its own game").mean);
+            protocol.push(run.record.protocol.mean);
             seeds.push(points);
         }
         rows.push(format!(
@@ -462,12 +462,10 @@ struct Evals {
     own_game: Option<u32>,
 }
 
-/// A run trained to its budget and evaluated.
+/// A run trained to its budget and evaluated: its record (kept with `--keep` or not) and where
+/// its per-episode `metrics.csv` is (in its run directory, or in its `--keep` record).
 struct Finished {
-    counters: checkpoint::Counters,
-    protocol: Scores,
-    own_game: Option<Scores>,
-    /// Its per-episode `metrics.csv` (in its run directory, or in its `--keep` record).
+    record: Record,
     metrics: PathBuf,
 }
 
@@ -581,9 +579,7 @@ fn finish_one(
                     r.counters.frames
                 );
                 return Ok(Finished {
-                    counters: r.counters,
-                    protocol: r.protocol,
-                    own_game: r.own_game,
+                    record: r,
                     metrics: k.join("metrics.csv"),
                 });
             }
@@ -616,9 +612,7 @@ fn finish_one(
         say!("{name}: recorded in {}", k.display());
     }
     Ok(Finished {
-        counters: record.counters,
-        protocol: record.protocol,
-        own_game: record.own_game,
+        record,
         metrics: job.dir.join("metrics.csv"),
     })
 }
@@ -685,7 +679,7 @@ fn worker_count(jobs: Option<usize>) -> usize {
 fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
     let (label, seed, dir) = (job.label, job.seed, &job.dir);
     let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
-    let mut cmd = Command::new(exe);
+    let mut cmd = invaders_command(exe);
     if ckpt.exists() {
         let counters = checkpoint::load(&ckpt)?.counters;
         if budget.done(&counters) {
@@ -760,7 +754,7 @@ fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<
 /// summary line (`… mean M std S min A max B`); [`Interrupted`] if a stop came first or ended
 /// it.
 fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
-    let mut cmd = Command::new(exe);
+    let mut cmd = invaders_command(exe);
     cmd.args(["eval", "--threads", "1"])
         .args(args)
         .arg("--checkpoint")
@@ -861,7 +855,7 @@ struct RunSummary {
 }
 
 fn summarize(run: &Finished) -> anyhow::Result<RunSummary> {
-    let c = run.counters;
+    let c = run.record.counters;
     let points = read_frame_metrics(&run.metrics)?;
     let tail = &points[points.len().saturating_sub(100)..];
     Ok(RunSummary {
@@ -944,7 +938,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     )?;
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
     for (job, run) in jobs.iter().zip(&finished) {
-        let (r, s) = (summarize(run)?, run.protocol);
+        let (r, s) = (summarize(run)?, run.record.protocol);
         rows.push(format!(
             "| {} | {} | {:.2} | {:.0} | {:.1} | {} |",
             job.seed,
@@ -1078,7 +1072,7 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         evals,
         args.keep.as_deref(),
     )?;
-    let scores: Vec<Scores> = finished.iter().map(|f| f.protocol).collect();
+    let scores: Vec<Scores> = finished.iter().map(|f| f.record.protocol).collect();
     let summaries = finished
         .iter()
         .map(summarize)
@@ -1125,9 +1119,24 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// This program, which each run and evaluation runs again as a child process.
+/// This program, which each run and evaluation runs again as a child process. On Linux that is
+/// `/proc/self/exe`: the very file this process started from, even after a `cargo build` has
+/// replaced it during an experiment of hours (its path would then name a new program, or for a
+/// moment none), so every run of an experiment trains with the program it started with.
 fn exe_path() -> anyhow::Result<PathBuf> {
+    let own = Path::new("/proc/self/exe");
+    if cfg!(target_os = "linux") && own.exists() {
+        return Ok(own.to_path_buf());
+    }
     std::env::current_exe().context("cannot find the invaders executable")
+}
+
+/// A command running `exe` (from [`exe_path`]), which names itself `invaders` in its messages.
+fn invaders_command(exe: &Path) -> Command {
+    let mut cmd = Command::new(exe);
+    #[cfg(unix)]
+    std::os::unix::process::CommandExt::arg0(&mut cmd, "invaders");
+    cmd
 }
 
 /// This command as a shell would take it back: `invaders` and its arguments, each quoted where
