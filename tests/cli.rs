@@ -935,7 +935,26 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
             );
         }
         assert!(out.join(format!("{arm}-seed0.protocol")).exists(), "{arm}");
+        // The other two tables, found after the first row: the stretch of episodes 1–1 (its
+        // one episode's reward, the training column), then the run's own row.
+        let rows: Vec<Vec<&str>> = table
+            .lines()
+            .filter(|l| l.starts_with(&format!("| {arm} | ")) && *l != row)
+            .map(|l| l.split('|').map(str::trim).collect())
+            .collect();
+        assert_eq!(rows.len(), 2, "{arm}:\n{table}");
+        assert_eq!(rows[0][2], cells[3], "stretch 1–1 of {arm}:\n{table}");
+        let run: &[&str] = &rows[1];
+        assert_eq!(run[2], "0", "seed of {arm}: {run:?}");
+        assert!(run[3].parse::<u64>().is_ok_and(|s| s > 0), "{run:?}");
+        assert_eq!(run[6], cells[3], "{run:?}");
+        assert!(run[7].starts_with(&format!("{} ± ", cells[4])), "{run:?}");
+        assert!(run[8].starts_with(&format!("{} ± ", cells[5])), "{run:?}");
     }
+    assert!(
+        table.contains("| configuration | 1–1 |\n| --- | --- |\n"),
+        "{table}"
+    );
     assert!(std::fs::metadata(out.join("rewards.png")).unwrap().len() > 1000);
     assert!(first.contains("article-seed0: done"), "{first}");
     let again = ok(&run(&args(notebook)));

@@ -395,18 +395,31 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         args.keep.as_deref(),
     )?;
     let mut finished = finished.into_iter();
-    let mut rows = Vec::new();
+    let (mut rows, mut run_rows, mut stretch_rows) = (Vec::new(), Vec::new(), Vec::new());
     let mut groups = Vec::new();
+    let stretches = (args.episodes as usize).div_ceil(STRETCH);
     for arm in &arms {
         let (mut last100, mut evals, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
         let mut protocol = Vec::new();
-        for _ in 0..args.seeds {
+        for seed in 0..args.seeds {
             let run = finished.next().expect("a run per seed, in the jobs' order");
             let points = read_metrics(&run.metrics)?;
             let tail = &points[points.len().saturating_sub(100)..];
             last100.push(tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64);
-            evals.push(run.record.own_game.expect("evaluated in its own game").mean);
+            let own = run.record.own_game.expect("evaluated in its own game");
+            evals.push(own.mean);
             protocol.push(run.record.protocol.mean);
+            let c = run.record.counters;
+            run_rows.push(format!(
+                "| {} | {seed} | {} | {} | {:.2} | {:.1} | {} | {} |",
+                arm.label,
+                c.agent_steps,
+                c.frames,
+                c.wall_seconds / 3600.0,
+                last100[last100.len() - 1],
+                scores_cell(&own),
+                scores_cell(&run.record.protocol)
+            ));
             seeds.push(points);
         }
         rows.push(format!(
@@ -417,11 +430,31 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
             mean_std(&evals),
             mean_std(&protocol)
         ));
+        // Each stretch's mean reward per seed, then its mean and range over the seeds.
+        let cells: Vec<String> = (0..stretches)
+            .map(|k| {
+                let per_seed: Vec<f64> = seeds
+                    .iter()
+                    .filter_map(|pts| {
+                        let s = pts.get(k * STRETCH..pts.len().min((k + 1) * STRETCH))?;
+                        (!s.is_empty()).then(|| s.iter().map(|p| p.1).sum::<f64>() / s.len() as f64)
+                    })
+                    .collect();
+                range_cell(&per_seed)
+            })
+            .collect();
+        stretch_rows.push(format!("| {} | {} |", arm.label, cells.join(" | ")));
         groups.push(Group {
             label: arm.label.clone(),
             seeds,
         });
     }
+    let stretch_head: Vec<String> = (0..stretches)
+        .map(|k| {
+            let last = ((k + 1) * STRETCH).min(args.episodes as usize);
+            format!("{}–{last}", k * STRETCH + 1)
+        })
+        .collect();
     let png = args.out.join("rewards.png");
     let title = format!(
         "Space Invaders: {} episodes, {} seed(s) per configuration",
@@ -429,16 +462,38 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
     );
     plot_groups(&groups, &notebook, &title, 100, &png)?;
     let table = format!(
-        "# Preprocessing experiment\n\nCommand: `{}`\n\nBudget: {} episodes per run, {} seed(s) per configuration; evaluation over {} episodes with ε = 0.05 in the run's own game (the article's: `v0`), and by the evaluation protocol ({PROTOCOL_EPISODES} episodes of `v5`, ε = {PROTOCOL_EPSILON}, seed {PROTOCOL_SEED}).\n\n| configuration | seeds | mean reward, last 100 episodes | evaluation score | protocol score |\n| --- | --- | --- | --- | --- |\n{}\n\nMeans over seeds ± their standard deviation (population). Figure: `rewards.png`.\n",
+        "# Preprocessing experiment\n\nCommand: `{}`\n\nBudget: {} episodes per run, {} seed(s) per configuration; evaluation over {} episodes with ε = 0.05 in the run's own game (the article's: `v0`), and by the evaluation protocol ({PROTOCOL_EPISODES} episodes of `v5`, ε = {PROTOCOL_EPSILON}, seed {PROTOCOL_SEED}).\n\n| configuration | seeds | mean reward, last 100 episodes | evaluation score | protocol score |\n| --- | --- | --- | --- | --- |\n{}\n\nMeans over seeds ± their standard deviation (population). Figure: `rewards.png`.\n\nTraining reward by stretch of {STRETCH} episodes: the mean over seeds of each run's mean episode reward in the stretch (lowest–highest seed).\n\n| configuration | {} |\n| --- |{}\n{}\n\nEvery run: its final network's evaluation in its own game (seed 1000 + the run's seed) and by the protocol, each `mean ± std (min–max)` over its episodes.\n\n| configuration | seed | agent steps | frames | wall hours | mean reward, last 100 episodes | evaluation | protocol |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n{}\n",
         command_line(),
         args.episodes,
         args.seeds,
         args.eval_episodes,
-        rows.join("\n")
+        rows.join("\n"),
+        stretch_head.join(" | "),
+        " --- |".repeat(stretches),
+        stretch_rows.join("\n"),
+        run_rows.join("\n")
     );
     std::fs::write(args.out.join("results.md"), &table).context("cannot write results.md")?;
     println!("{table}");
     Ok(())
+}
+
+/// Episodes per stretch in the preprocessing table of training reward by stretch.
+const STRETCH: usize = 100;
+
+/// A mean over seeds with the lowest and highest seed: `mean (min–max)`, or the one value.
+fn range_cell(xs: &[f64]) -> String {
+    let mean = xs.iter().sum::<f64>() / xs.len().max(1) as f64;
+    let (lo, hi) = xs
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
+            (l.min(x), h.max(x))
+        });
+    if xs.len() > 1 {
+        format!("{mean:.1} ({lo:.0}–{hi:.0})")
+    } else {
+        format!("{mean:.1}")
+    }
 }
 
 fn mean_std(xs: &[f64]) -> String {
@@ -867,7 +922,7 @@ fn summarize(run: &Finished) -> anyhow::Result<RunSummary> {
     })
 }
 
-/// A protocol score as the tables print it: `mean ± std (min–max)`.
+/// An evaluation's score as the tables print it: `mean ± std (min–max)` over its episodes.
 fn scores_cell(s: &Scores) -> String {
     format!("{:.1} ± {:.1} ({:.0}–{:.0})", s.mean, s.std, s.min, s.max)
 }
