@@ -9,13 +9,14 @@
 //! * [`optim`]: Adam and SGD.
 //! * [`mod@env`]: Space Invaders through the ALE, the article's preprocessing and frame pipelines.
 //! * [`dqn`]: the agent, its replay memory and the training loop.
-//! * [`plot`]: reward curves.
+
+// The library prints nothing: messages are the program's (src/cli/streams.rs).
+#![deny(clippy::print_stdout, clippy::print_stderr)]
 
 pub mod dqn;
 pub mod env;
 pub mod layers;
 pub mod optim;
-pub mod plot;
 pub mod tensor;
 
 pub use tensor::CacheAligned;

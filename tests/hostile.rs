@@ -567,3 +567,755 @@ fn an_interrupted_run_keeps_its_work() {
     );
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Waits for `child` at most `secs` seconds; kills it and fails the test if it is still running.
+fn wait_at_most(
+    child: &mut std::process::Child,
+    secs: u64,
+    what: &str,
+) -> std::process::ExitStatus {
+    let started = std::time::Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status;
+        }
+        if started.elapsed().as_secs() >= secs {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{what}: still running after {secs} s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
+fn read_all(pipe: Option<impl std::io::Read>) -> String {
+    let mut text = String::new();
+    if let Some(mut p) = pipe {
+        let _ = p.read_to_string(&mut text);
+    }
+    text
+}
+
+fn mkfifo(path: &Path) {
+    let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes()).unwrap();
+    // SAFETY: `c` is a NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0, "mkfifo");
+}
+
+/// A device node (`S_IFCHR` or `S_IFBLK`, major and minor numbers) in a temporary directory, if
+/// this process may make one (root, or CAP_MKNOD).
+fn mknod(path: &Path, kind: libc::mode_t, major: u32, minor: u32) -> bool {
+    let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes()).unwrap();
+    // SAFETY: `c` is a NUL-terminated path.
+    unsafe { libc::mknod(c.as_ptr(), kind | 0o600, libc::makedev(major, minor)) == 0 }
+}
+
+fn inode(path: &Path) -> u64 {
+    std::os::unix::fs::MetadataExt::ino(&std::fs::metadata(path).unwrap())
+}
+
+fn no_temporary_files(dir: &Path) {
+    for e in std::fs::read_dir(dir).unwrap() {
+        let name = e.unwrap().file_name().to_string_lossy().into_owned();
+        assert!(
+            !name.contains(".tmp"),
+            "temporary file left in {}: {name}",
+            dir.display()
+        );
+    }
+}
+
+/// Class 1: one mechanism for every output file. A regular file is replaced whole (a new file
+/// renamed over it, never rewritten in place); a symbolic link keeps being a link to the new
+/// file; a character device or a FIFO is written through, never replaced; a FIFO nobody reads, a
+/// block device and a socket are refused. (`eval --gif` and `plot --out` stand for every output
+/// flag: they share `OutputFile`.)
+#[test]
+fn an_output_file_is_replaced_whole_or_written_through_never_destroyed() {
+    use std::os::unix::fs::FileTypeExt;
+    let root = tmp("outputs");
+    let cfg = config(&root, FAST);
+    let run = root.join("run");
+    ok(&train(&cfg, 1, 1, &run));
+
+    // A plot over an existing file: a new file takes its place (another inode), nothing left.
+    let png = root.join("curve.png");
+    ok(&invaders(&["plot", s(&run), "--out", s(&png)]));
+    let before = inode(&png);
+    ok(&invaders(&["plot", s(&run), "--out", s(&png), "--force"]));
+    assert_ne!(
+        inode(&png),
+        before,
+        "plot --force rewrote the old file in place"
+    );
+    no_temporary_files(&root);
+
+    // A symbolic link: its target is replaced, the link stays.
+    let target = root.join("target.gif");
+    std::fs::write(&target, b"old").unwrap();
+    let link = root.join("link.gif");
+    std::os::unix::fs::symlink(&target, &link).unwrap();
+    ok(&eval_gif(&run, &link, &["--force"]));
+    assert!(std::fs::symlink_metadata(&link)
+        .unwrap()
+        .file_type()
+        .is_symlink());
+    assert!(std::fs::read(&target).unwrap().starts_with(b"GIF89a"));
+    let dangling = root.join("dangling.gif");
+    std::os::unix::fs::symlink(root.join("nothing"), &dangling).unwrap();
+    fails_with(
+        &eval_gif(&run, &dangling, &[]),
+        &["symbolic link to nothing"],
+    );
+
+    // A FIFO with a reader gets the GIF; one with no reader is an error, not a hang.
+    let fifo = root.join("pipe.gif");
+    mkfifo(&fifo);
+    let reader = {
+        let fifo = fifo.clone();
+        std::thread::spawn(move || std::fs::read(fifo).unwrap())
+    };
+    ok(&eval_gif(&run, &fifo, &[]));
+    assert!(reader.join().unwrap().starts_with(b"GIF89a"));
+    assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+    let mut child = bin()
+        .args([
+            "eval",
+            "--checkpoint",
+            s(&run),
+            "--episodes",
+            "1",
+            "--gif",
+            s(&fifo),
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let status = wait_at_most(&mut child, 60, "eval --gif FIFO with no reader");
+    let err = read_all(child.stderr.take());
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert!(err.contains("no process is reading"), "{err}");
+    assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+
+    // /dev/null is written through and stays a device.
+    ok(&eval_gif(&run, Path::new("/dev/null"), &["--force"]));
+    assert!(std::fs::metadata("/dev/null")
+        .unwrap()
+        .file_type()
+        .is_char_device());
+
+    // Device nodes made here (as root): a character device like /dev/null is written through
+    // with or without --force, a block device refused (a loop device's numbers; never opened).
+    let chr = root.join("null-like");
+    if mknod(&chr, libc::S_IFCHR, 1, 3) {
+        ok(&eval_gif(&run, &chr, &["--force"]));
+        assert!(std::fs::metadata(&chr)
+            .unwrap()
+            .file_type()
+            .is_char_device());
+        let blk = root.join("block-like");
+        assert!(mknod(&blk, libc::S_IFBLK, 7, 250));
+        fails_with(&eval_gif(&run, &blk, &["--force"]), &["block device"]);
+        assert!(std::fs::metadata(&blk)
+            .unwrap()
+            .file_type()
+            .is_block_device());
+    }
+    let sock = root.join("socket");
+    let _listener = std::os::unix::net::UnixListener::bind(&sock).unwrap();
+    fails_with(
+        &invaders(&["plot", s(&run), "--out", s(&sock), "--force"]),
+        &["socket"],
+    );
+    no_temporary_files(&root);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Class 2: one mechanism for every output stream. Standard error closed, full, or a terminal
+/// that goes away costs `train` nothing (a closing terminal stops it as a Ctrl-C does); `eval`
+/// and `plot` into a closed pipe end quietly, by SIGPIPE, after writing their files; a full
+/// standard output is a clear error.
+#[test]
+fn a_closed_or_failing_stream_costs_no_work() {
+    use std::os::unix::process::ExitStatusExt;
+    let root = tmp("streams");
+    let cfg = config(&root, FAST);
+
+    // train with stderr a pipe nobody reads, and with stderr /dev/full.
+    for (name, closed) in [("closed", true), ("full", false)] {
+        let run = root.join(name);
+        let mut cmd = bin();
+        cmd.args(["train", "--config", &cfg, "--seed", "1", "--threads", "1"])
+            .args(["--episodes", "3", "--out", s(&run)])
+            .stdout(Stdio::null());
+        if closed {
+            cmd.stderr(Stdio::piped());
+        } else {
+            cmd.stderr(std::fs::File::create("/dev/full").unwrap());
+        }
+        let mut child = cmd.spawn().unwrap();
+        drop(child.stderr.take()); // the reader leaves at once
+        let status = wait_at_most(&mut child, 120, name);
+        assert_eq!(
+            status.code(),
+            Some(0),
+            "train with stderr {name}: {status:?}"
+        );
+        let ckpt = invaders::dqn::checkpoint::load(&run.join("checkpoint.safetensors")).unwrap();
+        assert_eq!(ckpt.counters.episodes, 3, "train with stderr {name}");
+    }
+    let run = root.join("closed");
+
+    // eval and plot into a pipe whose reader left: quiet, SIGPIPE, files written.
+    let gif = root.join("play.gif");
+    let mut child = bin()
+        .args([
+            "eval",
+            "--checkpoint",
+            s(&run),
+            "--episodes",
+            "3",
+            "--gif",
+            s(&gif),
+        ])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let status = wait_at_most(&mut child, 120, "eval | closed");
+    let err = read_all(child.stderr.take());
+    assert_eq!(status.signal(), Some(libc::SIGPIPE), "{status:?}: {err}");
+    assert!(err.is_empty(), "quiet: {err}");
+    assert!(std::fs::read(&gif).unwrap().starts_with(b"GIF89a"));
+    let png = root.join("curve.png");
+    let mut child = bin()
+        .args(["plot", s(&run), "--out", s(&png)])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let status = wait_at_most(&mut child, 60, "plot | closed");
+    let err = read_all(child.stderr.take());
+    assert_eq!(status.signal(), Some(libc::SIGPIPE), "{status:?}: {err}");
+    assert!(err.is_empty(), "quiet: {err}");
+    assert!(png.is_file());
+
+    // A full standard output loses the results: a clear error.
+    let out = bin()
+        .args(["eval", "--checkpoint", s(&run), "--episodes", "1"])
+        .stdout(std::fs::File::create("/dev/full").unwrap())
+        .output()
+        .unwrap();
+    fails_with(&out, &["cannot write to standard output"]);
+
+    // A terminal that closes under `train`: SIGHUP, then every write fails (EIO). The run stops
+    // after its episode with a checkpoint and exits with 130, as for a Ctrl-C.
+    let (mut master, mut slave) = (0, 0);
+    // SAFETY: two valid places for the descriptors; no name, settings or size.
+    let rc = unsafe {
+        libc::openpty(
+            &mut master,
+            &mut slave,
+            std::ptr::null_mut(),
+            std::ptr::null(),
+            std::ptr::null(),
+        )
+    };
+    assert_eq!(rc, 0, "openpty");
+    // Neither side may leak into a child: a child holding the master would keep the terminal up.
+    for fd in [master, slave] {
+        // SAFETY: `fd` is open; F_SETFD touches no memory.
+        unsafe { libc::fcntl(fd, libc::F_SETFD, libc::FD_CLOEXEC) };
+    }
+    let tty = root.join("tty");
+    let no_periodic = config(
+        &root,
+        &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
+    );
+    let mut cmd = bin();
+    cmd.args([
+        "train",
+        "--config",
+        &no_periodic,
+        "--seed",
+        "2",
+        "--threads",
+        "1",
+    ])
+    .args(["--episodes", "1000000", "--out", s(&tty)]);
+    // SAFETY: `slave` is an open descriptor; dup gives each stream its own.
+    unsafe {
+        use std::os::fd::FromRawFd;
+        cmd.stdin(Stdio::from_raw_fd(libc::dup(slave)))
+            .stdout(Stdio::from_raw_fd(libc::dup(slave)))
+            .stderr(Stdio::from_raw_fd(libc::dup(slave)));
+        // A session of its own with the terminal as its controlling terminal, as a login shell's.
+        cmd.pre_exec(|| {
+            if libc::setsid() < 0 || libc::ioctl(0, libc::TIOCSCTTY, 0) < 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+        libc::close(slave);
+    }
+    let mut child = cmd.spawn().unwrap();
+    // Drain the terminal (the progress bar) until the run has finished two episodes, then close
+    // its master side: the terminal goes away (the kernel hangs up the session).
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let drain = {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while !stop.load(std::sync::atomic::Ordering::SeqCst) {
+                let mut fds = libc::pollfd {
+                    fd: master,
+                    events: libc::POLLIN,
+                    revents: 0,
+                };
+                // SAFETY: one valid pollfd; `master` is open until this thread closes it, and
+                // `buf` is valid for writes of its length.
+                unsafe {
+                    if libc::poll(&mut fds, 1, 50) > 0
+                        && libc::read(master, buf.as_mut_ptr().cast(), buf.len()) <= 0
+                    {
+                        break;
+                    }
+                }
+            }
+            // SAFETY: the descriptor is this thread's to close.
+            unsafe { libc::close(master) };
+        })
+    };
+    let metrics = tty.join("metrics.csv");
+    let started = std::time::Instant::now();
+    while std::fs::read_to_string(&metrics).map_or(0, |t| t.lines().count()) < 3 {
+        assert!(started.elapsed().as_secs() < 120, "the run never trained");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    stop.store(true, std::sync::atomic::Ordering::SeqCst);
+    drain.join().unwrap();
+    let status = wait_at_most(&mut child, 120, "train after its terminal closed");
+    assert_eq!(status.code(), Some(130), "{status:?}");
+    let ckpt = invaders::dqn::checkpoint::load(&tty.join("checkpoint.safetensors")).unwrap();
+    let rows = std::fs::read_to_string(&metrics).unwrap().lines().count() as u64 - 1;
+    assert!(ckpt.counters.episodes >= 2, "the episodes played are kept");
+    assert_eq!(
+        ckpt.counters.episodes, rows,
+        "the checkpoint holds every episode recorded"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Class 3: a run already in an experiment's folder is taken only if it was trained with the
+/// configuration the command asks for; otherwise the command refuses, naming the keys, before
+/// it writes or trains anything (the arm's TOML is not rewritten).
+#[test]
+fn a_reused_experiment_folder_is_refused_under_another_configuration() {
+    let root = tmp("reuse");
+    let a = config(
+        &root,
+        "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n",
+    );
+    let b_path = root.join("b.toml");
+    std::fs::write(
+        &b_path,
+        "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 16\ngamma = 0.9\n",
+    )
+    .unwrap();
+    let exp = root.join("exp");
+    let strong = |cfg: &str| {
+        invaders(&[
+            "experiment",
+            "strong",
+            "--seeds",
+            "1",
+            "--frames",
+            "400",
+            "--threads",
+            "1",
+            "--config",
+            cfg,
+            "--out",
+            s(&exp),
+        ])
+    };
+    // Seed 1's run, trained under A (as a first `experiment strong --config A` leaves it).
+    let run = exp.join("strong-seed1");
+    ok(&invaders(&[
+        "train",
+        "--preset",
+        "strong",
+        "--config",
+        &a,
+        "--seed",
+        "1",
+        "--frames",
+        "400",
+        "--threads",
+        "1",
+        "--out",
+        s(&run),
+    ]));
+    std::fs::write(exp.join("strong.toml"), std::fs::read(&a).unwrap()).unwrap();
+    let err = fails_with(
+        &strong(s(&b_path)),
+        &["another configuration", "`batch_size`", "`gamma`"],
+    );
+    assert!(
+        !err.contains("replay_capacity"),
+        "only the keys that differ: {err}"
+    );
+    assert_eq!(
+        std::fs::read(exp.join("strong.toml")).unwrap(),
+        std::fs::read(&a).unwrap(),
+        "the folder's configuration is left as it was"
+    );
+    assert!(!exp.join("strong-seed1.log").exists(), "nothing trained");
+
+    // The preprocessing experiment checks its runs the same way.
+    let pre = root.join("pre");
+    ok(&invaders(&[
+        "train",
+        "--preset",
+        "article-vanilla",
+        "--config",
+        &a,
+        "--seed",
+        "0",
+        "--episodes",
+        "1",
+        "--threads",
+        "1",
+        "--out",
+        s(&pre.join("article-vanilla-seed0")),
+    ]));
+    fails_with(
+        &invaders(&[
+            "experiment",
+            "preprocessing",
+            "--episodes",
+            "1",
+            "--seeds",
+            "1",
+            "--config",
+            s(&b_path),
+            "--out",
+            s(&pre),
+        ]),
+        &["article-vanilla-seed0", "`batch_size`"],
+    );
+    assert!(
+        !pre.join("article-vanilla.toml").exists(),
+        "nothing written"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Class 4: a run whose checkpoint is gone is never started again over its own history, by
+/// `--resume` or by a new `train --out` (or an experiment) in its directory; the message says
+/// what is lost.
+#[test]
+fn a_run_whose_checkpoint_is_lost_is_not_restarted_over_its_history() {
+    let root = tmp("lost");
+    let cfg = config(&root, FAST);
+    let run = root.join("run");
+    ok(&train(&cfg, 1, 3, &run));
+    std::fs::remove_file(run.join("checkpoint.safetensors")).unwrap();
+    let metrics = std::fs::read(run.join("metrics.csv")).unwrap();
+    let resume = || {
+        invaders(&[
+            "train",
+            "--resume",
+            s(&run),
+            "--episodes",
+            "5",
+            "--threads",
+            "1",
+        ])
+    };
+    // The replay file is still there: it is the run's, and says a checkpoint was written.
+    let err = fails_with(&resume(), &["checkpoint is lost", "replay-3.safetensors"]);
+    assert!(!err.contains("does not write"), "{err}");
+    std::fs::remove_file(run.join("replay-3.safetensors")).unwrap();
+    let err = fails_with(&resume(), &["checkpoint is lost", "3 finished episodes"]);
+    assert!(!err.contains("before its first checkpoint"), "{err}");
+    fails_with(&train(&cfg, 1, 3, &run), &["checkpoint is lost"]);
+    assert_eq!(
+        std::fs::read(run.join("metrics.csv")).unwrap(),
+        metrics,
+        "history kept"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Class 5: an input without end is an error (`/dev/zero`), or, where it may legitimately be a
+/// stream (a FIFO), waits only until a signal: the first SIGTERM then stops the program at once,
+/// saying nothing was changed. The second signal of a run says truly whether a checkpoint is kept.
+#[test]
+fn an_input_without_end_does_not_hang() {
+    let root = tmp("endless");
+    let mut child = bin()
+        .args([
+            "train",
+            "--config",
+            "/dev/zero",
+            "--out",
+            s(&root.join("zero")),
+        ])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let status = wait_at_most(&mut child, 30, "--config /dev/zero");
+    let err = read_all(child.stderr.take());
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert!(err.contains("larger than"), "{err}");
+
+    let fifo = root.join("config.fifo");
+    mkfifo(&fifo);
+    // A writer that never closes: opened read-write so the open itself does not block.
+    let _writer = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(&fifo)
+        .unwrap();
+    let mut child = bin()
+        .args([
+            "train",
+            "--config",
+            s(&fifo),
+            "--out",
+            s(&root.join("fifo")),
+        ])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    assert!(
+        child.try_wait().unwrap().is_none(),
+        "it waits for the writer"
+    );
+    Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    let status = wait_at_most(&mut child, 10, "train on a FIFO config after SIGTERM");
+    let err = read_all(child.stderr.take());
+    assert_eq!(status.code(), Some(130), "{err}");
+    assert!(err.contains("stopped before the first episode"), "{err}");
+
+    // Two signals during a run that has no checkpoint yet: the message says so (or, if the
+    // first signal's checkpoint came between them, names it).
+    let cfg = config(
+        &root,
+        &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
+    );
+    let run = root.join("run");
+    let mut child = bin()
+        .args(["train", "--config", &cfg, "--seed", "3", "--threads", "1"])
+        .args(["--episodes", "1000000", "--out", s(&run)])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    assert!(lines
+        .by_ref()
+        .map_while(Result::ok)
+        .any(|l| l.starts_with("ep 1 ")));
+    for _ in 0..2 {
+        Command::new("kill")
+            .args(["-TERM", &child.id().to_string()])
+            .status()
+            .unwrap();
+    }
+    let rest: Vec<String> = lines.map_while(Result::ok).collect();
+    let status = wait_at_most(&mut child, 30, "train after two SIGTERMs");
+    assert_eq!(status.code(), Some(130), "{rest:?}");
+    let said = rest.join("\n");
+    if run.join("checkpoint.safetensors").exists() {
+        assert!(
+            said.contains("is kept") || said.contains("with a checkpoint"),
+            "{said}"
+        );
+    } else {
+        assert!(said.contains("no checkpoint was written yet"), "{said}");
+        assert!(!said.contains("is kept"), "{said}");
+    }
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Class 6: messages say what is so.
+#[test]
+fn messages_say_what_is_so() {
+    let root = tmp("messages");
+    let cfg = config(&root, FAST);
+    let run = root.join("run");
+    ok(&train(&cfg, 1, 1, &run));
+
+    // `export` over an existing file suggests --force, and --force works.
+    let model = root.join("model.safetensors");
+    ok(&invaders(&[
+        "export",
+        "--checkpoint",
+        s(&run),
+        "--out",
+        s(&model),
+    ]));
+    fails_with(
+        &invaders(&["export", "--checkpoint", s(&run), "--out", s(&model)]),
+        &["--force"],
+    );
+    ok(&invaders(&[
+        "export",
+        "--checkpoint",
+        s(&run),
+        "--out",
+        s(&model),
+        "--force",
+    ]));
+
+    // Inconsistent frame skips are reported with the values written.
+    for (text, needle) in [
+        (
+            "[env]\nframe_skip_min = 5\nframe_skip_max = 2\n",
+            "(5) is larger than frame_skip_max (2)",
+        ),
+        (
+            "[env]\nframe_skip_min = 0\nframe_skip_max = 0\n",
+            "frame_skip_min must be at least 1",
+        ),
+    ] {
+        let err = fails_with(
+            &invaders(&[
+                "train",
+                "--config",
+                &config(&root, text),
+                "--out",
+                s(&root.join("x")),
+            ]),
+            &[needle],
+        );
+        assert!(
+            !err.contains("(4)") && !err.contains("(2) is larger"),
+            "{err}"
+        );
+    }
+
+    // No temporary directory: the path is named, the OS error said once.
+    let out = bin()
+        .args(["eval", "--random", "--episodes", "1"])
+        .env("TMPDIR", root.join("missing"))
+        .output()
+        .unwrap();
+    let err = fails_with(&out, &["missing", "TMPDIR"]);
+    assert_eq!(err.matches("os error").count(), 1, "{err}");
+
+    // `--resume` given the checkpoint file names its run directory.
+    fails_with(
+        &invaders(&[
+            "train",
+            "--resume",
+            s(&run.join("checkpoint.safetensors")),
+            "--episodes",
+            "2",
+        ]),
+        &["is a file", &format!("--resume {}", run.display())],
+    );
+
+    // A stop during the budget's last episode: the run is complete, not "continue with --resume".
+    let long = config(
+        &root,
+        &FAST.replace("max_episode_steps = 50", "max_episode_steps = 3000"),
+    );
+    let last = root.join("last");
+    let mut child = bin()
+        .args(["train", "--config", &long, "--seed", "1", "--threads", "1"])
+        .args(["--episodes", "1", "--out", s(&last)])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    assert!(lines
+        .by_ref()
+        .map_while(Result::ok)
+        .any(|l| l.starts_with("training preset")));
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    let rest = lines.map_while(Result::ok).collect::<Vec<_>>().join("\n");
+    let status = wait_at_most(&mut child, 120, "train stopped in its last episode");
+    assert_eq!(status.code(), Some(0), "{rest}");
+    assert!(
+        rest.contains("complete") && !rest.contains("--resume"),
+        "{rest}"
+    );
+
+    // Two runs of one preset and seed started together with the default --out: a directory each.
+    let cwd = root.join("cwd");
+    std::fs::create_dir_all(&cwd).unwrap();
+    let start = || {
+        bin()
+            .current_dir(&cwd)
+            .args([
+                "train",
+                "--config",
+                &cfg,
+                "--seed",
+                "7",
+                "--threads",
+                "1",
+                "--episodes",
+                "1",
+            ])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let (mut one, mut two) = (start(), start());
+    for child in [&mut one, &mut two] {
+        let status = wait_at_most(child, 120, "train with the default --out");
+        let err = read_all(child.stderr.take());
+        assert!(status.success(), "{err}");
+    }
+    let dirs = std::fs::read_dir(cwd.join("runs")).unwrap().count();
+    assert_eq!(dirs, 2, "each run its own directory");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Class 7: every knob has a bound.
+#[test]
+fn every_knob_has_a_bound() {
+    let root = tmp("knobs");
+    fails_with(
+        &invaders(&["train", "--threads", "1000", "--out", s(&root.join("t"))]),
+        &["--threads must be in 1..="],
+    );
+    assert!(!root.join("t").exists());
+    fails_with(
+        &invaders(&[
+            "show-preprocessing",
+            "--steps",
+            "100000000",
+            "--out",
+            s(&root.join("p.png")),
+        ]),
+        &["--steps must be at most"],
+    );
+    let out = invaders(&[
+        "experiment",
+        "strong",
+        "--jobs",
+        "0",
+        "--out",
+        s(&root.join("e")),
+    ]);
+    assert_eq!(out.status.code(), Some(2), "a usage error");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--jobs"));
+    assert!(!root.join("e").exists());
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -180,7 +180,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let env_share = agent_steps_per_s / env_steps_per_s;
 
     if args.json {
-        println!(
+        out!(
             "{}",
             serde_json::json!({
                 "threads": threads,
@@ -199,19 +199,19 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             })
         );
     } else {
-        println!("threads                 {threads}");
-        println!("precision               {:?} ({family})", args.precision);
+        out!("threads                 {threads}");
+        out!("precision               {:?} ({family})", args.precision);
         for (name, k) in &kernels {
-            println!("  {name:<21} {k}");
+            out!("  {name:<21} {k}");
         }
-        println!("train step (batch 48)   {step_ms:.2} ms  ({gflops:.1} GFLOP/s)");
-        println!("act (batch-1 forward)   {act_ms:.3} ms  (an initial network, game frames)");
+        out!("train step (batch 48)   {step_ms:.2} ms  ({gflops:.1} GFLOP/s)");
+        out!("act (batch-1 forward)   {act_ms:.3} ms  (an initial network, game frames)");
         if let (Some(ms), Some(p)) = (act_trained_ms, &args.checkpoint) {
-            println!("act, trained network    {ms:.3} ms  ({})", p.display());
+            out!("act, trained network    {ms:.3} ms  ({})", p.display());
         }
-        println!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
-        println!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
-        println!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
+        out!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
+        out!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
+        out!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
     }
     Ok(())
 }

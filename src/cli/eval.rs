@@ -38,7 +38,9 @@ pub struct EvalArgs {
     #[arg(long)]
     epsilon: Option<f32>,
     /// Record the first episode as an animated GIF at the emulator's full 210x160 colour. An
-    /// existing file is refused unless --force; the checkpoint itself, never.
+    /// existing file is refused unless --force, and replaced atomically; the checkpoint itself,
+    /// never. A symbolic link's target is written, a character device or FIFO written through
+    /// (docs/runs.md, "Output files").
     #[arg(long, value_name = "FILE")]
     gif: Option<PathBuf>,
     /// Replace an existing --gif file.
@@ -143,7 +145,7 @@ fn eval(args: &EvalArgs) -> anyhow::Result<()> {
             }
         };
         let stats = env.episode();
-        println!(
+        out!(
             "episode {:>3}: score {:>6} steps {:>5} frames {:>6}{}",
             episode + 1,
             stats.score,
@@ -156,9 +158,12 @@ fn eval(args: &EvalArgs) -> anyhow::Result<()> {
             }
         );
         scores.push(stats.score);
+        if super::streams::stdout_lost() {
+            break;
+        }
     }
     let s = Summary::of(&scores);
-    println!(
+    out!(
         "random agent, mode {}, {} episodes, seed {}: {s}",
         mode.to_possible_value()
             .expect("modes are named")
@@ -176,9 +181,15 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     } else {
         path.to_path_buf()
     };
-    if let Some(gif) = &args.gif {
-        super::guard::check_output(gif, args.force, &[&file, path], "--gif")?;
-    }
+    let gif_out = match &args.gif {
+        Some(gif) => Some(super::guard::OutputFile::check(
+            gif,
+            args.force,
+            &[&file, path],
+            "--gif",
+        )?),
+        None => None,
+    };
     let model = checkpoint::load_model(&file)?;
     if let Some(p) = args.preset {
         if model.config.preset != p {
@@ -224,8 +235,8 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     let mut input = Tensor::zeros(&[1, h, w, c]);
     let mut rng = ChaCha8Rng::seed_from_u64(plan.seed);
     rng.set_stream(1);
-    let mut gif = match &args.gif {
-        Some(p) => Some(GifRecorder::create(p)?),
+    let mut gif = match &gif_out {
+        Some(out) => Some(GifRecorder::create(out)?),
         None => None,
     };
     let mut scores = Vec::with_capacity(plan.episodes as usize);
@@ -251,18 +262,22 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         if let Some(e) = record_error {
             return Err(e);
         }
-        println!(
+        out!(
             "episode {:>3}: score {score:>6} steps {steps:>5}",
             episode + 1
         );
         scores.push(score);
+        if super::streams::stdout_lost() {
+            // Nobody reads the scores any more: stop playing (the GIF, if any, is complete).
+            break;
+        }
     }
     if let (Some(g), Some(p)) = (gif, &args.gif) {
         g.finish()?;
-        println!("recorded episode 1 to {}", p.display());
+        out!("recorded episode 1 to {}", p.display());
     }
     let s = Summary::of(&scores);
-    println!(
+    out!(
         "checkpoint {} (preset {}, {} episodes, {} frames trained), mode {}{}, epsilon {}, {} episodes, seed {}: {s}",
         file.display(),
         config.preset.name(),
@@ -277,26 +292,19 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     Ok(())
 }
 
-/// Writes an animated GIF frame by frame into a temporary file, renamed into place at the end
-/// (a recorder dropped before [`GifRecorder::finish`], on an error, removes its temporary file).
-struct GifRecorder {
-    encoder: Option<gif::Encoder<std::io::BufWriter<std::fs::File>>>,
-    tmp: PathBuf,
-    path: PathBuf,
+/// Writes an animated GIF frame by frame into its output file's temporary path, put in place at
+/// the end ([`super::guard::Pending`]: a recorder dropped before [`GifRecorder::finish`], on an
+/// error, leaves no temporary file and the old file as it was).
+struct GifRecorder<'a> {
+    encoder: gif::Encoder<std::io::BufWriter<std::fs::File>>,
+    pending: super::guard::Pending<'a>,
 }
 
-impl Drop for GifRecorder {
-    fn drop(&mut self) {
-        if self.encoder.take().is_some() {
-            let _ = std::fs::remove_file(&self.tmp);
-        }
-    }
-}
-
-impl GifRecorder {
-    fn create(path: &Path) -> anyhow::Result<Self> {
-        let tmp = checkpoint::tmp_path(path).context("--gif")?;
-        let file = std::fs::File::create(&tmp)
+impl<'a> GifRecorder<'a> {
+    fn create(out: &'a super::guard::OutputFile) -> anyhow::Result<Self> {
+        let pending = out.pending()?;
+        let tmp = pending.path();
+        let file = std::fs::File::create(tmp)
             .with_context(|| format!("cannot create {}", tmp.display()))?;
         let mut encoder = gif::Encoder::new(
             std::io::BufWriter::new(file),
@@ -304,14 +312,8 @@ impl GifRecorder {
             SCREEN_H as u16,
             &[],
         )?;
-        let mut recorder = GifRecorder {
-            encoder: None,
-            tmp,
-            path: path.to_path_buf(),
-        };
         encoder.set_repeat(gif::Repeat::Infinite)?;
-        recorder.encoder = Some(encoder);
-        Ok(recorder)
+        Ok(GifRecorder { encoder, pending })
     }
 
     /// Appends one 210x160 RGB screen, shown for 1/20 s (an agent step is 2 to 4 frames at 60 Hz).
@@ -319,26 +321,15 @@ impl GifRecorder {
         let mut frame = gif::Frame::from_rgb_speed(SCREEN_W as u16, SCREEN_H as u16, rgb, 10);
         frame.delay = 5;
         self.encoder
-            .as_mut()
-            .expect("recording")
             .write_frame(&frame)
             .context("cannot write the GIF")
     }
 
-    fn finish(mut self) -> anyhow::Result<()> {
-        let encoder = self.encoder.take().expect("recording");
-        let result = encoder
-            .into_inner()
-            .context("cannot finish the GIF")
-            .and_then(|mut w| Ok(std::io::Write::flush(&mut w)?))
-            .and_then(|()| {
-                std::fs::rename(&self.tmp, &self.path)
-                    .with_context(|| format!("cannot write {}", self.path.display()))
-            });
-        if result.is_err() {
-            let _ = std::fs::remove_file(&self.tmp);
-        }
-        result
+    fn finish(self) -> anyhow::Result<()> {
+        let mut w = self.encoder.into_inner().context("cannot finish the GIF")?;
+        std::io::Write::flush(&mut w).context("cannot finish the GIF")?;
+        drop(w);
+        self.pending.commit()
     }
 }
 

@@ -42,15 +42,15 @@ use clap::{Args, Subcommand, ValueEnum};
 use serde::{Deserialize, Serialize};
 
 use super::eval::{PROTOCOL_EPISODES, PROTOCOL_EPSILON, PROTOCOL_SEED};
+use super::figures::{
+    plot_groups, plot_groups_frames, read_digitized, read_frame_metrics, read_metrics,
+    read_references, Group,
+};
 use super::Interrupted;
 use invaders::dqn::checkpoint;
 use invaders::dqn::{merge_toml, Config, Preset, STRONG_FRAMES};
 use invaders::env::{Downsample, Pipeline};
 use invaders::layers::loss::LossKind;
-use invaders::plot::{
-    plot_groups, plot_groups_frames, read_digitized, read_frame_metrics, read_metrics,
-    read_references, Group,
-};
 
 #[derive(Debug, Subcommand)]
 pub enum Experiment {
@@ -159,7 +159,7 @@ pub struct AblationArgs {
           value_parser = PossibleValuesParser::new(ABLATIONS.iter().map(|a| a.name)))]
     arms: Vec<String>,
     /// Runs trained at once (default: the cores divided by `--threads`, at least one).
-    #[arg(long)]
+    #[arg(long, value_parser = parse_jobs)]
     jobs: Option<usize>,
     /// Kernel threads per run.
     #[arg(long, default_value_t = 1)]
@@ -190,7 +190,7 @@ pub struct StrongArgs {
     #[arg(long, default_value_t = STRONG_FRAMES)]
     frames: u64,
     /// Runs trained at once (default: the cores divided by `--threads`, at least one).
-    #[arg(long)]
+    #[arg(long, value_parser = parse_jobs)]
     jobs: Option<usize>,
     /// Kernel threads per run: 2 for one run alone on a 2-core machine (the preset's 13.5 million
     /// frames took 2.25–2.32 hours so on an AVX512-BF16 host), 1 for runs side by side.
@@ -268,7 +268,7 @@ pub struct PreprocessingArgs {
     #[arg(long = "pipeline", value_enum)]
     pipelines: Vec<Pipeline>,
     /// Runs trained at once (default: the number of cores).
-    #[arg(long)]
+    #[arg(long, value_parser = parse_jobs)]
     jobs: Option<usize>,
     /// Evaluation episodes per final checkpoint, with ε = 0.05 in the run's own game (each is
     /// also evaluated by the protocol: 100 episodes of `v5`).
@@ -351,8 +351,10 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let exe = exe_path()?;
     let arms = arms(args);
-    // Every run's config file, checked before anything starts.
+    // Every run's configuration, checked before anything is written or starts (and each run
+    // already in --out against it).
     let mut jobs = Vec::new();
+    let mut arm_texts = Vec::new();
     for arm in &arms {
         let mut table: toml::Table = overrides.parse().context("--config is not valid TOML")?;
         if let Some(p) = arm.pipeline {
@@ -361,6 +363,13 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         let text = toml::to_string(&table)?;
         Config::resolve(Some(arm.preset), Some(&text))
             .with_context(|| format!("configuration of {}", arm.label))?;
+        for seed in 0..args.seeds {
+            let dir = args.out.join(format!("{}-seed{seed}", arm.label));
+            check_reuse(&dir, arm.preset, &text, seed)?;
+        }
+        arm_texts.push(text);
+    }
+    for (arm, text) in arms.iter().zip(arm_texts) {
         let cfg_path = args.out.join(format!("{}.toml", arm.label));
         std::fs::write(&cfg_path, &text)
             .with_context(|| format!("cannot write {}", cfg_path.display()))?;
@@ -474,7 +483,7 @@ fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         run_rows.join("\n")
     );
     std::fs::write(args.out.join("results.md"), &table).context("cannot write results.md")?;
-    println!("{table}");
+    out!("{table}");
     Ok(())
 }
 
@@ -711,12 +720,86 @@ fn write_record(dir: &Path, run: &Path, record: &Record) -> anyhow::Result<()> {
     checkpoint::write_atomic(&dir.join(RECORD_FILE), text.as_bytes())
 }
 
+/// Refuses to take the run in `dir` as the run this experiment asks for (`preset`, the TOML
+/// `overrides`, `seed`) if it was trained with another configuration, naming the keys that
+/// differ: a folder reused under other settings must not report the old runs as the new ones.
+/// The budget (`episodes`, `max_frames`) may differ: the experiment extends it. Nothing is
+/// written; a directory with no run in it passes.
+fn check_reuse(dir: &Path, preset: Preset, overrides: &str, seed: u64) -> anyhow::Result<()> {
+    let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
+    let saved = dir.join("config.toml");
+    let had = if ckpt.exists() {
+        checkpoint::load(&ckpt)
+            .with_context(|| format!("cannot read the run in {}", dir.display()))?
+            .config
+    } else if saved.is_file() {
+        let text = super::guard::read_text(&saved, "the run's configuration")?;
+        Config::resolve(None, Some(&text))
+            .with_context(|| format!("cannot read the run in {}", dir.display()))?
+    } else {
+        return Ok(());
+    };
+    let mut asked = Config::resolve(Some(preset), Some(overrides))?;
+    asked.seed = seed;
+    let differ = config_differences(&had, &asked);
+    if !differ.is_empty() {
+        bail!(
+            "{} holds a run trained with another configuration than this experiment asks for \
+             ({}): it is not taken as this experiment's run. Give another --out, or move that \
+             run away",
+            dir.display(),
+            differ.join("; ")
+        );
+    }
+    Ok(())
+}
+
+/// The keys whose values differ between two configurations, as `key: A, not B` (`[env]`'s keys as
+/// `env.KEY`), leaving out the budget (`episodes`, `max_frames`).
+fn config_differences(had: &Config, asked: &Config) -> Vec<String> {
+    let flat = |c: &Config| -> std::collections::BTreeMap<String, toml::Value> {
+        let mut out = std::collections::BTreeMap::new();
+        for (k, v) in toml::Table::try_from(c).expect("a config serialises") {
+            match v {
+                toml::Value::Table(t) => {
+                    out.extend(t.into_iter().map(|(k2, v2)| (format!("{k}.{k2}"), v2)))
+                }
+                v => {
+                    out.insert(k, v);
+                }
+            }
+        }
+        out.remove("episodes");
+        out.remove("max_frames");
+        out
+    };
+    let (a, b) = (flat(had), flat(asked));
+    let keys: std::collections::BTreeSet<&String> = a.keys().chain(b.keys()).collect();
+    let show = |v: Option<&toml::Value>| v.map_or("unset".to_string(), |v| v.to_string());
+    keys.into_iter()
+        .filter(|k| a.get(*k) != b.get(*k))
+        .map(|k| format!("`{k}` is {} there, {} here", show(a.get(k)), show(b.get(k))))
+        .collect()
+}
+
 /// `--keep`'s directory, made before anything trains so a bad path fails now.
 fn make_keep(keep: Option<&Path>) -> anyhow::Result<()> {
     if let Some(k) = keep {
         std::fs::create_dir_all(k).with_context(|| format!("cannot create {}", k.display()))?;
     }
     Ok(())
+}
+
+/// The most runs an experiment trains at once (`--jobs`).
+const MAX_JOBS: usize = 64;
+
+/// `--jobs`: 1 to [`MAX_JOBS`].
+fn parse_jobs(s: &str) -> Result<usize, String> {
+    let n: usize = s.parse().map_err(|e| format!("{e}"))?;
+    if !(1..=MAX_JOBS).contains(&n) {
+        return Err(format!("must be in 1..={MAX_JOBS}"));
+    }
+    Ok(n)
 }
 
 /// `--jobs`, or one per core.
@@ -747,10 +830,8 @@ fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
         }
         cmd.args(["train", "--resume"]).arg(dir);
     } else {
-        if dir.exists() {
-            std::fs::remove_dir_all(dir)
-                .with_context(|| format!("cannot clear unfinished {}", dir.display()))?;
-        }
+        // `train --out` starts a run stopped before its first checkpoint again, and refuses a
+        // directory whose checkpoint was lost (its history is kept).
         cmd.args([
             "train",
             "--preset",
@@ -891,9 +972,7 @@ fn parse_scores(last: &str) -> anyhow::Result<Scores> {
 /// The `--config` file's text (empty without one).
 fn read_overrides(path: Option<&Path>) -> anyhow::Result<String> {
     match path {
-        Some(p) => {
-            std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))
-        }
+        Some(p) => super::guard::read_text(p, "config file"),
         None => Ok(String::new()),
     }
 }
@@ -955,6 +1034,14 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     make_keep(args.keep.as_deref())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
+    for seed in 1..=args.seeds {
+        check_reuse(
+            &args.out.join(format!("strong-seed{seed}")),
+            Preset::Strong,
+            &text,
+            seed,
+        )?;
+    }
     let cfg = args.out.join("strong.toml");
     std::fs::write(&cfg, &text).with_context(|| format!("cannot write {}", cfg.display()))?;
     let exe = exe_path()?;
@@ -1030,7 +1117,7 @@ fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         mean_std(&means)
     );
     std::fs::write(args.out.join("results.md"), &table).context("cannot write results.md")?;
-    println!("{table}");
+    out!("{table}");
     Ok(())
 }
 
@@ -1083,6 +1170,12 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
                 arm.what
             );
         }
+        check_reuse(
+            &args.out.join(format!("{}-seed{}", arm.name, args.seed)),
+            Preset::Strong,
+            &arm_text,
+            args.seed,
+        )?;
         texts.push(arm_text);
     }
     make_keep(args.keep.as_deref())?;
@@ -1170,7 +1263,7 @@ fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         rows.join("\n"),
     );
     std::fs::write(args.out.join("results.md"), &table).context("cannot write results.md")?;
-    println!("{table}");
+    out!("{table}");
     Ok(())
 }
 
@@ -1237,6 +1330,9 @@ mod stop {
         /// Whether the handler is in place (else children stay in this process's group, where
         /// a terminal's Ctrl-C reaches them directly).
         caught: bool,
+        /// Whether any child has started: before that, a signal ends the experiment at once
+        /// (it may be blocked reading its `--config` from a FIFO).
+        started: bool,
     }
 
     /// One lock for all of it, so that a child is started only while no stop has been asked
@@ -1245,6 +1341,7 @@ mod stop {
         signals: 0,
         children: Vec::new(),
         caught: false,
+        started: false,
     });
 
     fn state() -> MutexGuard<'static, State> {
@@ -1271,6 +1368,10 @@ mod stop {
             // ctrlc runs this on a thread of its own, not in the signal handler: a lock is fine.
             let first = {
                 let mut s = state();
+                if !s.started {
+                    say!("\nstopped before any run started: nothing has changed");
+                    std::process::exit(130);
+                }
                 s.signals += 1;
                 s.children.iter().copied().for_each(term);
                 s.signals == 1
@@ -1318,6 +1419,7 @@ mod stop {
             }
             die_with_parent(cmd);
             let child = cmd.stdin(Stdio::null()).spawn()?;
+            s.started = true;
             s.children.push(child.id());
             child
         };

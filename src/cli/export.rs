@@ -13,9 +13,14 @@ pub struct ExportArgs {
     #[arg(long, value_name = "PATH")]
     checkpoint: PathBuf,
     /// The model file to write (format `invaders-model-1`: the online network, the run's
-    /// configuration and counters). An existing file is never replaced.
+    /// configuration and counters). An existing file is refused unless --force, and replaced
+    /// atomically; a symbolic link's target is written, a character device or FIFO written
+    /// through (docs/runs.md, "Output files").
     #[arg(long, value_name = "FILE")]
     out: PathBuf,
+    /// Replace an existing --out file.
+    #[arg(long)]
+    force: bool,
 }
 
 pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
@@ -24,12 +29,12 @@ pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
     } else {
         args.checkpoint.clone()
     };
-    super::guard::check_output(&args.out, false, &[&file], "--out")?;
+    let out = super::guard::OutputFile::check(&args.out, args.force, &[&file], "--out")?;
     let ckpt = checkpoint::load(&file)?;
     let bytes = checkpoint::model_to_bytes(&ckpt.config, &ckpt.counters, &ckpt.learner)?;
-    checkpoint::write_atomic(&args.out, &bytes)
+    out.write(&bytes)
         .with_context(|| format!("cannot export to {}", args.out.display()))?;
-    println!(
+    out!(
         "wrote {} ({} bytes): the online network of {} after {} episodes, {} frames",
         args.out.display(),
         bytes.len(),

@@ -4,23 +4,31 @@
 use anyhow::{bail, Context};
 use clap::{Parser, Subcommand};
 
-/// A line on stderr, whatever becomes of it: a closed pipe (`… 2>&1 | tee log` after a Ctrl-C)
-/// or a closed terminal makes `eprintln!` panic, and a message must not cost a stop its work
-/// (`train`'s and `experiment`'s signal handlers and messages print with it).
+/// A line on standard error that never panics and never stops the program
+/// ([`streams::err_line`]): every message goes through it.
 macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stderr(), $($arg)*);
-    }};
+    ($($arg:tt)*) => {
+        $crate::cli::streams::err_line(format_args!($($arg)*))
+    };
+}
+
+/// A line on standard output that never panics ([`streams::out_line`]): every result goes
+/// through it.
+macro_rules! out {
+    ($($arg:tt)*) => {
+        $crate::cli::streams::out_line(format_args!($($arg)*))
+    };
 }
 
 mod bench;
 mod eval;
 mod experiment;
 mod export;
+mod figures;
 mod guard;
 mod plot;
 mod show;
+pub mod streams;
 mod train;
 
 pub use train::Interrupted;
@@ -65,14 +73,26 @@ pub fn in_pool<R: Send>(
 ) -> anyhow::Result<R> {
     let mut builder = rayon::ThreadPoolBuilder::new().stack_size(8 << 20);
     if let Some(t) = threads {
-        if t == 0 {
-            bail!("--threads must be at least 1");
+        if !(1..=MAX_THREADS).contains(&t) {
+            bail!("--threads must be in 1..={MAX_THREADS}, got {t}");
+        }
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        if t > cores {
+            say!(
+                "warning: --threads {t} is more than the {cores} core(s) here: the threads take \
+                 turns, and every product runs slower than on {cores} (a run is reproduced with \
+                 its thread count, so this is allowed)"
+            );
         }
         builder = builder.num_threads(t);
     }
     let pool = builder.build().context("cannot set up the thread pool")?;
     pool.install(body)
 }
+
+/// The most `--threads`: beyond any machine this program trains on (each thread's share of a
+/// product must stay worth starting it).
+pub const MAX_THREADS: usize = 256;
 
 /// Says once, on stderr, when `precision` asks for bf16 on a CPU that cannot run it (its
 /// products then run in f32: [`invaders::tensor::plan::bf16_runs`]).
@@ -82,7 +102,7 @@ pub fn note_precision(precision: invaders::tensor::plan::Precision) {
     if precision == Precision::Bf16 && !bf16_runs(precision) {
         NOTE.call_once(|| {
             let why = invaders::tensor::cpu::why_no_bf16().unwrap_or_default();
-            eprintln!("note: bf16 asked for, but {why}: the products run in f32");
+            say!("note: bf16 asked for, but {why}: the products run in f32");
         });
     }
 }

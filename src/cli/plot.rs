@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context};
 use clap::Args;
 
-use invaders::plot::{
+use super::figures::{
     plot_groups_frames, plot_rewards, read_frame_metrics, read_metrics, read_references, Curve,
     Group,
 };
@@ -35,7 +35,9 @@ pub struct PlotArgs {
         value_delimiter = ','
     )]
     agents: Vec<String>,
-    /// The PNG to write (an existing file is refused unless --force).
+    /// The PNG to write: an existing file is refused unless --force, and replaced atomically; a
+    /// symbolic link's target is written, a character device or FIFO written through
+    /// (docs/runs.md, "Output files").
     #[arg(long, value_name = "FILE.png")]
     out: PathBuf,
     /// Replace an existing --out file.
@@ -58,7 +60,7 @@ pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     }
     let inputs: Vec<PathBuf> = args.runs.iter().map(|d| d.join("metrics.csv")).collect();
     let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
-    super::guard::check_output(&args.out, args.force, &inputs, "--out")?;
+    let out = super::guard::OutputFile::check(&args.out, args.force, &inputs, "--out")?;
     let mut curves = Vec::new();
     for dir in &args.runs {
         let points = read_metrics(&dir.join("metrics.csv"))?;
@@ -77,9 +79,9 @@ pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
         };
         curves.push(Curve { label, points });
     }
-    plot_rewards(&curves, &args.title, args.window, &args.out)
+    out.write_with(|tmp| plot_rewards(&curves, &args.title, args.window, tmp))
         .with_context(|| format!("cannot draw {}", args.out.display()))?;
-    println!("wrote {}", args.out.display());
+    out!("wrote {}", args.out.display());
     Ok(())
 }
 
@@ -114,13 +116,13 @@ fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
         inputs.push(r.clone());
     }
     let paths: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
-    super::guard::check_output(&args.out, args.force, &paths, "--out")?;
+    let out = super::guard::OutputFile::check(&args.out, args.force, &paths, "--out")?;
     let references = match &args.reference {
         Some(r) => read_references(r, &args.agents)?,
         None => Vec::new(),
     };
-    plot_groups_frames(&groups, &references, &args.title, args.window, &args.out)
+    out.write_with(|tmp| plot_groups_frames(&groups, &references, &args.title, args.window, tmp))
         .with_context(|| format!("cannot draw {}", args.out.display()))?;
-    println!("wrote {}", args.out.display());
+    out!("wrote {}", args.out.display());
     Ok(())
 }

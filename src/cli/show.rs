@@ -4,9 +4,9 @@
 //! (and the `strong` preset's, which max-pools each 2x2 block), and, for each pipeline, the frames stacked into the network's input (oldest on the left). The
 //! running max of `stack-running-max` shows as trails behind everything that moved since reset.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
-use anyhow::{anyhow, Context};
+use anyhow::{anyhow, bail, Context};
 use clap::Args;
 use plotters::prelude::*;
 use rand::{Rng, SeedableRng};
@@ -19,19 +19,24 @@ use invaders::env::{
 
 #[derive(Debug, Args)]
 pub struct ShowArgs {
-    /// The PNG to write (an existing file is refused unless --force).
+    /// The PNG to write: an existing file is refused unless --force, and replaced atomically; a
+    /// symbolic link's target is written, a character device or FIFO written through
+    /// (docs/runs.md, "Output files").
     #[arg(long, value_name = "FILE.png")]
     out: PathBuf,
     /// Replace an existing --out file.
     #[arg(long)]
     force: bool,
-    /// Agent steps of random play before the picture is taken.
+    /// Agent steps of random play before the picture is taken (at most 100 000).
     #[arg(long, default_value_t = 150)]
     steps: u32,
     /// Seed of the game and of the random play.
     #[arg(long, default_value_t = 0)]
     seed: u64,
 }
+
+/// The most `--steps`: about a minute of emulation.
+const MAX_STEPS: u32 = 100_000;
 
 const PIPELINES: [Pipeline; 4] = [
     Pipeline::Vanilla,
@@ -41,7 +46,13 @@ const PIPELINES: [Pipeline; 4] = [
 ];
 
 pub fn run(args: &ShowArgs) -> anyhow::Result<()> {
-    super::guard::check_output(&args.out, args.force, &[], "--out")?;
+    if args.steps > MAX_STEPS {
+        bail!(
+            "--steps must be at most {MAX_STEPS} (about a minute of play), got {}",
+            args.steps
+        );
+    }
+    let out = super::guard::OutputFile::check(&args.out, args.force, &[], "--out")?;
     let mut env = SpaceInvaders::new(&EnvConfig::from_mode(EnvMode::V0), args.seed)
         .context("cannot start Space Invaders")?;
     let mut observers: Vec<Observer> = PIPELINES.iter().map(|&p| Observer::new(p)).collect();
@@ -68,17 +79,18 @@ pub fn run(args: &ShowArgs) -> anyhow::Result<()> {
             }
         }
     }
-    draw(args, &env, &observers).with_context(|| format!("cannot draw {}", args.out.display()))?;
-    println!("wrote {}", args.out.display());
+    out.write_with(|tmp| draw(tmp, &env, &observers))
+        .with_context(|| format!("cannot draw {}", args.out.display()))?;
+    out!("wrote {}", args.out.display());
     Ok(())
 }
 
-fn draw(args: &ShowArgs, env: &SpaceInvaders, observers: &[Observer]) -> anyhow::Result<()> {
+fn draw(path: &Path, env: &SpaceInvaders, observers: &[Observer]) -> anyhow::Result<()> {
     let e = |err: DrawingAreaErrorKind<_>| anyhow!("{err}");
     let (w, h) = (760u32, 1400u32);
-    let root = BitMapBackend::new(&args.out, (w, h)).into_drawing_area();
+    let root = BitMapBackend::new(path, (w, h)).into_drawing_area();
     root.fill(&WHITE).map_err(e)?;
-    let font = invaders::plot::sans(20.0);
+    let font = super::figures::sans(20.0);
     let text = |s: &str, x: i32, y: i32| root.draw(&Text::new(s.to_string(), (x, y), font.clone()));
     // Raw screen, 2x.
     text("raw screen (210x160 RGB)", 20, 10).map_err(e)?;

@@ -15,7 +15,7 @@
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::time::Instant;
 
 use anyhow::{bail, Context};
@@ -25,10 +25,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use super::in_pool;
 use invaders::dqn::checkpoint::{self, write_atomic};
 
+use super::figures::{plot_rewards, Curve};
 use super::guard;
 use invaders::dqn::{Agent, Config, EpisodeRow, Preset, NO_EPISODE_LIMIT};
 use invaders::env::SpaceInvaders;
-use invaders::plot::{plot_rewards, Curve};
 use invaders::tensor::plan::Precision;
 
 #[derive(Debug, Args)]
@@ -78,16 +78,34 @@ fn rss_kib() -> Option<u64> {
     line.split_whitespace().nth(1)?.parse().ok()
 }
 
-fn default_out(config: &Config) -> PathBuf {
+/// A new directory `runs/PRESET-seedS-TIME` (with `-2`, `-3`, … where that name is taken: two
+/// runs started in the same second get a directory each), created here so no other process can
+/// take it.
+fn new_default_dir(config: &Config) -> anyhow::Result<PathBuf> {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs())
         .unwrap_or(0);
-    PathBuf::from("runs").join(format!(
-        "{}-seed{}-{secs}",
-        config.preset.name(),
-        config.seed
-    ))
+    let runs = PathBuf::from("runs");
+    std::fs::create_dir_all(&runs).with_context(|| format!("cannot create {}", runs.display()))?;
+    let base = format!("{}-seed{}-{secs}", config.preset.name(), config.seed);
+    for n in 1..10_000 {
+        let name = if n == 1 {
+            base.clone()
+        } else {
+            format!("{base}-{n}")
+        };
+        let dir = runs.join(name);
+        match std::fs::create_dir(&dir) {
+            Ok(()) => return Ok(dir),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(e).with_context(|| format!("cannot create {}", dir.display())),
+        }
+    }
+    bail!(
+        "no free run directory named {}/{base}-N; give --out",
+        runs.display()
+    )
 }
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
@@ -112,55 +130,53 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     // The lock is taken before anything in the directory is read or written.
     let mut lock = None;
     let (mut config, dir, resumed) = match &args.resume {
-        Some(dir) if !dir.join(checkpoint::CHECKPOINT_FILE).exists() => {
-            if args.config.is_some() || args.seed.is_some() {
-                bail!("--resume keeps the run's configuration: drop --config and --seed");
-            }
-            let saved = dir.join("config.toml");
-            if !saved.is_file() {
-                bail!(
-                    "{} holds no checkpoint and no config.toml: there is no run to resume",
-                    dir.display()
-                );
-            }
-            // Starting again clears the run's files: only where the directory holds nothing
-            // else (a model exported beside its config.toml, say, is not a stopped run).
-            if let Some(other) = foreign_file(dir)? {
-                bail!(
-                    "{} holds no checkpoint, and {other}, which a run does not write: it is not a stopped run, so it is not resumed (a weights-only model plays with `eval --checkpoint`; train a new run with --out)",
-                    dir.display()
-                );
-            }
-            lock = Some(guard::RunLock::acquire(dir)?);
-            let text = std::fs::read_to_string(&saved)
-                .with_context(|| format!("cannot read {}", saved.display()))?;
-            let config = Config::resolve(args.preset, Some(&text))
-                .with_context(|| format!("{}", saved.display()))?;
-            eprintln!(
-                "{} was stopped before its first checkpoint: starting it again from episode 1 with its config.toml",
-                dir.display()
-            );
-            clear_run_files(dir)?;
-            (config, dir.clone(), None)
-        }
         Some(dir) => {
             if args.config.is_some() || args.seed.is_some() {
                 bail!("--resume keeps the run's configuration: drop --config and --seed");
             }
-            lock = Some(guard::RunLock::acquire(dir)?);
-            let (ckpt, replay) = checkpoint::load_run(dir)?;
-            if let Some(p) = args.preset {
-                ckpt.expect_preset(p)
-                    .with_context(|| format!("cannot resume {} with --preset", dir.display()))?;
+            if dir.is_file() {
+                let parent = dir
+                    .parent()
+                    .filter(|p| !p.as_os_str().is_empty())
+                    .unwrap_or(Path::new("."));
+                bail!(
+                    "--resume takes a run directory, and {} is a file; its run directory is {} (--resume {})",
+                    dir.display(),
+                    parent.display(),
+                    parent.display()
+                );
             }
-            (ckpt.config.clone(), dir.clone(), Some((ckpt, replay)))
+            if !dir.is_dir() {
+                bail!(
+                    "{} does not exist: there is no run, and no checkpoint, to resume",
+                    dir.display()
+                );
+            }
+            if dir.join(checkpoint::CHECKPOINT_FILE).exists() {
+                lock = Some(guard::RunLock::acquire(dir)?);
+                let (ckpt, replay) = checkpoint::load_run(dir)?;
+                if let Some(p) = args.preset {
+                    ckpt.expect_preset(p).with_context(|| {
+                        format!("cannot resume {} with --preset", dir.display())
+                    })?;
+                }
+                SAVED_EPISODE.store(ckpt.counters.episodes, Ordering::SeqCst);
+                (ckpt.config.clone(), dir.clone(), Some((ckpt, replay)))
+            } else {
+                let config = restart_unsaved(dir, args.preset)?;
+                lock = Some(guard::RunLock::acquire(dir)?);
+                say!(
+                    "{} was stopped before its first checkpoint (episode {}): starting it again from episode 1 with its config.toml",
+                    dir.display(),
+                    config.checkpoint_every
+                );
+                clear_run_files(dir)?;
+                (config, dir.clone(), None)
+            }
         }
         None => {
             let text = match &args.config {
-                Some(p) => Some(
-                    std::fs::read_to_string(p)
-                        .with_context(|| format!("cannot read config file {}", p.display()))?,
-                ),
+                Some(p) => Some(guard::read_text(p, "config file")?),
                 None => None,
             };
             let mut config = Config::resolve(args.preset, text.as_deref())?;
@@ -170,7 +186,10 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
             if let Some(p) = args.precision {
                 config.precision = p;
             }
-            let dir = args.out.clone().unwrap_or_else(|| default_out(&config));
+            let dir = match args.out.clone() {
+                Some(d) => d,
+                None => new_default_dir(&config)?,
+            };
             (config, dir, None)
         }
     };
@@ -258,16 +277,14 @@ fn budget(config: &Config) -> String {
 }
 
 /// Makes `dir` ready for a new run and locks it: it is created, or it is empty, or it holds only
-/// what a run that never reached its first checkpoint wrote (then that is cleared).
+/// what a run that never reached its first checkpoint wrote (then that is cleared). A directory
+/// holding a run (its checkpoint, or the traces of one that was lost) or anything else is refused.
 fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
     if dir.exists() && !dir.is_dir() {
         bail!("--out {} is a file, not a directory", dir.display());
     }
-    let names: Vec<String> = match std::fs::read_dir(dir) {
-        Ok(entries) => entries
-            .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("cannot read {}", dir.display()))?,
+    let names = match std::fs::read_dir(dir) {
+        Ok(_) => dir_names(dir)?,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
         Err(e) => return Err(e).with_context(|| format!("cannot read {}", dir.display())),
     };
@@ -278,9 +295,15 @@ fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
             dir.display()
         );
     }
-    if let Some(other) = names.iter().find(|n| !RUN_FILES.contains(&n.as_str())) {
+    if let Some(other) = names.iter().find(|n| !is_run_file(n)) {
         bail!(
             "run directory {} is not empty (it holds `{other}`); choose another --out",
+            dir.display()
+        );
+    }
+    if let Some(lost) = lost_checkpoint(dir, &names)? {
+        bail!(
+            "run directory {} holds a run whose checkpoint is lost ({lost}); its files are left as they are: choose another --out",
             dir.display()
         );
     }
@@ -288,7 +311,7 @@ fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
         .with_context(|| format!("cannot create run directory {}", dir.display()))?;
     let lock = guard::RunLock::acquire(dir)?;
     if names.iter().any(|n| n != guard::LOCK_FILE) {
-        eprintln!(
+        say!(
             "{} holds a run stopped before its first checkpoint: starting anew in it",
             dir.display()
         );
@@ -297,23 +320,94 @@ fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
     Ok(lock)
 }
 
-/// The first file in `dir` that is not one a run writes (one of [`RUN_FILES`], or a replay file
-/// being written), if any.
-fn foreign_file(dir: &Path) -> anyhow::Result<Option<String>> {
-    let entries =
-        std::fs::read_dir(dir).with_context(|| format!("cannot read {}", dir.display()))?;
-    for entry in entries {
-        let name = entry
-            .with_context(|| format!("cannot read {}", dir.display()))?
-            .file_name()
-            .to_string_lossy()
-            .into_owned();
-        let replay_tmp = name.starts_with(".replay-") && name.ends_with(".tmp");
-        if !RUN_FILES.contains(&name.as_str()) && !replay_tmp {
-            return Ok(Some(name));
-        }
+/// For `--resume DIR` where DIR has no checkpoint: the configuration to start the run again
+/// with, from its `config.toml`, if DIR is a run stopped before its first checkpoint. Refused if
+/// its checkpoint was written and is now lost (the run's history stays as it is), or if DIR holds
+/// files a run does not write.
+fn restart_unsaved(dir: &Path, preset: Option<Preset>) -> anyhow::Result<Config> {
+    let names = dir_names(dir)?;
+    let saved = dir.join("config.toml");
+    if !saved.is_file() {
+        bail!(
+            "{} holds no checkpoint and no config.toml: there is no run to resume",
+            dir.display()
+        );
     }
-    Ok(None)
+    // Starting again clears the run's files: only where the directory holds nothing else (a
+    // model exported beside its config.toml, say, is not a stopped run).
+    if let Some(other) = names.iter().find(|n| !is_run_file(n)) {
+        bail!(
+            "{} holds no checkpoint, and {other}, which a run does not write: it is not a stopped run, so it is not resumed (a weights-only model plays with `eval --checkpoint`; train a new run with --out)",
+            dir.display()
+        );
+    }
+    if let Some(lost) = lost_checkpoint(dir, &names)? {
+        bail!(
+            "{} holds no {}, but its run had one ({lost}): the checkpoint is lost, so the run cannot continue; its files are left as they are (restore the checkpoint, or train a new run with --out)",
+            dir.display(),
+            checkpoint::CHECKPOINT_FILE
+        );
+    }
+    let text = guard::read_text(&saved, "the run's configuration")?;
+    Config::resolve(preset, Some(&text)).with_context(|| format!("{}", saved.display()))
+}
+
+/// Why `dir` (holding `names`, and no checkpoint) is a run whose checkpoint was written and is
+/// gone, if it is: a replay file (written only with a checkpoint), or at least `checkpoint_every`
+/// finished episodes in its `metrics.csv` (the first checkpoint comes with episode
+/// `checkpoint_every`, or earlier when a run is stopped).
+fn lost_checkpoint(dir: &Path, names: &[String]) -> anyhow::Result<Option<String>> {
+    if let Some(replay) = names.iter().find(|n| is_replay_file(n)) {
+        return Ok(Some(format!(
+            "{replay}, the replay memory saved with a checkpoint, is there"
+        )));
+    }
+    let metrics = dir.join("metrics.csv");
+    if !metrics.is_file() {
+        return Ok(None);
+    }
+    let episodes = guard::read_text(&metrics, "the metrics")?
+        .lines()
+        .skip(1)
+        .filter(|l| !l.trim().is_empty())
+        .count() as u64;
+    // What `checkpoint_every` the run had; without a readable config.toml, the smallest there is.
+    let every = std::fs::read_to_string(dir.join("config.toml"))
+        .ok()
+        .and_then(|t| Config::resolve(None, Some(&t)).ok())
+        .map_or(1, |c| c.checkpoint_every);
+    Ok((episodes >= every).then(|| {
+        format!(
+            "metrics.csv records {episodes} finished episodes, and it checkpoints every {every}"
+        )
+    }))
+}
+
+/// The names in `dir`.
+fn dir_names(dir: &Path) -> anyhow::Result<Vec<String>> {
+    std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read {}", dir.display()))?
+        .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("cannot read {}", dir.display()))
+}
+
+/// A file a run writes into its directory: one of [`RUN_FILES`], a replay memory, or a replay
+/// memory being written.
+fn is_run_file(name: &str) -> bool {
+    RUN_FILES.contains(&name) || is_replay_file(name) || is_replay_tmp(name)
+}
+
+/// A replay memory saved with a checkpoint: `replay-E.safetensors`.
+fn is_replay_file(name: &str) -> bool {
+    name.strip_prefix("replay-")
+        .and_then(|r| r.strip_suffix(".safetensors"))
+        .is_some_and(|e| !e.is_empty() && e.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// A replay file being written (`.replay-E.safetensors.tmp`), left by a run killed meanwhile.
+fn is_replay_tmp(name: &str) -> bool {
+    name.starts_with(".replay-") && name.ends_with(".tmp")
 }
 
 /// Removes what a run that never reached a checkpoint left (not the lock file: it may be held).
@@ -383,20 +477,20 @@ fn reopen_metrics(path: &Path, episodes: u64) -> anyhow::Result<(std::fs::File, 
                 );
             }
             if let Some(&(first, _)) = points.first().filter(|p| p.0 > 1.0) {
-                eprintln!(
+                say!(
                     "note: {} starts at episode {first}: the rows before it were lost earlier",
                     path.display()
                 );
             }
             if dropped > 0 {
-                eprintln!(
+                say!(
                     "metrics.csv: dropping the {dropped} row(s) after episode {episodes}, the checkpoint's: those episodes are played again"
                 );
             }
         }
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             if episodes > 0 {
-                eprintln!(
+                say!(
                     "warning: {} is missing: the rows of episodes 1 to {episodes} are lost; it starts again at episode {}",
                     path.display(),
                     episodes + 1
@@ -413,8 +507,15 @@ fn reopen_metrics(path: &Path, episodes: u64) -> anyhow::Result<(std::fs::File, 
     Ok((file, points))
 }
 
-/// Ctrl-C and SIGTERM received so far.
+/// Ctrl-C, SIGTERM and SIGHUP received so far.
 static SIGNALS: AtomicU32 = AtomicU32::new(0);
+/// Whether the first episode has begun: before it there is nothing to save, so a signal stops
+/// the program at once (even one blocked reading a FIFO that never ends).
+static TRAINING: AtomicBool = AtomicBool::new(false);
+/// The episode of the run's latest checkpoint on disk ([`NO_CHECKPOINT`]: none yet), for what
+/// the second signal says.
+static SAVED_EPISODE: AtomicU64 = AtomicU64::new(NO_CHECKPOINT);
+const NO_CHECKPOINT: u64 = u64::MAX;
 
 /// The error a run stopped by Ctrl-C or SIGTERM returns, after its checkpoint is written; the
 /// program then exits with 130.
@@ -429,19 +530,31 @@ impl std::fmt::Display for Interrupted {
 
 impl std::error::Error for Interrupted {}
 
-/// The first Ctrl-C, SIGTERM or SIGHUP asks the run to stop after the current episode; the second
-/// stops the program at once.
+/// Before the first episode, a Ctrl-C, SIGTERM or SIGHUP stops the program at once (nothing is
+/// lost: the run is as it was). After it, the first asks the run to stop after the current
+/// episode, with a checkpoint; the second stops the program at once, keeping the last checkpoint.
+/// A terminal that closes sends SIGHUP, so it stops a run as a Ctrl-C does.
 fn catch_signals() {
     let set = ctrlc::set_handler(|| {
-        if SIGNALS.fetch_add(1, Ordering::SeqCst) == 0 {
+        let n = SIGNALS.fetch_add(1, Ordering::SeqCst) + 1;
+        if !TRAINING.load(Ordering::SeqCst) {
+            say!("\nstopped before the first episode: nothing of the run has changed");
+            std::process::exit(130);
+        }
+        if n == 1 {
             say!("\nstopping after this episode, with a checkpoint (Ctrl-C again to stop at once)");
         } else {
-            say!("\nstopped at once: the last checkpoint is kept");
+            match SAVED_EPISODE.load(Ordering::SeqCst) {
+                NO_CHECKPOINT => say!(
+                    "\nstopped at once: no checkpoint was written yet, so the run starts again from episode 1"
+                ),
+                e => say!("\nstopped at once: the checkpoint of episode {e} is kept"),
+            }
             std::process::exit(130);
         }
     });
     if let Err(e) = set {
-        eprintln!("warning: Ctrl-C will stop training at once ({e})");
+        say!("warning: Ctrl-C will stop training at once ({e})");
     }
 }
 
@@ -452,16 +565,11 @@ fn train_loop(
 ) -> anyhow::Result<()> {
     let config = agent.config.clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
-    if SIGNALS.load(Ordering::SeqCst) > 0 {
-        say!(
-            "stopped before the first episode; continue with --resume {}",
-            dir.display()
-        );
-        return Err(Interrupted.into());
-    }
     let mut saved_episode = agent.counters.episodes;
     let (mut metrics, mut points) =
         reopen_metrics(&dir.join("metrics.csv"), agent.counters.episodes)?;
+    // From here a signal stops the run after its episode, with a checkpoint.
+    TRAINING.store(true, Ordering::SeqCst);
     let tty = std::io::stderr().is_terminal();
     let total = if config.max_frames > 0 {
         config.max_frames
@@ -483,7 +591,7 @@ fn train_loop(
     } else {
         "episodes"
     };
-    eprintln!(
+    say!(
         "training preset {} (seed {}) into {} for {} {unit} on {} thread(s)",
         config.preset.name(),
         config.seed,
@@ -530,7 +638,7 @@ fn train_loop(
             });
             bar.set_message(msg);
         } else {
-            eprintln!("{msg}");
+            say!("{msg}");
         }
         let interrupted = SIGNALS.load(Ordering::SeqCst) > 0;
         let finished = done(agent) || interrupted;
@@ -539,24 +647,26 @@ fn train_loop(
                 format!("cannot save the checkpoint of episode {}", row.episode)
             })?;
             saved_episode = row.episode;
+            SAVED_EPISODE.store(row.episode, Ordering::SeqCst);
         }
         if let Some(n) = log_rss.filter(|&n| n > 0) {
             if row.episode.is_multiple_of(n) {
                 match rss_kib() {
-                    Some(kib) => eprintln!(
+                    Some(kib) => say!(
                         "rss: episode {} agent_steps {} VmRSS {kib} kB",
-                        row.episode, row.agent_steps
+                        row.episode,
+                        row.agent_steps
                     ),
-                    None => eprintln!("rss: unavailable (no /proc/self/status)"),
+                    None => say!("rss: unavailable (no /proc/self/status)"),
                 }
             }
         }
         if finished || row.episode.is_multiple_of(config.plot_every) {
             write_plot(dir, &config, &points);
         }
-        if interrupted {
+        if interrupted && !done(agent) {
             bar.finish();
-            eprintln!(
+            say!(
                 "stopped at episode {} with a checkpoint; continue with --resume {}",
                 row.episode,
                 dir.display()
@@ -565,8 +675,11 @@ fn train_loop(
         }
     }
     bar.finish();
+    if SIGNALS.load(Ordering::SeqCst) > 0 {
+        say!("the stop came during the budget's last episode: the run is complete, with its checkpoint");
+    }
     let last100 = &points[points.len().saturating_sub(100)..];
-    eprintln!(
+    say!(
         "done: {} episodes, {} agent steps, {} frames, {:.0} s; mean reward of the last {} episodes {:.1}",
         agent.counters.episodes,
         agent.counters.agent_steps,
@@ -595,6 +708,6 @@ fn write_plot(dir: &Path, config: &Config, points: &[(f64, f64)]) {
         std::fs::rename(&tmp, dir.join("rewards.png")).context("cannot replace rewards.png")
     });
     if let Err(e) = result {
-        eprintln!("warning: reward plot not written: {e:#}");
+        say!("warning: reward plot not written: {e:#}");
     }
 }

@@ -346,7 +346,7 @@ impl Config {
             // The merged document's line numbers mean nothing to the user: name their key.
             Err(e) => bail!(
                 "{}",
-                culprit(&file, toml_text.unwrap_or(""), p)
+                culprit(&file, toml_text.unwrap_or(""), p, e.message())
                     .unwrap_or_else(|| e.message().to_string())
             ),
         };
@@ -506,9 +506,12 @@ impl Config {
     }
 }
 
-/// The first key of the user's `file` that makes the configuration invalid on its own, as
-/// `line N: key `k`: what is wrong`, with the line of the user's `text`.
-fn culprit(file: &toml::Table, text: &str, p: Preset) -> Option<String> {
+/// The first key of the user's `file` that makes the configuration invalid on its own with the
+/// error `whole` of the whole file, as `line N: key `k`: what is wrong`, with the line of the
+/// user's `text`. A key whose error alone differs from the whole file's (`frame_skip_min = 5`
+/// against the preset's maximum, where the file also sets `frame_skip_max = 2`) is not the
+/// culprit: the message would quote values the user never wrote.
+fn culprit(file: &toml::Table, text: &str, p: Preset, whole: &str) -> Option<String> {
     let mut keys: Vec<(Option<&str>, &str, &toml::Value)> = Vec::new();
     for (k, v) in file {
         match v.as_table() {
@@ -527,6 +530,9 @@ fn culprit(file: &toml::Table, text: &str, p: Preset) -> Option<String> {
         target.insert(key.to_string(), value.clone());
         let text_one = toml::to_string(&base).ok()?;
         if let Err(e) = toml::from_str::<Config>(&text_one) {
+            if e.message() != whole {
+                continue;
+            }
             let name = table.map_or(key.to_string(), |t| format!("{t}.{key}"));
             return Some(match key_line(text, table, key) {
                 Some(line) => format!("line {line}: key `{name}`: {}", e.message()),

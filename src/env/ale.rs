@@ -71,11 +71,15 @@ impl Ale {
             None => ale::BundledRom::SpaceInvaders.data().to_vec(),
             Some(path) => read_rom(path)?,
         };
-        let dir = PrivateDir::new().map_err(EnvError::TempRom)?;
+        let temp_rom = |source| EnvError::TempRom {
+            dir: std::env::temp_dir(),
+            source,
+        };
+        let dir = PrivateDir::new().map_err(temp_rom)?;
         let rom_path = dir.0.join(ROM_FILE_NAME);
-        fs::write(&rom_path, &rom_bytes).map_err(EnvError::TempRom)?;
+        fs::write(&rom_path, &rom_bytes).map_err(temp_rom)?;
         let c_path = CString::new(rom_path.to_string_lossy().into_owned())
-            .map_err(|_| EnvError::TempRom(std::io::Error::other("NUL byte in temp path")))?;
+            .map_err(|_| temp_rom(std::io::Error::other("NUL byte in the path")))?;
 
         let _guard = LOAD_LOCK.lock().unwrap_or_else(|e| e.into_inner());
         // The logger level is global to the process; set it before the constructor, which

@@ -34,9 +34,18 @@ pub enum EnvError {
         size: usize,
         crc: u32,
     },
-    /// The private temporary copy of the ROM could not be written.
-    #[error("cannot write the temporary ROM copy: {0}")]
-    TempRom(#[source] std::io::Error),
+    /// The private temporary copy of the ROM (the ALE loads a ROM from a file) could not be
+    /// written in the temporary directory `dir`.
+    #[error(
+        "cannot write the ROM's temporary copy (the emulator loads it from a file) under {} \
+         (set TMPDIR to a writable directory)",
+        .dir.display()
+    )]
+    TempRom {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
     /// The ALE refused to give us an emulator or an action set.
     #[error("the Arcade Learning Environment failed: {0}")]
     Ale(String),

@@ -1441,6 +1441,7 @@ mod tests {
         let on = has && std::env::var_os("INVADERS_NO_SIMD").is_none();
         if !on {
             static NOTE: std::sync::Once = std::sync::Once::new();
+            #[allow(clippy::print_stderr)] // a test's note
             NOTE.call_once(|| {
                 eprintln!(
                     "skip: the AVX-512 Winograd transforms are not checked here ({}); the \

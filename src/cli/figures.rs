@@ -1,6 +1,6 @@
 //! Reward curves like the article's figures: each episode's score, faint, and its moving average.
 
-use anyhow::{anyhow, Context};
+use anyhow::anyhow;
 use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use std::path::Path;
@@ -8,7 +8,7 @@ use std::sync::Once;
 
 /// DejaVu Sans (`assets/fonts/`, with its licence), the font fontconfig gave plotters for
 /// "sans-serif" before the font was embedded.
-const SANS: &[u8] = include_bytes!("../assets/fonts/DejaVuSans.ttf");
+const SANS: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 
 /// plotters sizes text differently by backend: font-kit (the `ttf` feature, what plotters used
 /// with fontconfig) takes a size of `s` pixels as an em of `s / 1.24` pixels, ab_glyph as a
@@ -74,8 +74,7 @@ pub fn read_frame_metrics(path: &Path) -> anyhow::Result<Vec<(f64, f64)>> {
 
 /// Reads the columns `x` and `y` of a `metrics.csv` as points (see [`read_metrics`]).
 fn read_columns(path: &Path, x: &str, y: &str) -> anyhow::Result<Vec<(f64, f64)>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let text = super::guard::read_text(path, "the metrics")?;
     let mut lines = text.lines();
     let header = lines
         .next()
@@ -104,7 +103,7 @@ fn read_columns(path: &Path, x: &str, y: &str) -> anyhow::Result<Vec<(f64, f64)>
         }
     }
     if !skipped.is_empty() {
-        eprintln!(
+        say!(
             "warning: {}: skipped {} row(s) with a non-finite episode or reward (line {})",
             path.display(),
             skipped.len(),
@@ -330,8 +329,7 @@ pub struct Bounded {
 /// its extent widened by a pixel each way (and rewards are never negative).
 pub fn read_digitized(path: &Path, label: &str) -> anyhow::Result<Bounded> {
     const HEADER: &str = "pixel_col,episode_x_from,episode_x_to,first_episode_index,last_episode_index,reward_min,reward_max,reward_per_pixel";
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let text = super::guard::read_text(path, "the digitised curve")?;
     let mut lines = text.lines();
     if lines.next() != Some(HEADER) {
         anyhow::bail!("{}: the header must be `{HEADER}`", path.display());
@@ -552,8 +550,7 @@ pub struct Reference {
 /// Reads reference curves from a CSV with the header `agent,frames,score` (one row per point,
 /// rows of one agent in frame order), keeping the agents named in `agents` (all if empty).
 pub fn read_references(path: &Path, agents: &[String]) -> anyhow::Result<Vec<Reference>> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let text = super::guard::read_text(path, "the reference curves")?;
     let mut lines = text.lines();
     if lines.next() != Some("agent,frames,score") {
         anyhow::bail!(
