@@ -116,9 +116,26 @@ fn dqn_learns_a_toy_corridor_in_bf16() {
     );
 }
 
+/// An implicit quantile head (8 fractions in the loss and for the target, 8 midpoints for Q)
+/// with Munchausen targets learns the corridor too: its `Q` (the mean over the midpoints) near
+/// γ^k. (Munchausen's entropy term lowers the values by at most `τ log 2` per step: 0.02 here.)
+#[test]
+fn iqn_with_munchausen_learns_a_toy_corridor() {
+    let mut config = toy_config();
+    config.iqn_samples = 8;
+    config.iqn_target_samples = 8;
+    config.iqn_policy_samples = 8;
+    config.munchausen_alpha = 0.9;
+    learns(config);
+}
+
 fn learns_the_corridor(precision: Precision) {
     let mut config = toy_config();
     config.precision = precision;
+    learns(config);
+}
+
+fn learns(config: Config) {
     let mut agent = Agent::new(config, Corridor::new());
     for _ in 0..120 {
         agent.play_episode().unwrap();
@@ -132,7 +149,14 @@ fn learns_the_corridor(precision: Precision) {
     observer.reset(&game);
     let (mut ret, mut steps) = (0.0, 0);
     loop {
-        let a = greedy(&mut agent.learner.online, &observer, &table, &mut input, 2);
+        let a = greedy(
+            &mut agent.learner.online,
+            &invaders::dqn::Head::of(&agent.config),
+            &observer,
+            &table,
+            &mut input,
+            2,
+        );
         let r = game.step(a);
         observer.step(&game);
         ret += r.reward;
@@ -148,7 +172,20 @@ fn learns_the_corridor(precision: Precision) {
         game.draw();
         observer.reset(&game);
         observer.write_input(&table, input.data_mut());
-        let q = agent.learner.online.forward(&input).data().to_vec();
+        let q = match agent.config.iqn() {
+            None => agent.learner.online.forward(&input).data().to_vec(),
+            Some(iqn) => {
+                let k = iqn.policy_samples;
+                agent
+                    .learner
+                    .online
+                    .set_fractions(&invaders::dqn::midpoints(k, 1));
+                let rows = agent.learner.online.forward(&input).data().to_vec();
+                (0..2)
+                    .map(|a| (0..k).map(|r| rows[r * 2 + a]).sum::<f32>() / k as f32)
+                    .collect()
+            }
+        };
         let want = 0.9f32.powi((LEN - 2 - cell) as i32);
         assert_eq!(argmax(&q), 1, "cell {cell}: Q = {q:?}");
         assert!(

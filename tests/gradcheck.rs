@@ -14,10 +14,10 @@
 mod common;
 
 use common::*;
-use invaders::dqn::{qnet, Head};
+use invaders::dqn::{qnet, Head, Iqn, IqnMerge};
 use invaders::layers::init::VarianceScaling;
-use invaders::layers::loss::{huber, mse, quantile_huber};
-use invaders::layers::{Conv2d, Dense, Dueling, Flatten, Layer, Relu};
+use invaders::layers::loss::{huber, mse, quantile_huber, quantile_huber_at};
+use invaders::layers::{Conv2d, Dense, Dueling, Flatten, Layer, QuantileEmbedding, Relu};
 use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
 use proptest::prelude::*;
 
@@ -111,6 +111,68 @@ proptest! {
         let x = uniform(&[n, (1 + actions) * atoms], &mut r);
         let dy = uniform(&[n, actions * atoms], &mut r);
         check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
+    /// The cosine embedding of quantile fractions (IQN): `B` samples of `F` features, `N`
+    /// fractions each, `E` cosines. Parameters whose ReLU input lies within 1e-3 of its kink
+    /// are redrawn (the finite difference straddles the kink there).
+    #[test]
+    fn quantile_embedding_gradients(
+        e in 1usize..6, f in 1usize..8, b in 1usize..=3, n in 1usize..=4, seed in any::<u64>(),
+    ) {
+        let mut layer = QuantileEmbedding::<f64>::new("iqn", e, f);
+        randomise(&mut layer, seed);
+        let mut r = rng(seed ^ 1);
+        let taus: Vec<f64> = uniform::<f64>(&[b * n], &mut r).data().iter().map(|v| 0.5 + 0.5 * v).collect();
+        let (w, bias) = (layer.params()[0].value.clone(), layer.params()[1].value.clone());
+        for &t in &taus {
+            for j in 0..f {
+                let p: f64 = bias.data()[j]
+                    + (0..e).map(|i| (std::f64::consts::PI * (i + 1) as f64 * t).cos() * w.data()[i * f + j]).sum::<f64>();
+                prop_assume!(p.abs() > 1e-3);
+            }
+        }
+        layer.set_fractions(&taus);
+        let x = uniform(&[b, f], &mut r);
+        let dy = uniform(&[b * n, f], &mut r);
+        check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
+    /// The quantile Huber loss at drawn fractions (IQN), `N` predictions against `N'` targets,
+    /// against finite differences; at the midpoints it is the QR-DQN loss.
+    #[test]
+    fn quantile_huber_at_gradients(b in 1usize..4, n in 1usize..6, n2 in 1usize..6, seed in any::<u64>()) {
+        let mut r = rng(seed);
+        let p0: Vec<f64> = uniform::<f64>(&[b * n], &mut r).data().iter().map(|v| 3.0 * v).collect();
+        let t: Vec<f64> = uniform::<f64>(&[b * n2], &mut r).data().iter().map(|v| 3.0 * v).collect();
+        let taus: Vec<f64> = uniform::<f64>(&[b * n], &mut r).data().iter().map(|v| 0.5 + 0.5 * v).collect();
+        for (i, &p) in p0.iter().enumerate() {
+            for &tj in &t[(i / n) * n2..(i / n + 1) * n2] {
+                let u = (tj - p).abs();
+                prop_assume!(u > 1e-3 && (u - 1.0).abs() > 1e-3);
+            }
+        }
+        let (mut grad, mut per) = (vec![0.0; b * n], vec![0.0; b]);
+        let l = quantile_huber_at(&p0, &taus, &t, n, &mut grad, &mut per);
+        prop_assert!((per.iter().sum::<f64>() / b as f64 - l).abs() < 1e-12);
+        let mut scratch = vec![0.0; b * n];
+        for i in 0..b * n {
+            let mut p = p0.clone();
+            p[i] += H;
+            let lp = quantile_huber_at(&p, &taus, &t, n, &mut scratch, &mut per);
+            p[i] -= 2.0 * H;
+            let lm = quantile_huber_at(&p, &taus, &t, n, &mut scratch, &mut per);
+            let num = (lp - lm) / (2.0 * H);
+            prop_assert!(close(grad[i], num, ATOL, RTOL), "grad[{}]: {} vs {}", i, grad[i], num);
+        }
+        if n == n2 {
+            let mids: Vec<f64> = (0..b).flat_map(|_| (0..n).map(|i| (2 * i + 1) as f64 / (2 * n) as f64)).collect();
+            let mut g2 = vec![0.0; b * n];
+            let at = quantile_huber_at(&p0, &mids, &t, n, &mut scratch, &mut per);
+            let qr = quantile_huber(&p0, &t, n, &mut g2, &mut per);
+            prop_assert_eq!(at, qr);
+            prop_assert_eq!(&scratch, &g2);
+        }
     }
 
     /// The quantile Huber loss against finite differences of the loss itself, skipping the
@@ -226,6 +288,7 @@ fn dueling_qnet_gradients() {
         hidden: 40,
         dueling: true,
         atoms: 1,
+        iqn: None,
     });
 }
 
@@ -236,6 +299,42 @@ fn dueling_quantile_qnet_gradients() {
         hidden: 24,
         dueling: true,
         atoms: 3,
+        iqn: None,
+    });
+}
+
+/// The same with an implicit quantile head whose embedding enters after dense1 (the default):
+/// each state evaluated at 3 fractions, dueling.
+#[test]
+fn iqn_hidden_qnet_gradients() {
+    qnet_gradients(Head {
+        hidden: 24,
+        dueling: true,
+        atoms: 1,
+        iqn: Some(Iqn {
+            embedding: 5,
+            merge: IqnMerge::Hidden,
+            samples: 3,
+            target_samples: 3,
+            policy_samples: 3,
+        }),
+    });
+}
+
+/// The same with the embedding after the convolutions (Dopamine's placement).
+#[test]
+fn iqn_features_qnet_gradients() {
+    qnet_gradients(Head {
+        hidden: 16,
+        dueling: false,
+        atoms: 1,
+        iqn: Some(Iqn {
+            embedding: 4,
+            merge: IqnMerge::Features,
+            samples: 2,
+            target_samples: 2,
+            policy_samples: 2,
+        }),
     });
 }
 
@@ -257,7 +356,18 @@ fn qnet_gradients(head: Head) {
         }
     }
     let x = uniform::<f64>(&[2, 21, 19, 2], &mut r);
-    let dy = uniform::<f64>(&[2, 6 * head.atoms], &mut r);
+    // An implicit quantile head evaluates each state at its fractions: one output row each.
+    let rows = match head.iqn {
+        Some(iqn) => {
+            let taus: Vec<f64> = (0..2 * iqn.samples)
+                .map(|i| (i as f64 + 0.37) / (2 * iqn.samples) as f64)
+                .collect();
+            net.set_fractions(&taus);
+            2 * iqn.samples
+        }
+        None => 2,
+    };
+    let dy = uniform::<f64>(&[rows, 6 * head.atoms], &mut r);
     net.zero_grad();
     net.forward(&x);
     let dx = net.backward(&x, &dy, true).unwrap().clone();

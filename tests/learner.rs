@@ -599,6 +599,7 @@ fn quantile_learner(double: bool, online: [f32; 6], target: [f32; 6]) -> Learner
         hidden: 8,
         dueling: false,
         atoms: 2,
+        iqn: None,
     };
     let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
     l.double = double;
@@ -648,4 +649,186 @@ fn quantile_targets_and_loss_match_a_hand_computation() {
     assert_eq!(l.targets(), [1.0, 1.0]);
     assert_eq!(greedy_atoms(&online, 2), 2);
     assert_eq!(greedy_atoms(&target, 2), 0);
+}
+
+/// A learner with an implicit quantile head (embedding after dense1) whose outputs are
+/// constants at every fraction (dense2's biases; every weight zero): `Z_τ(s, a) = online[a]` for
+/// the online network and `target[a]` for the target, whatever `τ`.
+fn iqn_learner(double: bool, online: [f32; 3], target: [f32; 3]) -> Learner {
+    let head = Head {
+        hidden: 8,
+        dueling: false,
+        atoms: 1,
+        iqn: Some(invaders::dqn::Iqn {
+            embedding: 4,
+            merge: invaders::dqn::IqnMerge::Hidden,
+            samples: 2,
+            target_samples: 3,
+            policy_samples: 2,
+        }),
+    };
+    let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
+    l.double = double;
+    for (net, b) in [(&mut l.online, online), (&mut l.target, target)] {
+        for p in net.params_mut() {
+            p.value.data_mut().fill(0.0);
+            if p.name == "dense2.bias" {
+                p.value.data_mut().copy_from_slice(&b);
+            }
+        }
+    }
+    l
+}
+
+/// IQN by hand. Online `Z` per action [1, 2, 0], the target's [4, 0, 1], at any fraction.
+/// Transition: action 0, R = 1, γ = 0.5, one step; fractions τ = [0.1, 0.6] (N = 2) and three
+/// target fractions (N' = 3). Without Double DQN the target's best mean (action 0) is
+/// bootstrapped: every T_j = 1 + 0.5·4 = 3; with it the online network's best (action 1):
+/// T_j = 1 + 0.5·0 = 1; terminal: T_j = 1. The loss of θ_i = 1 against T_j = 3: u = 2 > 1, so
+/// h = 1.5 with weight τ_i (u ≥ 0): L = Σ_i (1/3)·Σ_j τ_i·1.5 = 1.5·(0.1 + 0.6) = 1.05, and
+/// ∂L/∂θ_i = −τ_i (the Huber slope 1, over 3 samples thrice). With Munchausen (α = 0.9,
+/// τ = 1, l0 = −1): π = softmax of the target's values; the bonus 0.9·max(log π(0|s), −1)
+/// and the soft value Σ π·(q − log π) of s' (the same values, s' = s here).
+#[test]
+fn iqn_targets_and_loss_match_a_hand_computation() {
+    let t = T {
+        s: 1.0,
+        a: 0,
+        r: 1.0,
+        next: 2.0,
+        done: false,
+        m: 1,
+    };
+    let with_taus = |ts: &[T]| {
+        let mut b = batch(ts);
+        b.taus = vec![0.1, 0.6];
+        b.target_taus = vec![0.2, 0.5, 0.9];
+        b
+    };
+    let (online, target) = ([1.0, 2.0, 0.0], [4.0, 0.0, 1.0]);
+    let mut l = iqn_learner(false, online, target);
+    let stats = l.train_step(&with_taus(&[t]));
+    assert_eq!(l.targets(), [3.0, 3.0, 3.0]);
+    assert!((stats.loss - 1.05).abs() < 1e-6, "{}", stats.loss);
+    assert_eq!(stats.mean_max_q, 2.0);
+    assert_eq!(l.td_errors(), [1.0 - 3.0]);
+    let mut l = iqn_learner(true, online, target);
+    l.train_step(&with_taus(&[t]));
+    assert_eq!(l.targets(), [1.0, 1.0, 1.0]);
+    l.train_step(&with_taus(&[T { done: true, ..t }]));
+    assert_eq!(l.targets(), [1.0, 1.0, 1.0]);
+
+    let mut l = iqn_learner(true, online, target);
+    l.munchausen = Some(invaders::dqn::Munchausen {
+        alpha: 0.9,
+        tau: 1.0,
+        clip: -1.0,
+    });
+    l.train_step(&with_taus(&[t]));
+    let q = [4.0f64, 0.0, 1.0];
+    let lse = q.iter().map(|v| v.exp()).sum::<f64>().ln();
+    let log_pi: Vec<f64> = q.iter().map(|v| v - lse).collect();
+    let soft: f64 = log_pi.iter().zip(&q).map(|(l, v)| l.exp() * (v - l)).sum();
+    let expected = 1.0 + 0.9 * log_pi[0].max(-1.0) + 0.5 * soft;
+    for &y in l.targets() {
+        assert!((y as f64 - expected).abs() < 1e-5, "{y} vs {expected}");
+    }
+}
+
+/// Munchausen's pieces by hand, at τ = 0.5: `τ log π = q − max q − τ log Σ exp((q − max q)/τ)`,
+/// the bonus clipped to [l0, 0], and the soft value; a tiny τ makes the soft value the max.
+#[test]
+fn munchausen_pieces_match_a_hand_computation() {
+    let m = invaders::dqn::Munchausen {
+        alpha: 0.9,
+        tau: 0.5,
+        clip: -1.0,
+    };
+    let q = [1.0f32, 3.0, 2.0];
+    let mut out = [0.0f32; 3];
+    m.scaled_log_policy(&q, &mut out);
+    let z: f64 = [1.0f64, 3.0, 2.0]
+        .iter()
+        .map(|v| ((v - 3.0) / 0.5).exp())
+        .sum();
+    for (o, v) in out.iter().zip([1.0f64, 3.0, 2.0]) {
+        assert!((*o as f64 - (v - 3.0 - 0.5 * z.ln())).abs() < 1e-6);
+    }
+    // τ log π(0) ≈ −2.06: clipped to −1.
+    assert!((m.bonus(&q, 0) + 0.9).abs() < 1e-6, "α·l0");
+    assert!((m.bonus(&q, 1) - 0.9 * out[1]).abs() < 1e-6);
+    let pi: Vec<f32> = out.iter().map(|l| (l / 0.5).exp()).collect();
+    let soft: f32 = pi
+        .iter()
+        .zip(&q)
+        .zip(&out)
+        .map(|((p, v), l)| p * (v - l))
+        .sum();
+    assert!((m.soft_value(&q, &q) - soft).abs() < 1e-5);
+    let cold = invaders::dqn::Munchausen { tau: 1e-4, ..m };
+    assert!((cold.soft_value(&q, &q) - 3.0).abs() < 1e-3);
+}
+
+/// M-DQN by hand: the soft target `y = r + α·clamp(τ log π(a|s), l0, 0) + γ^m (1 − done)
+/// Σ_a' π(a'|s')(q'(s', a') − τ log π(a'|s'))`, with `π` the softmax of the target network's
+/// values over τ, of `s` for the bonus and of `s'` for the soft value (no Double DQN: the soft
+/// target replaces the max).
+#[test]
+fn munchausen_dqn_targets_match_a_hand_computation() {
+    let (w, b) = ([1.0, 0.0, -0.5], [0.0, 0.5, 1.0]);
+    let (wt, bt) = ([1.0, -1.0, 0.5], [0.25, 2.0, 0.0]);
+    let mut l = learner(0.5, (w, b), (wt, bt));
+    l.double = true; // ignored under Munchausen
+    let m = invaders::dqn::Munchausen {
+        alpha: 0.9,
+        tau: 0.5,
+        clip: -1.0,
+    };
+    l.munchausen = Some(m);
+    let ts = [
+        T {
+            s: 2.0,
+            a: 0,
+            r: 1.0,
+            next: 1.0,
+            done: false,
+            m: 1,
+        },
+        T {
+            s: 1.0,
+            a: 2,
+            r: -1.0,
+            next: 4.0,
+            done: false,
+            m: 2,
+        },
+        T {
+            s: 0.5,
+            a: 1,
+            r: 0.5,
+            next: 3.0,
+            done: true,
+            m: 1,
+        },
+    ];
+    l.train_step(&batch(&ts));
+    let log_pi = |q: [f32; A]| -> Vec<f64> {
+        let max = q.iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v as f64));
+        let z: f64 = q.iter().map(|&v| ((v as f64 - max) / 0.5).exp()).sum();
+        q.iter().map(|&v| v as f64 - max - 0.5 * z.ln()).collect()
+    };
+    for (t, &y) in ts.iter().zip(l.targets()) {
+        let now = log_pi(q(wt, bt, t.s));
+        let qn = q(wt, bt, t.next);
+        let next = log_pi(qn);
+        let soft: f64 = next
+            .iter()
+            .zip(qn)
+            .map(|(l, v)| (l / 0.5).exp() * (v as f64 - l))
+            .sum();
+        let cont = if t.done { 0.0 } else { 1.0 };
+        let expected =
+            t.r as f64 + 0.9 * now[t.a].clamp(-1.0, 0.0) + 0.5f64.powi(t.m as i32) * cont * soft;
+        assert!((y as f64 - expected).abs() < 1e-5, "{y} vs {expected}");
+    }
 }

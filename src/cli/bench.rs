@@ -40,6 +40,12 @@ pub struct BenchArgs {
     /// initialised one. A trained network's activations are mostly zeros, which acting skips.
     #[arg(long, value_name = "PATH")]
     checkpoint: Option<PathBuf>,
+    /// Also time a configuration of your own (a TOML file as `train --config` takes, its
+    /// `preset` key naming the preset it starts from): its train step at its batch size and its
+    /// end-to-end agent steps per second (`--precision` applies to it too). For choosing
+    /// settings by their cost (an implicit quantile head's fractions, `hidden`, …).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
 }
 
 fn median(mut xs: Vec<f64>) -> f64 {
@@ -63,6 +69,13 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             };
             Some(checkpoint::load_model(&file)?)
         }
+    };
+    let own = match &args.config {
+        Some(p) => Some(Config::resolve(
+            None,
+            Some(&super::guard::read_text(p, "config file")?),
+        )?),
+        None => None,
     };
     let threads = rayon::current_num_threads();
     let config = Config::preset(Preset::Article);
@@ -159,8 +172,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let env_steps_per_s = steps as f64 / env_secs;
 
     // End to end: the article and strong presets with learning on from step 500.
-    let end_to_end = |preset: Preset| -> anyhow::Result<f64> {
-        let mut e2e = Config::preset(preset);
+    let end_to_end = |mut e2e: Config| -> anyhow::Result<f64> {
         e2e.precision = args.precision;
         e2e.learning_starts = 500;
         e2e.replay_capacity = 5_000;
@@ -175,8 +187,39 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         }
         Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64())
     };
-    let agent_steps_per_s = end_to_end(Preset::Article)?;
-    let strong_steps_per_s = end_to_end(Preset::Strong)?;
+    let agent_steps_per_s = end_to_end(Config::preset(Preset::Article))?;
+    let strong_steps_per_s = end_to_end(Config::preset(Preset::Strong))?;
+    // The user's configuration: its train step on a random batch, then end to end.
+    let own_figures = match &own {
+        None => None,
+        Some(c) => {
+            let mut l = Learner::from_config(c, 6, &mut rng);
+            l.set_precision(args.precision);
+            let mut b = Batch::padded(c.batch_size, c.input_shape());
+            for states in [&mut b.states, &mut b.next_states] {
+                for v in states.data_mut() {
+                    *v = rng.random_range(-1.0..1.0);
+                }
+                let [h, w, ch] = c.input_shape();
+                b.border.zero(states.data_mut(), c.batch_size, h, w, ch);
+            }
+            for i in 0..b.len() {
+                b.actions[i] = rng.random_range(0..6);
+                b.rewards[i] = rng.random_range(0.0..1.0);
+            }
+            let times: Vec<f64> = (0..args.steps.max(1) + 3)
+                .map(|_| {
+                    if let Some(iqn) = c.iqn() {
+                        b.draw_fractions(&mut rng, iqn.samples, iqn.target_samples);
+                    }
+                    let t = Instant::now();
+                    l.train_step(&b);
+                    t.elapsed().as_secs_f64() * 1e3
+                })
+                .collect();
+            Some((median(times[3..].to_vec()), end_to_end(c.clone())?))
+        }
+    };
     let env_share = agent_steps_per_s / env_steps_per_s;
 
     if args.json {
@@ -195,6 +238,9 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "env_frames_per_s": env_fps,
                 "agent_steps_per_s": agent_steps_per_s,
                 "strong_agent_steps_per_s": strong_steps_per_s,
+                "config": args.config,
+                "config_train_step_ms": own_figures.map(|f| f.0),
+                "config_agent_steps_per_s": own_figures.map(|f| f.1),
                 "env_share_of_training": env_share,
             })
         );
@@ -212,6 +258,12 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         out!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
         out!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
         out!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
+        if let (Some((ms, sps)), Some(p)) = (own_figures, &args.config) {
+            out!(
+                "{}: train step {ms:.2} ms, {sps:.1} agent steps/s",
+                p.display()
+            );
+        }
     }
     Ok(())
 }
@@ -225,14 +277,17 @@ fn time_acting(
     rng: &mut ChaCha8Rng,
 ) -> anyhow::Result<f64> {
     let frames = random_play_inputs(config, 64, 10, rng)?;
+    // As the agent acts: argmax of the head's Q-values (an implicit quantile head's at its
+    // policy fractions).
+    let head = invaders::dqn::Head::of(config);
     for x in &frames {
-        net.infer(x);
+        head.greedy(net, x, 6);
     }
     let mut times = Vec::with_capacity(5 * frames.len());
     for _ in 0..5 {
         for x in &frames {
             let t = Instant::now();
-            net.infer(x);
+            head.greedy(net, x, 6);
             times.push(t.elapsed().as_secs_f64() * 1e3);
         }
     }

@@ -226,6 +226,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         );
     }
     let mut net = model.online;
+    let head = invaders::dqn::Head::of(&config);
     let precision = args.precision.unwrap_or(config.precision);
     super::note_precision(precision);
     net.set_precision(precision);
@@ -246,6 +247,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         let (score, steps) = play_evaluation_episode(
             &mut env,
             &mut net,
+            &head,
             &mut observer,
             &table,
             &mut input,

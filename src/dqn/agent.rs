@@ -18,8 +18,7 @@
 //! The code marks these lines `ALGO 1` … `ALGO 8`.
 
 use super::checkpoint::{AgentState, Checkpoint, Counters};
-use super::learner::greedy_atoms;
-use super::{Batch, Config, Learner, Replay, StepStats};
+use super::{Batch, Config, Head, Learner, Replay, StepStats};
 use crate::env::{Game, Observer, StepResult, FRAME_LEN};
 use crate::layers::Sequential;
 use crate::tensor::Tensor;
@@ -73,20 +72,20 @@ impl EpisodeRow {
     }
 }
 
-/// `argmax_a Q(s, a)` over `n_actions` actions for the observer's current stack `s`: writes the
-/// normalised stack into `input` (`[1, 88, 80, k]`) and runs a batch-1 forward pass
-/// ([`Sequential::infer`]). A quantile head's `Q` is the mean of its quantiles
-/// ([`greedy_atoms`]).
+/// `argmax_a Q(s, a)` over `n_actions` actions for the observer's current stack `s`, by `net`
+/// built with `head`: writes the normalised stack into `input` (`[1, 88, 80, k]`) and runs a
+/// batch-1 forward pass ([`Sequential::infer`]). A quantile head's `Q` is the mean of its
+/// quantiles, an implicit quantile head's the mean over its policy fractions ([`Head::greedy`]).
 pub fn greedy(
     net: &mut Sequential<f32>,
+    head: &Head,
     observer: &Observer,
     table: &[f32; 256],
     input: &mut Tensor<f32>,
     n_actions: usize,
 ) -> usize {
     observer.write_input(table, input.data_mut());
-    let out = net.infer(input).data();
-    greedy_atoms(out, out.len() / n_actions)
+    head.greedy(net, input, n_actions)
 }
 
 /// `n` inputs of `config`'s network (`[1, H, W, k]`, as the agent writes them), every `every`th
@@ -128,6 +127,7 @@ pub fn random_play_inputs(
 pub fn play_evaluation_episode<G: Game>(
     game: &mut G,
     net: &mut Sequential<f32>,
+    head: &Head,
     observer: &mut Observer,
     table: &[f32; 256],
     input: &mut Tensor<f32>,
@@ -143,7 +143,7 @@ pub fn play_evaluation_episode<G: Game>(
         let action = if rng.random::<f32>() < epsilon {
             rng.random_range(0..game.n_actions())
         } else {
-            greedy(net, observer, table, input, game.n_actions())
+            greedy(net, head, observer, table, input, game.n_actions())
         };
         let r = game.step(action);
         observer.step(game);
@@ -288,6 +288,7 @@ impl<G: Game> Agent<G> {
         };
         greedy(
             net,
+            &Head::of(&self.config),
             &self.observer,
             &self.table,
             &mut self.input,
@@ -341,6 +342,13 @@ impl<G: Game> Agent<G> {
             if self.train_due(t) {
                 self.replay
                     .sample(&mut self.sample_rng, &self.table, &mut self.batch);
+                if let Some(iqn) = self.config.iqn() {
+                    self.batch.draw_fractions(
+                        &mut self.sample_rng,
+                        iqn.samples,
+                        iqn.target_samples,
+                    );
+                }
                 self.learner.adam.lr = self.config.learning_rate(t) as f32;
                 let stats = self.learner.train_step(&self.batch);
                 self.replay

@@ -17,6 +17,8 @@
 //! | `online.conv3.weight`, `.bias` | F32 | `[3, 3, 64, 64]`, `[64]` |
 //! | `online.dense1.weight`, `.bias` | F32 | `[7040, 128]` (in, out; inputs in NHWC flatten order), `[128]` |
 //! | `online.dense2.weight`, `.bias` | F32 | `[128, A]`, `[A]` |
+//! | `online.iqn.weight`, `.bias` | F32 | an implicit quantile head's embedding, `[E, F]`, `[F]` (`F`: 128 after dense1, 7040 after the convolutions; only with `iqn_samples > 0`) |
+//! | `online.dense_tau.weight`, `.bias` | F32 | the dense layer after an embedding that enters after dense1, `[128, 128]`, `[128]` |
 //! | `target.*` | F32 | the target network, same names |
 //! | `adam.m.*`, `adam.v.*` | F32 | Adam's first and second moments, same names as `online.*` (absent before the first step) |
 //! | `observer.composite` | U8 | `[88, 80]`: the composer's latest composite frame |

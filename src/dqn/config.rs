@@ -83,6 +83,29 @@ pub const MAX_QUANTILES: usize = 1024;
 /// The widest dense layer a configuration may ask for (`hidden`).
 pub const MAX_HIDDEN: usize = 4096;
 
+/// The most fractions an implicit quantile head may take per state in one pass (`iqn_samples`,
+/// `iqn_target_samples`, `iqn_policy_samples`; Dopamine: 64, 64, 32).
+pub const MAX_IQN_SAMPLES: usize = 256;
+
+/// The largest cosine embedding of an implicit quantile head (`iqn_embedding`).
+pub const MAX_IQN_EMBEDDING: usize = 1024;
+
+fn iqn_embedding_default() -> usize {
+    64
+}
+
+fn iqn_samples_default() -> usize {
+    32
+}
+
+fn munchausen_tau_default() -> f64 {
+    0.03
+}
+
+fn munchausen_clip_default() -> f64 {
+    -1.0
+}
+
 fn article_hidden() -> usize {
     ARTICLE_HIDDEN
 }
@@ -157,6 +180,36 @@ pub struct Config {
     /// A dueling head: Q = V + A − mean A ([`crate::layers::Dueling`]).
     #[serde(default)]
     pub dueling: bool,
+    /// An implicit quantile head (IQN, Dabney et al. 2018) trained at this many random fractions
+    /// `τ` per state (`N`), with the quantile Huber loss (then `loss` is not used); 0: none.
+    /// ([`super::Iqn`].)
+    #[serde(default)]
+    pub iqn_samples: usize,
+    /// IQN: random fractions per next state for the target's samples (`N'`).
+    #[serde(default = "iqn_samples_default")]
+    pub iqn_target_samples: usize,
+    /// IQN: midpoint fractions whose mean gives `Q(s, a)` for acting and for the bootstrapped
+    /// action (`K`).
+    #[serde(default = "iqn_samples_default")]
+    pub iqn_policy_samples: usize,
+    /// IQN: cosines in the embedding of a fraction (Dopamine: 64).
+    #[serde(default = "iqn_embedding_default")]
+    pub iqn_embedding: usize,
+    /// IQN: where the embedding enters, `hidden` (after dense1; cheap) or `features` (after the
+    /// convolutions, as Dopamine's).
+    #[serde(default)]
+    pub iqn_merge: super::IqnMerge,
+    /// Munchausen targets (Vieillard et al. 2020) with this scale `α` of the log-policy bonus
+    /// (their 0.9); 0: none. The target becomes soft: `y = R + α·max(τ log π(a|s), l0) +
+    /// γ^m Σ_a' π(a'|s')·(q(s', a') − τ log π(a'|s'))` with `π = softmax(q_target/τ)`.
+    #[serde(default)]
+    pub munchausen_alpha: f64,
+    /// Munchausen: the entropy temperature `τ` (their 0.03).
+    #[serde(default = "munchausen_tau_default")]
+    pub munchausen_tau: f64,
+    /// Munchausen: the lower clip `l0` of the bonus `τ log π(a|s)` (their −1).
+    #[serde(default = "munchausen_clip_default")]
+    pub munchausen_clip: f64,
     /// Steps `n` of the returns the TD target bootstraps after:
     /// `y = r_t + γ r_{t+1} + … + γ^{n−1} r_{t+n−1} + γ^n max Q(s_{t+n})`, cut short at an episode's
     /// end (the article: 1).
@@ -228,6 +281,14 @@ impl Config {
             hidden: ARTICLE_HIDDEN,
             quantiles: 0,
             dueling: false,
+            iqn_samples: 0,
+            iqn_target_samples: iqn_samples_default(),
+            iqn_policy_samples: iqn_samples_default(),
+            iqn_embedding: iqn_embedding_default(),
+            iqn_merge: super::IqnMerge::Hidden,
+            munchausen_alpha: 0.0,
+            munchausen_tau: munchausen_tau_default(),
+            munchausen_clip: munchausen_clip_default(),
             n_step: 1,
             life_loss_terminal: false,
             prioritized: false,
@@ -293,6 +354,26 @@ impl Config {
     /// Values per action of the network's output: 1, or the quantile head's `quantiles`.
     pub fn atoms(&self) -> usize {
         self.quantiles.max(1)
+    }
+
+    /// The implicit quantile head, if `iqn_samples` asks for one.
+    pub fn iqn(&self) -> Option<super::Iqn> {
+        (self.iqn_samples > 0).then_some(super::Iqn {
+            embedding: self.iqn_embedding,
+            merge: self.iqn_merge,
+            samples: self.iqn_samples,
+            target_samples: self.iqn_target_samples,
+            policy_samples: self.iqn_policy_samples,
+        })
+    }
+
+    /// Munchausen targets, if `munchausen_alpha` asks for them.
+    pub fn munchausen(&self) -> Option<super::Munchausen> {
+        (self.munchausen_alpha > 0.0).then_some(super::Munchausen {
+            alpha: self.munchausen_alpha as f32,
+            tau: self.munchausen_tau as f32,
+            clip: self.munchausen_clip as f32,
+        })
     }
 
     /// An empty replay memory as this configuration asks for: its capacity, frames per state,
@@ -443,6 +524,47 @@ impl Config {
             bail!(
                 "quantiles must be at most {MAX_QUANTILES}, got {}",
                 c.quantiles
+            );
+        }
+        for (name, v) in [
+            ("iqn_samples", c.iqn_samples),
+            ("iqn_target_samples", c.iqn_target_samples),
+            ("iqn_policy_samples", c.iqn_policy_samples),
+        ] {
+            if v > MAX_IQN_SAMPLES || (v == 0 && name != "iqn_samples") {
+                bail!("{name} must be in 1..={MAX_IQN_SAMPLES}, got {v}");
+            }
+        }
+        if !(1..=MAX_IQN_EMBEDDING).contains(&c.iqn_embedding) {
+            bail!(
+                "iqn_embedding must be in 1..={MAX_IQN_EMBEDDING}, got {}",
+                c.iqn_embedding
+            );
+        }
+        if c.iqn_samples > 0 && c.quantiles > 0 {
+            bail!("iqn_samples and quantiles are two heads: ask for one of them");
+        }
+        if !(0.0..=1.0).contains(&c.munchausen_alpha) {
+            bail!(
+                "munchausen_alpha must be in [0, 1], got {}",
+                c.munchausen_alpha
+            );
+        }
+        if !(c.munchausen_tau > 0.0 && c.munchausen_tau <= 100.0) {
+            bail!(
+                "munchausen_tau must be in (0, 100], got {}",
+                c.munchausen_tau
+            );
+        }
+        if !(-1e6..=0.0).contains(&c.munchausen_clip) {
+            bail!(
+                "munchausen_clip must be in [-1e6, 0], got {}",
+                c.munchausen_clip
+            );
+        }
+        if c.munchausen_alpha > 0.0 && c.quantiles > 0 {
+            bail!(
+                "munchausen_alpha works with a Q-value or an implicit quantile head, not quantiles"
             );
         }
         if !(1..=MAX_HIDDEN).contains(&c.hidden) {

@@ -1,8 +1,9 @@
 //! The learning half of DQN: one gradient step on a minibatch of transitions.
 
-use super::{input_border, qnet, Head};
+use super::qnet::midpoints;
+use super::{input_border, qnet, Head, Iqn};
 use crate::layers::init::VarianceScaling;
-use crate::layers::loss::{quantile_huber, LossKind};
+use crate::layers::loss::{quantile_huber, quantile_huber_at, LossKind};
 use crate::layers::Sequential;
 use crate::optim::{clip_grad_norm, Adam};
 use crate::tensor::{Border, Tensor};
@@ -26,6 +27,11 @@ pub struct Batch {
     pub weights: Vec<f32>,
     /// `[B]` the replay entries drawn, when sampling is prioritized (else empty).
     pub entries: Vec<u64>,
+    /// `[B, N]`: an implicit quantile head's fractions `τ` for the online network's quantiles of
+    /// each state ([`Batch::draw_fractions`]; else empty).
+    pub taus: Vec<f64>,
+    /// `[B, N']`: its fractions for the target's samples of each next state.
+    pub target_taus: Vec<f64>,
     /// The zero border around each state image: none, or the network's first padding
     /// ([`input_border`]), so that conv1 reads the states in place (it would otherwise copy each
     /// batch into a padded buffer, about 11 MB of memory traffic per train step at batch 48).
@@ -58,8 +64,21 @@ impl Batch {
             dones: vec![false; batch],
             weights: Vec::new(),
             entries: Vec::new(),
+            taus: Vec::new(),
+            target_taus: Vec::new(),
             border,
         }
+    }
+
+    /// Draws an implicit quantile head's fractions, uniform on `[0, 1)`: `n` per state and
+    /// `n_target` per next state (IQN trains at fresh fractions every step).
+    pub fn draw_fractions(&mut self, rng: &mut impl Rng, n: usize, n_target: usize) {
+        let b = self.len();
+        self.taus.clear();
+        self.taus.extend((0..b * n).map(|_| rng.random::<f64>()));
+        self.target_taus.clear();
+        self.target_taus
+            .extend((0..b * n_target).map(|_| rng.random::<f64>()));
     }
 
     /// The number of transitions.
@@ -100,6 +119,10 @@ pub struct Learner {
     pub double: bool,
     /// Clip gradients to this global norm, if set.
     pub clip_norm: Option<f32>,
+    /// Munchausen targets, if set ([`Munchausen`]).
+    pub munchausen: Option<Munchausen>,
+    /// The implicit quantile head, if the networks have one.
+    iqn: Option<Iqn>,
     n_actions: usize,
     /// `[B]`: `Q(s, a)` of the taken actions, the TD targets `y`, and `∂L/∂Q(s, a)`.
     q_taken: Vec<f32>,
@@ -151,6 +174,8 @@ impl Learner {
             loss: LossKind::Mse,
             double: false,
             clip_norm: None,
+            munchausen: None,
+            iqn: head.iqn,
             n_actions,
             q_taken: Vec::new(),
             y: Vec::new(),
@@ -177,6 +202,7 @@ impl Learner {
         l.loss = config.loss;
         l.double = config.double_dqn;
         l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm as f32);
+        l.munchausen = config.munchausen();
         l.set_precision(config.precision);
         l
     }
@@ -222,12 +248,22 @@ impl Learner {
         self.target.copy_params_from(&self.online);
     }
 
+    /// One DQN update on `batch`: [`Learner::q_step`] for a Q-value or quantile head,
+    /// [`Learner::iqn_step`] for an implicit quantile head.
+    pub fn train_step(&mut self, batch: &Batch) -> StepStats {
+        match self.iqn {
+            None => self.q_step(batch),
+            Some(iqn) => self.iqn_step(batch, iqn),
+        }
+    }
+
     /// One DQN update on `batch`:
     ///
     /// 1. TD target `y = R + γ^m·(1 − done)·max_a' Q_target(s', a')`, with `R` the return of the
     ///    `m` steps from `s` to `s'` (`m = 1`, `R = r`: the one-step target) (Double DQN:
-    ///    `Q_target(s', argmax_a' Q_online(s', a'))`); no gradient flows through `y`, so these
-    ///    passes are [`Sequential::infer`] (sparse products where the activations allow).
+    ///    `Q_target(s', argmax_a' Q_online(s', a'))`; Munchausen: the soft target of
+    ///    [`Munchausen`]); no gradient flows through `y`, so these passes are
+    ///    [`Sequential::infer`] (sparse products where the activations allow).
     /// 2. Forward `Q_online(s, ·)`, keep `Q(s, a)` of the taken actions.
     /// 3. Loss `L = mean_b ℓ(Q(s_b, a_b) − y_b)` (MSE or Huber); `∂L/∂Q(s_b, a)` is non-zero only
     ///    at `a = a_b`, so the upstream gradient `dQ[B, A]` is zero except one entry per row.
@@ -240,7 +276,7 @@ impl Learner {
     /// loss is the quantile Huber loss of `θ(s, a)` against them ([`quantile_huber`]).
     /// 4. Backward through the online network (the first layer skips its input gradient), then
     ///    one Adam step.
-    pub fn train_step(&mut self, batch: &Batch) -> StepStats {
+    pub fn q_step(&mut self, batch: &Batch) -> StepStats {
         let (b, na, k) = (batch.len(), self.n_actions, self.atoms);
         self.q_taken.resize(b * k, 0.0);
         self.y.resize(b * k, 0.0);
@@ -248,7 +284,7 @@ impl Learner {
         self.next_greedy.resize(b, 0);
         // The passes over s' are inference (no backward follows): `infer`, which skips the
         // zeros the ReLUs leave where they are most of the activations (a trained network).
-        if self.double {
+        if self.double && self.munchausen.is_none() {
             let q_next = self.online.infer(&batch.next_states);
             for (g, row) in self
                 .next_greedy
@@ -266,21 +302,36 @@ impl Learner {
             || target.infer(&batch.next_states),
             || online.forward(&batch.states),
         );
-        // y: one TD target per sample, or with a quantile head K target samples per sample:
-        // `T_j = R + γ^m·(1 − done)·θ_j(s', a')`, each quantile of the bootstrapped action.
-        for (i, row) in q_next.data().chunks_exact(na * k).enumerate() {
-            let a_next = if self.double {
-                self.next_greedy[i]
-            } else {
-                greedy_atoms(row, k)
-            };
-            let cont = if batch.dones[i] { 0.0 } else { 1.0 };
-            let discount = self.gamma.powi(batch.steps[i] as i32);
-            for (y, &future) in self.y[i * k..(i + 1) * k]
-                .iter_mut()
-                .zip(&row[a_next * k..(a_next + 1) * k])
-            {
-                *y = batch.rewards[i] + discount * cont * future;
+        if let Some(m) = self.munchausen {
+            // The soft target needs the target network's values of s too.
+            let q_next = q_next.data().to_vec();
+            let q_s = target.infer(&batch.states).data();
+            for (i, y) in self.y.iter_mut().enumerate() {
+                let (now, next) = (&q_s[i * na..(i + 1) * na], &q_next[i * na..(i + 1) * na]);
+                let cont = if batch.dones[i] { 0.0 } else { 1.0 };
+                let discount = self.gamma.powi(batch.steps[i] as i32);
+                *y = batch.rewards[i]
+                    + m.bonus(now, batch.actions[i])
+                    + discount * cont * m.soft_value(next, next);
+            }
+        } else {
+            // y: one TD target per sample, or with a quantile head K target samples per
+            // sample: `T_j = R + γ^m·(1 − done)·θ_j(s', a')`, each quantile of the bootstrapped
+            // action.
+            for (i, row) in q_next.data().chunks_exact(na * k).enumerate() {
+                let a_next = if self.double {
+                    self.next_greedy[i]
+                } else {
+                    greedy_atoms(row, k)
+                };
+                let cont = if batch.dones[i] { 0.0 } else { 1.0 };
+                let discount = self.gamma.powi(batch.steps[i] as i32);
+                for (y, &future) in self.y[i * k..(i + 1) * k]
+                    .iter_mut()
+                    .zip(&row[a_next * k..(a_next + 1) * k])
+                {
+                    *y = batch.rewards[i] + discount * cont * future;
+                }
             }
         }
         let mut max_q_sum = 0.0;
@@ -344,6 +395,155 @@ impl Learner {
             let a = batch.actions[i];
             row[a * k..(a + 1) * k].copy_from_slice(&self.dq_taken[i * k..(i + 1) * k]);
         }
+        let grad_norm = self.backward_and_step(batch);
+        StepStats {
+            loss,
+            mean_max_q: max_q_sum / b as f32,
+            grad_norm,
+        }
+    }
+
+    /// One update of an implicit quantile network (IQN, Dabney et al. 2018) on `batch`, whose
+    /// fractions were drawn by [`Batch::draw_fractions`]:
+    ///
+    /// 1. `Q(s', a) = mean_k Z_{τ_k}(s', a)` over the `K` midpoint fractions picks
+    ///    `a' = argmax_a Q(s', a)` (by the online network with Double DQN, else the target).
+    /// 2. Target samples at the drawn `τ'_j`, `j = 1..N'`:
+    ///    `T_j = R + γ^m·(1 − done)·Z^target_{τ'_j}(s', a')` (Munchausen: the soft target of
+    ///    [`Munchausen`], with `Z_{τ'_j}(s', ·)` as the next state's values).
+    /// 3. Online quantiles at the drawn `τ_i`, `i = 1..N`: `θ_i = Z_{τ_i}(s, a)`; the quantile
+    ///    Huber loss of `θ` against `T` ([`quantile_huber_at`]), weighted as in
+    ///    [`Learner::q_step`] under prioritized sampling (by the TD error of the means).
+    /// 4. Backward (`dZ` non-zero at `(b·N + i, a_b)` only), then one Adam step.
+    ///
+    /// The target network evaluates `s'` once, at the `K` midpoints and the `N'` fractions
+    /// together: its trunk runs once per state.
+    pub fn iqn_step(&mut self, batch: &Batch, iqn: Iqn) -> StepStats {
+        let (b, na) = (batch.len(), self.n_actions);
+        let (n, n2, k) = (iqn.samples, iqn.target_samples, iqn.policy_samples);
+        assert!(
+            batch.taus.len() == b * n && batch.target_taus.len() == b * n2,
+            "iqn_step: draw the batch's fractions first"
+        );
+        // 1. The next states' fractions: K midpoints, then the N' drawn ones, per state.
+        let mids = midpoints(k, 1);
+        let next_taus: Vec<f64> = batch
+            .target_taus
+            .chunks_exact(n2)
+            .flat_map(|drawn| mids.iter().chain(drawn).copied())
+            .collect();
+        self.next_greedy.resize(b, 0);
+        if self.double && self.munchausen.is_none() {
+            self.online.set_fractions(&midpoints(k, b));
+            let q_next = self.online.infer(&batch.next_states).data();
+            for (g, rows) in self.next_greedy.iter_mut().zip(q_next.chunks_exact(k * na)) {
+                *g = greedy_rows(rows, na);
+            }
+        }
+        self.target.set_fractions(&next_taus);
+        self.online.set_fractions(&batch.taus);
+        let (target, online) = (&mut self.target, &mut self.online);
+        let (z_next, z) = rayon::join(
+            || target.infer(&batch.next_states),
+            || online.forward(&batch.states),
+        );
+        // 2. The target samples, `[B, N']`.
+        self.y.resize(b * n2, 0.0);
+        let z_next = z_next.data().to_vec();
+        let q_s = match self.munchausen {
+            Some(_) => {
+                target.set_fractions(&midpoints(k, b));
+                target.infer(&batch.states).data().to_vec()
+            }
+            None => Vec::new(),
+        };
+        let mut q_next = vec![0.0f32; na];
+        let mut q_now = vec![0.0f32; na];
+        for (i, rows) in z_next.chunks_exact((k + n2) * na).enumerate() {
+            let (policy_rows, sample_rows) = rows.split_at(k * na);
+            mean_rows(policy_rows, na, &mut q_next);
+            let cont = if batch.dones[i] { 0.0 } else { 1.0 };
+            let discount = self.gamma.powi(batch.steps[i] as i32);
+            let y = &mut self.y[i * n2..(i + 1) * n2];
+            match self.munchausen {
+                Some(m) => {
+                    mean_rows(&q_s[i * k * na..(i + 1) * k * na], na, &mut q_now);
+                    let r = batch.rewards[i] + m.bonus(&q_now, batch.actions[i]);
+                    for (y, z_j) in y.iter_mut().zip(sample_rows.chunks_exact(na)) {
+                        *y = r + discount * cont * m.soft_value(&q_next, z_j);
+                    }
+                }
+                None => {
+                    let a_next = if self.double {
+                        self.next_greedy[i]
+                    } else {
+                        argmax(&q_next)
+                    };
+                    for (y, z_j) in y.iter_mut().zip(sample_rows.chunks_exact(na)) {
+                        *y = batch.rewards[i] + discount * cont * z_j[a_next];
+                    }
+                }
+            }
+        }
+        // 3. The online quantiles of the taken actions, `[B, N]`, and the loss.
+        self.q_taken.resize(b * n, 0.0);
+        self.dq_taken.resize(b * n, 0.0);
+        let mut max_q_sum = 0.0;
+        for (i, rows) in z.data().chunks_exact(n * na).enumerate() {
+            let a = batch.actions[i];
+            for (t, row) in self.q_taken[i * n..(i + 1) * n]
+                .iter_mut()
+                .zip(rows.chunks_exact(na))
+            {
+                *t = row[a];
+            }
+            mean_rows(rows, na, &mut q_now);
+            max_q_sum += q_now[argmax(&q_now)];
+        }
+        let taus: Vec<f32> = batch.taus.iter().map(|&t| t as f32).collect();
+        self.per_sample.resize(b, 0.0);
+        let mut loss = quantile_huber_at(
+            &self.q_taken,
+            &taus,
+            &self.y,
+            n,
+            &mut self.dq_taken,
+            &mut self.per_sample,
+        );
+        self.td.clear();
+        self.td.extend(
+            self.q_taken
+                .chunks_exact(n)
+                .zip(self.y.chunks_exact(n2))
+                .map(|(q, y)| mean(q) - mean(y)),
+        );
+        if !batch.weights.is_empty() {
+            loss = 0.0;
+            for (i, &w) in batch.weights.iter().enumerate() {
+                loss += w * self.per_sample[i] / b as f32;
+                for d in &mut self.dq_taken[i * n..(i + 1) * n] {
+                    *d *= w;
+                }
+            }
+        }
+        // 4. `dZ`: each row's gradient at its sample's action only.
+        self.dq.set_shape(&[b * n, na]);
+        self.dq.fill_zero();
+        for (r, row) in self.dq.data_mut().chunks_exact_mut(na).enumerate() {
+            row[batch.actions[r / n]] = self.dq_taken[r];
+        }
+        let grad_norm = self.backward_and_step(batch);
+        StepStats {
+            loss,
+            mean_max_q: max_q_sum / b as f32,
+            grad_norm,
+        }
+    }
+
+    /// Back-propagates `self.dq` through the online network's last forward pass (on
+    /// `batch.states`), clips the gradient if configured, takes one Adam step; returns the
+    /// gradient's global norm before clipping.
+    fn backward_and_step(&mut self, batch: &Batch) -> f32 {
         self.online.zero_grad();
         self.online.backward(&batch.states, &self.dq, false);
         let grad_norm = match self.clip_norm {
@@ -351,12 +551,83 @@ impl Learner {
             None => crate::optim::global_grad_norm(self.online.params()),
         };
         self.adam.step(self.online.params_mut());
-        StepStats {
-            loss,
-            mean_max_q: max_q_sum / b as f32,
-            grad_norm,
+        grad_norm
+    }
+}
+
+/// Munchausen RL's targets (Vieillard et al. 2020): a soft Q-learning target, `π = softmax(q/τ)`
+/// of the target network's values, plus the scaled log-policy of the action taken as a bonus
+///
+/// ```text
+/// y = R + α·clamp(τ·log π(a|s), l0, 0) + γ^m·(1 − done)·Σ_a' π(a'|s')·(q(s', a') − τ·log π(a'|s'))
+/// ```
+///
+/// (their M-DQN with α = 0.9, τ = 0.03, l0 = −1; M-IQN the same with `q(s', a')` each target
+/// sample's value). `τ·log π` is computed as `q − max q − τ·log Σ exp((q − max q)/τ)`, stable for
+/// any `τ`. With n-step returns `R` is the n-step return and the bonus that of the first action.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Munchausen {
+    /// `α`, the bonus's scale.
+    pub alpha: f32,
+    /// `τ`, the entropy temperature.
+    pub tau: f32,
+    /// `l0`, the bonus's lower clip.
+    pub clip: f32,
+}
+
+impl Munchausen {
+    /// `τ·log π(·|s)` for one state's values `q` (`[A]`), into `out`.
+    pub fn scaled_log_policy(&self, q: &[f32], out: &mut [f32]) {
+        let max = q.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        let sum: f32 = q.iter().map(|&v| ((v - max) / self.tau).exp()).sum();
+        let log_sum = self.tau * sum.ln();
+        for (o, &v) in out.iter_mut().zip(q) {
+            *o = v - max - log_sum;
         }
     }
+
+    /// The bonus `α·clamp(τ·log π(a|s), l0, 0)` for the values `q` of `s` and the action `a`.
+    pub fn bonus(&self, q: &[f32], a: usize) -> f32 {
+        let mut log_pi = vec![0.0; q.len()];
+        self.scaled_log_policy(q, &mut log_pi);
+        self.alpha * log_pi[a].clamp(self.clip, 0.0)
+    }
+
+    /// The soft value `Σ_a π(a|s)·(v_a − τ·log π(a|s))` of a state whose policy comes from the
+    /// values `q` and whose bootstrapped values are `v` (both `[A]`; `v = q` for M-DQN, a target
+    /// sample's `Z_τ'` for M-IQN).
+    pub fn soft_value(&self, q: &[f32], v: &[f32]) -> f32 {
+        let mut log_pi = vec![0.0; q.len()];
+        self.scaled_log_policy(q, &mut log_pi);
+        log_pi
+            .iter()
+            .zip(v)
+            .map(|(&l, &v)| (l / self.tau).exp() * (v - l))
+            .sum()
+    }
+}
+
+/// The mean of `rows` (`[R, A]`, row-major) over its rows, into `out` (`[A]`): an implicit
+/// quantile head's `Q(s, a)` from its values at `R` fractions.
+fn mean_rows(rows: &[f32], n_actions: usize, out: &mut [f32]) {
+    out.fill(0.0);
+    let r = rows.len() / n_actions;
+    for row in rows.chunks_exact(n_actions) {
+        for (o, &v) in out.iter_mut().zip(row) {
+            *o += v;
+        }
+    }
+    for o in out.iter_mut() {
+        *o /= r as f32;
+    }
+}
+
+/// The greedy action of an implicit quantile head's output for one state, `[K, A]` (its values at
+/// `K` fractions): the largest mean over the rows (the first on ties).
+pub fn greedy_rows(rows: &[f32], n_actions: usize) -> usize {
+    let mut q = vec![0.0f32; n_actions];
+    mean_rows(rows, n_actions, &mut q);
+    argmax(&q)
 }
 
 /// The mean of a slice.

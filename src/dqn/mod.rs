@@ -10,7 +10,7 @@ mod sumtree;
 
 pub use agent::{greedy, play_evaluation_episode, random_play_inputs, Agent, EpisodeRow};
 pub use config::{merge_toml, Config, Preset, ARTICLE_HIDDEN, NO_EPISODE_LIMIT, STRONG_FRAMES};
-pub use learner::{argmax, greedy_atoms, Batch, Learner, StepStats};
-pub use qnet::{article_qnet, input_border, qnet, Head};
+pub use learner::{argmax, greedy_atoms, greedy_rows, Batch, Learner, Munchausen, StepStats};
+pub use qnet::{article_qnet, input_border, midpoints, qnet, Head, Iqn, IqnMerge};
 pub use replay::{Replay, FLAG_ACTED, FLAG_DONE, FLAG_START};
 pub use sumtree::SumTree;

@@ -2,9 +2,9 @@
 
 use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
-use crate::layers::{Conv2d, Dense, Dueling, Relu, Sequential};
+use crate::layers::{Conv2d, Dense, Dueling, QuantileEmbedding, Relu, Sequential};
 use crate::tensor::plan;
-use crate::tensor::{Border, ConvGeom, Float, Padding};
+use crate::tensor::{Border, ConvGeom, Float, Padding, Tensor};
 use rand::Rng;
 
 /// The convolutions as the article defines them: `(filters, kernel size, stride)`, SAME.
@@ -43,9 +43,9 @@ pub fn article_qnet<T: Float>(
     qnet(input, n_actions, Head::ARTICLE, init, rng)
 }
 
-/// What follows the convolutions: dense1's width, whether a dueling combine follows dense2, and
-/// how many values (atoms) each action's output has.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// What follows the convolutions: dense1's width, whether a dueling combine follows dense2, how
+/// many values (atoms) each action's output has, and an implicit quantile head.
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Head {
     /// Units of dense1 (the article: 128).
     pub hidden: usize,
@@ -54,6 +54,41 @@ pub struct Head {
     /// Values per action: 1 for a Q-value, `N` for a quantile head's `N` quantiles (QR-DQN), laid
     /// out action by action (`[A, N]` per sample).
     pub atoms: usize,
+    /// An implicit quantile head (IQN): each state evaluated at quantile fractions `τ`, one
+    /// output row `[A]` per fraction ([`Iqn`]).
+    pub iqn: Option<Iqn>,
+}
+
+/// An implicit quantile network's settings (Dabney et al. 2018): where the cosine embedding of
+/// `τ` enters ([`QuantileEmbedding`]), its size, and how many fractions each pass takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Iqn {
+    /// Cosines per fraction (Dopamine: 64).
+    pub embedding: usize,
+    /// Where the embedding multiplies the features.
+    pub merge: IqnMerge,
+    /// `N`: fractions drawn per state for the online network's quantiles in the loss (Dopamine:
+    /// 64).
+    pub samples: usize,
+    /// `N'`: fractions drawn per next state for the target's samples (Dopamine: 64).
+    pub target_samples: usize,
+    /// `K`: fractions that give `Q(s, a)`, the mean of `Z_τ(s, a)`, for acting and for picking
+    /// the bootstrapped action. Here the midpoints `(2k + 1)/(2K)`, a quadrature of the mean
+    /// without noise (Dopamine draws 32 at random).
+    pub policy_samples: usize,
+}
+
+/// Where an implicit quantile head's embedding enters the network.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum IqnMerge {
+    /// After the convolutions, as Dopamine's IQN: dense1 then runs once per fraction (`B·N`
+    /// rows of 7040 inputs), the cost of which grows with `N`.
+    Features,
+    /// After dense1 and its ReLU, followed by a dense layer of the same width and a ReLU: the
+    /// trunk runs once per state, and only two small layers per fraction.
+    #[default]
+    Hidden,
 }
 
 impl Head {
@@ -62,6 +97,7 @@ impl Head {
         hidden: ARTICLE_HIDDEN,
         dueling: false,
         atoms: 1,
+        iqn: None,
     };
 
     /// The head a configuration asks for.
@@ -70,8 +106,34 @@ impl Head {
             hidden: config.hidden,
             dueling: config.dueling,
             atoms: config.atoms(),
+            iqn: config.iqn(),
         }
     }
+
+    /// `argmax_a Q(x, a)` for one state `x` (`[1, H, W, C]`), by `net` built with this head: the
+    /// largest Q-value, the largest mean of a quantile head's atoms, or the largest mean over an
+    /// implicit quantile head's `K` policy fractions. A batch-1 [`Sequential::infer`] (acting).
+    pub fn greedy(&self, net: &mut Sequential<f32>, x: &Tensor<f32>, n_actions: usize) -> usize {
+        match self.iqn {
+            None => {
+                let out = net.infer(x).data();
+                super::learner::greedy_atoms(out, out.len() / n_actions)
+            }
+            Some(iqn) => {
+                net.set_fractions(&midpoints(iqn.policy_samples, 1));
+                let out = net.infer(x).data();
+                super::learner::greedy_rows(out, n_actions)
+            }
+        }
+    }
+}
+
+/// The `k` midpoint fractions `(2i + 1)/(2k)`, `i = 0..k`, repeated for each of `batch` states.
+pub fn midpoints(k: usize, batch: usize) -> Vec<f64> {
+    let one: Vec<f64> = (0..k)
+        .map(|i| (2 * i + 1) as f64 / (2 * k) as f64)
+        .collect();
+    (0..batch).flat_map(|_| one.iter().copied()).collect()
 }
 
 /// The article's Q-network ([`article_qnet`]) with `head.hidden` units in dense1 (the article:
@@ -136,9 +198,28 @@ pub fn qnet<T: Float>(
         hidden,
         dueling,
         atoms,
+        iqn,
     } = head;
+    if let Some(Iqn {
+        embedding,
+        merge: IqnMerge::Features,
+        ..
+    }) = iqn
+    {
+        net.push(QuantileEmbedding::new("iqn", embedding, flat));
+    }
     net.push(Dense::new("dense1", flat, hidden).with_sparse_inference(true));
     net.push(Relu::new("relu4", &[hidden]));
+    if let Some(Iqn {
+        embedding,
+        merge: IqnMerge::Hidden,
+        ..
+    }) = iqn
+    {
+        net.push(QuantileEmbedding::new("iqn", embedding, hidden));
+        net.push(Dense::new("dense_tau", hidden, hidden));
+        net.push(Relu::new("relu_tau", &[hidden]));
+    }
     if dueling {
         net.push(Dense::new("dense2", hidden, (1 + n_actions) * atoms));
         net.push(Dueling::with_atoms("dueling", n_actions, atoms));

@@ -15,6 +15,7 @@ mod dueling;
 mod flatten;
 pub mod init;
 pub mod loss;
+mod quantile_embedding;
 mod relu;
 mod sequential;
 
@@ -22,6 +23,7 @@ pub use conv2d::Conv2d;
 pub use dense::Dense;
 pub use dueling::Dueling;
 pub use flatten::Flatten;
+pub use quantile_embedding::QuantileEmbedding;
 pub use relu::Relu;
 pub use sequential::Sequential;
 
@@ -94,6 +96,10 @@ pub trait Layer<T: Float>: Send {
     fn macs(&self) -> usize {
         0
     }
+
+    /// Sets the quantile fractions `τ` the next passes evaluate the network at, `N` per sample
+    /// of the batch, sample by sample ([`QuantileEmbedding`]); layers that take none ignore them.
+    fn set_fractions(&mut self, _taus: &[f64]) {}
 
     /// The arithmetic of the layer's training products ([`crate::tensor::plan::conv`] and
     /// [`crate::tensor::plan::dense`] pick their kernels by it). Layers without products ignore

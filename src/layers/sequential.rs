@@ -136,6 +136,15 @@ impl<T: Float> Sequential<T> {
         self.layers.iter().map(|l| l.macs()).sum()
     }
 
+    /// Sets the quantile fractions of the next passes ([`Layer::set_fractions`]): an implicit
+    /// quantile network's [`super::QuantileEmbedding`] turns each input sample into `N` rows,
+    /// one per fraction.
+    pub fn set_fractions(&mut self, taus: &[f64]) {
+        for l in &mut self.layers {
+            l.set_fractions(taus);
+        }
+    }
+
     /// Sets every layer's training arithmetic ([`Layer::set_precision`]).
     pub fn set_precision(&mut self, precision: crate::tensor::plan::Precision) {
         for l in &mut self.layers {
