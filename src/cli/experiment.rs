@@ -661,6 +661,7 @@ fn finish_one(
         None => None,
     };
     let protocol = evaluate_protocol(exe, &job.dir, evals.protocol)?;
+    log_evaluations(&job.dir, &counters, &protocol, own_game.as_ref());
     let record = Record {
         preset: job.preset.name().to_string(),
         seed: job.seed,
@@ -679,6 +680,47 @@ fn finish_one(
         record,
         metrics: job.dir.join("metrics.csv"),
     })
+}
+
+/// Adds a finished run's evaluation scores to its TensorBoard events (where it writes them), at
+/// its last agent step: `eval/protocol_*` and `eval/own_game_*` (mean, std, min, max). A failure
+/// is said, not fatal: the scores are in the record and the tables.
+fn log_evaluations(
+    dir: &Path,
+    counters: &checkpoint::Counters,
+    protocol: &Scores,
+    own_game: Option<&Scores>,
+) {
+    if invaders::dqn::tensorboard::event_files(dir).map_or(true, |f| f.is_empty()) {
+        return;
+    }
+    let mut values = Vec::new();
+    for (name, s) in [("protocol", Some(protocol)), ("own_game", own_game)] {
+        if let Some(s) = s {
+            for (stat, v) in [
+                ("mean", s.mean),
+                ("std", s.std),
+                ("min", s.min),
+                ("max", s.max),
+            ] {
+                values.push((format!("eval/{name}_{stat}"), v));
+            }
+        }
+    }
+    let named: Vec<(&str, f64)> = values.iter().map(|(t, v)| (t.as_str(), *v)).collect();
+    let written = invaders::dqn::tensorboard::EventWriter::append_only(dir).and_then(|mut w| {
+        w.scalars(
+            counters.agent_steps as i64,
+            invaders::dqn::tensorboard::now(),
+            &named,
+        )
+    });
+    if let Err(e) = written {
+        say!(
+            "warning: the evaluation is not in {}'s TensorBoard events: {e:#}",
+            dir.display()
+        );
+    }
 }
 
 /// The record in `dir`, if there is one; an error if it cannot be read.

@@ -392,10 +392,13 @@ fn dir_names(dir: &Path) -> anyhow::Result<Vec<String>> {
         .with_context(|| format!("cannot read {}", dir.display()))
 }
 
-/// A file a run writes into its directory: one of [`RUN_FILES`], a replay memory, or a replay
-/// memory being written.
+/// A file a run writes into its directory: one of [`RUN_FILES`], a replay memory, a replay
+/// memory being written, or a TensorBoard event file.
 fn is_run_file(name: &str) -> bool {
-    RUN_FILES.contains(&name) || is_replay_file(name) || is_replay_tmp(name)
+    RUN_FILES.contains(&name)
+        || is_replay_file(name)
+        || is_replay_tmp(name)
+        || name.starts_with(invaders::dqn::tensorboard::PREFIX)
 }
 
 /// A replay memory saved with a checkpoint: `replay-E.safetensors`.
@@ -412,8 +415,13 @@ fn is_replay_tmp(name: &str) -> bool {
 
 /// Removes what a run that never reached a checkpoint left (not the lock file: it may be held).
 fn clear_run_files(dir: &Path) -> anyhow::Result<()> {
-    for name in RUN_FILES.iter().filter(|n| **n != guard::LOCK_FILE) {
-        let path = dir.join(name);
+    let events = invaders::dqn::tensorboard::event_files(dir)?;
+    for path in RUN_FILES
+        .iter()
+        .filter(|n| **n != guard::LOCK_FILE)
+        .map(|n| dir.join(n))
+        .chain(events)
+    {
         if path.exists() {
             std::fs::remove_file(&path)
                 .with_context(|| format!("cannot remove {}", path.display()))?;
@@ -603,6 +611,21 @@ fn train_loop(
         },
         rayon::current_num_threads(),
     );
+    // TensorBoard's event file of this process: its first point is the next agent step.
+    let mut events = if config.tensorboard {
+        match invaders::dqn::tensorboard::EventWriter::create(
+            dir,
+            agent.counters.agent_steps as i64 + 1,
+        ) {
+            Ok(w) => Some(w),
+            Err(e) => {
+                say!("warning: no TensorBoard events for this run: {e:#}");
+                None
+            }
+        }
+    } else {
+        None
+    };
     let started = Instant::now();
     let steps_at_start = agent.counters.agent_steps;
     let done = |a: &Agent<SpaceInvaders>| {
@@ -626,6 +649,17 @@ fn train_loop(
         let mean100 = last100.iter().map(|p| p.1).sum::<f64>() / last100.len() as f64;
         let sps =
             (agent.counters.agent_steps - steps_at_start) as f64 / started.elapsed().as_secs_f64();
+        if let Some(w) = &mut events {
+            let lr = config.learning_rate(row.agent_steps);
+            if let Err(e) = w.scalars(
+                row.agent_steps as i64,
+                invaders::dqn::tensorboard::now(),
+                &episode_scalars(&row, lr, sps),
+            ) {
+                say!("warning: TensorBoard events stop here (metrics.csv goes on): {e:#}");
+                events = None;
+            }
+        }
         let msg = format!(
             "ep {} steps {} ({sps:.0}/s) eps {:.3} reward {} mean100 {mean100:.1} loss {:.3}",
             row.episode, row.agent_steps, row.epsilon, row.reward, row.mean_loss
@@ -689,6 +723,24 @@ fn train_loop(
         last100.iter().map(|p| p.1).sum::<f64>() / last100.len().max(1) as f64
     );
     Ok(())
+}
+
+/// An episode's TensorBoard scalars, at its last agent step: every column of its `metrics.csv`
+/// row (the step itself aside), the learning rate `lr` and this process's agent steps per second
+/// `sps`.
+pub fn episode_scalars(row: &EpisodeRow, lr: f64, sps: f64) -> [(&'static str, f64); 10] {
+    [
+        ("episode/reward", row.reward),
+        ("episode/length", row.length as f64),
+        ("episode/number", row.episode as f64),
+        ("episode/emulator_frames", row.frames as f64),
+        ("episode/epsilon", row.epsilon as f64),
+        ("train/mean_loss", row.mean_loss as f64),
+        ("train/mean_max_q", row.mean_max_q as f64),
+        ("train/learning_rate", lr),
+        ("time/wall_seconds", row.wall_seconds),
+        ("time/agent_steps_per_s", sps),
+    ]
 }
 
 /// Redraws `rewards.png`; a plotting failure (no fonts, say) is reported but does not stop the

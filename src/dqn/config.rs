@@ -68,6 +68,10 @@ fn one() -> u32 {
     1
 }
 
+fn yes() -> bool {
+    true
+}
+
 /// The article's dense layer: 128 units.
 pub const ARTICLE_HIDDEN: usize = 128;
 
@@ -250,6 +254,10 @@ pub struct Config {
     pub checkpoint_replay: bool,
     /// Episodes between refreshes of the reward plot.
     pub plot_every: u64,
+    /// Write TensorBoard event files into the run directory beside `metrics.csv` (scalars per
+    /// episode; `tensorboard --logdir runs/`).
+    #[serde(default = "yes")]
+    pub tensorboard: bool,
     /// The environment.
     pub env: EnvConfig,
 }
@@ -301,6 +309,7 @@ impl Config {
             checkpoint_every: 25,
             checkpoint_replay: true,
             plot_every: 5,
+            tensorboard: true,
             env: EnvConfig::from_mode(EnvMode::V0),
         };
         match p {

@@ -7,6 +7,7 @@ mod learner;
 mod qnet;
 mod replay;
 mod sumtree;
+pub mod tensorboard;
 
 pub use agent::{greedy, play_evaluation_episode, random_play_inputs, Agent, EpisodeRow};
 pub use config::{merge_toml, Config, Preset, ARTICLE_HIDDEN, NO_EPISODE_LIMIT, STRONG_FRAMES};
