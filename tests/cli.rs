@@ -969,3 +969,73 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
     );
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// `precision = "auto"` (the strong preset's) is resolved when a run starts, said, and recorded
+/// in its config.toml: f32 or bf16, never `auto`, and f32 where bf16 products do not run
+/// (`INVADERS_NO_BF16`); a resume keeps it.
+#[test]
+fn auto_precision_is_resolved_and_recorded() {
+    let root = tmp("auto-precision");
+    std::fs::create_dir_all(&root).unwrap();
+    let cfg = root.join("tiny.toml");
+    std::fs::write(
+        &cfg,
+        "replay_capacity = 2000\nlearning_starts = 100\nbatch_size = 8\n[env]\nmax_episode_steps = 60\n",
+    )
+    .unwrap();
+    for no_bf16 in [false, true] {
+        let run = root.join(format!("run-{no_bf16}"));
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_invaders"));
+        if no_bf16 {
+            cmd.env("INVADERS_NO_BF16", "1");
+        }
+        let out = cmd
+            .args([
+                "train",
+                "--preset",
+                "strong",
+                "--config",
+                cfg.to_str().unwrap(),
+            ])
+            .args([
+                "--episodes",
+                "2",
+                "--threads",
+                "1",
+                "--out",
+                run.to_str().unwrap(),
+            ])
+            .output()
+            .unwrap();
+        let text = ok(&out);
+        assert!(text.contains("precision auto: "), "{text}");
+        let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
+        let recorded = saved
+            .lines()
+            .find(|l| l.starts_with("precision = "))
+            .unwrap()
+            .to_string();
+        assert!(
+            recorded == "precision = \"f32\"" || recorded == "precision = \"bf16\"",
+            "{recorded}"
+        );
+        if no_bf16 || !invaders::tensor::cpu::avx512_bf16() {
+            assert_eq!(recorded, "precision = \"f32\"", "{text}");
+        }
+        ok(&invaders(&[
+            "train",
+            "--resume",
+            run.to_str().unwrap(),
+            "--episodes",
+            "3",
+            "--threads",
+            "1",
+        ]));
+        let again = std::fs::read_to_string(run.join("config.toml")).unwrap();
+        assert!(
+            again.contains(&recorded),
+            "a resume keeps the resolved precision"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&root);
+}

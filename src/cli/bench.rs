@@ -29,7 +29,9 @@ pub struct BenchArgs {
     #[arg(long)]
     json: bool,
     /// The products' arithmetic: f32, or bf16 operands with f32 sums (on CPUs with
-    /// AVX512-BF16; elsewhere f32, and the report says so).
+    /// AVX512-BF16; elsewhere f32, and the report says so), or auto (what a run would resolve it
+    /// to here: the report always says what auto gives for the strong preset, and the two train
+    /// steps it timed).
     #[arg(long, value_enum, default_value_t = Precision::F32)]
     precision: Precision,
     /// Train steps to time.
@@ -83,9 +85,18 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let input = config.input_shape();
 
     // The train step on a random batch.
-    super::note_precision(args.precision);
+    // `auto`, as a run resolves it: here for the strong preset's network and batch.
+    let auto = invaders::dqn::resolve_precision(&Config {
+        precision: Precision::Auto,
+        ..Config::preset(Preset::Strong)
+    });
+    let precision = match args.precision {
+        Precision::Auto => auto.precision,
+        p => p,
+    };
+    super::note_precision(precision);
     let mut learner = Learner::from_config(&config, 6, &mut rng);
-    learner.set_precision(args.precision);
+    learner.set_precision(precision);
     // Laid out as the agent's batches are: inside conv1's padding, a zero border.
     let mut batch = Batch::padded(config.batch_size, input);
     for states in [&mut batch.states, &mut batch.next_states] {
@@ -173,7 +184,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
 
     // End to end: the article and strong presets with learning on from step 500.
     let end_to_end = |mut e2e: Config| -> anyhow::Result<f64> {
-        e2e.precision = args.precision;
+        e2e.precision = precision;
         e2e.learning_starts = 500;
         e2e.replay_capacity = 5_000;
         let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
@@ -194,7 +205,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         None => None,
         Some(c) => {
             let mut l = Learner::from_config(c, 6, &mut rng);
-            l.set_precision(args.precision);
+            l.set_precision(precision);
             let mut b = Batch::padded(c.batch_size, c.input_shape());
             for states in [&mut b.states, &mut b.next_states] {
                 for v in states.data_mut() {
@@ -227,7 +238,9 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             "{}",
             serde_json::json!({
                 "threads": threads,
-                "precision": args.precision,
+                "precision": precision,
+                "auto_precision": auto.precision,
+                "auto_train_step_ms": auto.times_ms.map(|t| serde_json::json!({"f32": t.0, "bf16": t.1})),
                 "kernel_family": family,
                 "kernels": kernels.iter().cloned().collect::<std::collections::BTreeMap<_, _>>(),
                 "train_step_ms": step_ms,
@@ -246,7 +259,8 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         );
     } else {
         out!("threads                 {threads}");
-        out!("precision               {:?} ({family})", args.precision);
+        out!("precision               {precision:?} ({family})");
+        out!("  auto here             {}", auto.why);
         for (name, k) in &kernels {
             out!("  {name:<21} {k}");
         }

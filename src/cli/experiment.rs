@@ -797,7 +797,8 @@ fn check_reuse(dir: &Path, preset: Preset, overrides: &str, seed: u64) -> anyhow
 }
 
 /// The keys whose values differ between two configurations, as `key: A, not B` (`[env]`'s keys as
-/// `env.KEY`), leaving out the budget (`episodes`, `max_frames`).
+/// `env.KEY`), leaving out the budget (`episodes`, `max_frames`), and the precision where `asked`
+/// says `auto`.
 fn config_differences(had: &Config, asked: &Config) -> Vec<String> {
     let flat = |c: &Config| -> std::collections::BTreeMap<String, toml::Value> {
         let mut out = std::collections::BTreeMap::new();
@@ -813,6 +814,10 @@ fn config_differences(had: &Config, asked: &Config) -> Vec<String> {
         }
         out.remove("episodes");
         out.remove("max_frames");
+        // `auto` asks for whichever precision the run measured faster: either answers it.
+        if asked.precision == invaders::tensor::plan::Precision::Auto {
+            out.remove("precision");
+        }
         out
     };
     let (a, b) = (flat(had), flat(asked));

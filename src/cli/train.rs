@@ -202,6 +202,12 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         config.episodes = NO_EPISODE_LIMIT;
     }
     config.validate()?;
+    if resumed.is_none() && config.precision == Precision::Auto {
+        // Measured here, on this run's thread pool; config.toml records the answer.
+        let r = invaders::dqn::resolve_precision(&config);
+        say!("{}", r.why);
+        config.precision = r.precision;
+    }
     super::note_precision(config.precision);
     if let Some((ckpt, _)) = &resumed {
         let c = &ckpt.counters;

@@ -32,8 +32,8 @@ pub enum Preset {
     /// Beyond the article, chosen by measurement to play well within an afternoon on a 2-core
     /// machine: the `v5` game, Double DQN with a dueling head, 3-step returns, life loss ending
     /// bootstrapping, clipped rewards, Huber loss, a 400 000-transition memory, a slower target,
-    /// a faster ε schedule, a learning rate falling to a tenth, bf16 products and 13.5 million
-    /// frames (`docs/strong.md`).
+    /// a faster ε schedule, a learning rate falling to a tenth, the faster of f32 and bf16
+    /// products on the host (`auto`) and 13.5 million frames (`docs/strong.md`).
     Strong,
 }
 
@@ -235,8 +235,9 @@ pub struct Config {
     /// Clip gradients to this global norm (0: no clipping).
     pub clip_grad_norm: f64,
     /// The training products' arithmetic: `f32`, or `bf16` operands with f32 sums where the CPU
-    /// has AVX512-BF16 (elsewhere f32; [`crate::tensor::plan::Precision`]). Weights, gradients,
-    /// Adam's state and checkpoints stay f32.
+    /// has AVX512-BF16 (elsewhere f32; [`crate::tensor::plan::Precision`]), or `auto`: whichever
+    /// trains faster here, measured when the run starts and recorded in its `config.toml`
+    /// ([`super::resolve_precision`]). Weights, gradients, Adam's state and checkpoints stay f32.
     #[serde(default)]
     pub precision: Precision,
     /// Clip rewards to [-1, 1] (the Nature DQN; the article does not).
@@ -348,7 +349,7 @@ impl Config {
                 life_loss_terminal: true,
                 clip_grad_norm: 10.0,
                 clip_rewards: true,
-                precision: Precision::Bf16,
+                precision: Precision::Auto,
                 checkpoint_every: 50,
                 plot_every: 25,
                 env: EnvConfig {

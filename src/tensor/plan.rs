@@ -32,8 +32,10 @@ use std::cell::Cell;
 
 /// The arithmetic of the training products. In bf16 the operands are rounded to bf16 (to
 /// nearest even, [`crate::tensor::bf16`]) and the sums stay f32, as do weights, gradients and
-/// Adam's state; only where the CPU has AVX512-BF16 ([`bf16_runs`]), elsewhere in f32. (The
-/// variants' comments are the command line's help.)
+/// Adam's state; only where the CPU has AVX512-BF16 ([`bf16_runs`]), elsewhere in f32. `auto`
+/// is a request, resolved to one of the two when a run starts
+/// (`crate::dqn::resolve_precision`); the layers take it as f32. (The variants' comments are
+/// the command line's help.)
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Precision {
@@ -42,6 +44,9 @@ pub enum Precision {
     F32,
     /// bf16 operands, f32 sums (CPUs with AVX512-BF16; elsewhere f32).
     Bf16,
+    /// Whichever of f32 and bf16 trains faster on this CPU and thread count, measured when the
+    /// run starts and recorded in its config.toml.
+    Auto,
 }
 
 /// Whether products asked for in `precision` run in bf16 on this CPU: [`Precision::Bf16`] and
