@@ -568,6 +568,69 @@ fn an_interrupted_run_keeps_its_work() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// `train` of `cfg` on one thread with its standard error piped, and the lines it prints there.
+fn spawn_train(
+    cfg: &str,
+    seed: u64,
+    episodes: u64,
+    out: &Path,
+) -> (
+    std::process::Child,
+    std::io::Lines<BufReader<std::process::ChildStderr>>,
+) {
+    let mut child = bin()
+        .args([
+            "train",
+            "--config",
+            cfg,
+            "--seed",
+            &seed.to_string(),
+            "--threads",
+            "1",
+        ])
+        .args(["--episodes", &episodes.to_string(), "--out", s(out)])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    (child, lines)
+}
+
+/// Reads `lines` until one starts with `prefix`.
+fn wait_for_line(lines: &mut impl Iterator<Item = std::io::Result<String>>, prefix: &str) {
+    assert!(
+        lines.map_while(Result::ok).any(|l| l.starts_with(prefix)),
+        "no line `{prefix}…`"
+    );
+}
+
+fn sigterm(child: &std::process::Child) {
+    let sent = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(sent.success());
+}
+
+/// Runs the program with `args`, its standard output closed at once (a reader that left) if
+/// `close_stdout`, else discarded; fails the test if it runs over `secs` seconds. Returns its
+/// status and what it said on standard error.
+fn run_within(args: &[&str], close_stdout: bool, secs: u64) -> (std::process::ExitStatus, String) {
+    let mut child = bin()
+        .args(args)
+        .stdout(if close_stdout {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let status = wait_at_most(&mut child, secs, &args.join(" "));
+    (status, read_all(child.stderr.take()))
+}
+
 /// Waits for `child` at most `secs` seconds; kills it and fails the test if it is still running.
 fn wait_at_most(
     child: &mut std::process::Child,
@@ -678,8 +741,8 @@ fn an_output_file_is_replaced_whole_or_written_through_never_destroyed() {
     ok(&eval_gif(&run, &fifo, &[]));
     assert!(reader.join().unwrap().starts_with(b"GIF89a"));
     assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
-    let mut child = bin()
-        .args([
+    let (status, err) = run_within(
+        &[
             "eval",
             "--checkpoint",
             s(&run),
@@ -687,13 +750,10 @@ fn an_output_file_is_replaced_whole_or_written_through_never_destroyed() {
             "1",
             "--gif",
             s(&fifo),
-        ])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let status = wait_at_most(&mut child, 60, "eval --gif FIFO with no reader");
-    let err = read_all(child.stderr.take());
+        ],
+        false,
+        60,
+    );
     assert_eq!(status.code(), Some(1), "{err}");
     assert!(err.contains("no process is reading"), "{err}");
     assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
@@ -769,8 +829,8 @@ fn a_closed_or_failing_stream_costs_no_work() {
 
     // eval and plot into a pipe whose reader left: quiet, SIGPIPE, files written.
     let gif = root.join("play.gif");
-    let mut child = bin()
-        .args([
+    let (status, err) = run_within(
+        &[
             "eval",
             "--checkpoint",
             s(&run),
@@ -778,27 +838,15 @@ fn a_closed_or_failing_stream_costs_no_work() {
             "3",
             "--gif",
             s(&gif),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    drop(child.stdout.take());
-    let status = wait_at_most(&mut child, 120, "eval | closed");
-    let err = read_all(child.stderr.take());
+        ],
+        true,
+        120,
+    );
     assert_eq!(status.signal(), Some(libc::SIGPIPE), "{status:?}: {err}");
     assert!(err.is_empty(), "quiet: {err}");
     assert!(std::fs::read(&gif).unwrap().starts_with(b"GIF89a"));
     let png = root.join("curve.png");
-    let mut child = bin()
-        .args(["plot", s(&run), "--out", s(&png)])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    drop(child.stdout.take());
-    let status = wait_at_most(&mut child, 60, "plot | closed");
-    let err = read_all(child.stderr.take());
+    let (status, err) = run_within(&["plot", s(&run), "--out", s(&png)], true, 60);
     assert_eq!(status.signal(), Some(libc::SIGPIPE), "{status:?}: {err}");
     assert!(err.is_empty(), "quiet: {err}");
     assert!(png.is_file());
@@ -1057,19 +1105,12 @@ fn a_run_whose_checkpoint_is_lost_is_not_restarted_over_its_history() {
 #[test]
 fn an_input_without_end_does_not_hang() {
     let root = tmp("endless");
-    let mut child = bin()
-        .args([
-            "train",
-            "--config",
-            "/dev/zero",
-            "--out",
-            s(&root.join("zero")),
-        ])
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let status = wait_at_most(&mut child, 30, "--config /dev/zero");
-    let err = read_all(child.stderr.take());
+    let zero = root.join("zero");
+    let (status, err) = run_within(
+        &["train", "--config", "/dev/zero", "--out", s(&zero)],
+        false,
+        30,
+    );
     assert_eq!(status.code(), Some(1), "{err}");
     assert!(err.contains("larger than"), "{err}");
 
@@ -1097,10 +1138,7 @@ fn an_input_without_end_does_not_hang() {
         child.try_wait().unwrap().is_none(),
         "it waits for the writer"
     );
-    Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
+    sigterm(&child);
     let status = wait_at_most(&mut child, 10, "train on a FIFO config after SIGTERM");
     let err = read_all(child.stderr.take());
     assert_eq!(status.code(), Some(130), "{err}");
@@ -1113,22 +1151,10 @@ fn an_input_without_end_does_not_hang() {
         &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
     );
     let run = root.join("run");
-    let mut child = bin()
-        .args(["train", "--config", &cfg, "--seed", "3", "--threads", "1"])
-        .args(["--episodes", "1000000", "--out", s(&run)])
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
-    assert!(lines
-        .by_ref()
-        .map_while(Result::ok)
-        .any(|l| l.starts_with("ep 1 ")));
+    let (mut child, mut lines) = spawn_train(&cfg, 3, 1_000_000, &run);
+    wait_for_line(&mut lines, "ep 1 ");
     for _ in 0..2 {
-        Command::new("kill")
-            .args(["-TERM", &child.id().to_string()])
-            .status()
-            .unwrap();
+        sigterm(&child);
     }
     let rest: Vec<String> = lines.map_while(Result::ok).collect();
     let status = wait_at_most(&mut child, 30, "train after two SIGTERMs");
@@ -1230,22 +1256,10 @@ fn messages_say_what_is_so() {
         &FAST.replace("max_episode_steps = 50", "max_episode_steps = 3000"),
     );
     let last = root.join("last");
-    let mut child = bin()
-        .args(["train", "--config", &long, "--seed", "1", "--threads", "1"])
-        .args(["--episodes", "1", "--out", s(&last)])
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
-    assert!(lines
-        .by_ref()
-        .map_while(Result::ok)
-        .any(|l| l.starts_with("training preset")));
+    let (mut child, mut lines) = spawn_train(&long, 1, 1, &last);
+    wait_for_line(&mut lines, "training preset");
     std::thread::sleep(std::time::Duration::from_millis(300));
-    Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
+    sigterm(&child);
     let rest = lines.map_while(Result::ok).collect::<Vec<_>>().join("\n");
     let status = wait_at_most(&mut child, 120, "train stopped in its last episode");
     assert_eq!(status.code(), Some(0), "{rest}");

@@ -592,8 +592,24 @@ fn the_fake_terminal_transition_repeats_the_last_state() {
     }
 }
 
-/// A learner with a quantile head of 2 quantiles per action whose outputs are constants (dense2's
-/// biases; every weight zero): `online` and `target` are `[A, 2]` quantiles, action by action.
+/// A learner built with `head` whose outputs are constants (dense2's biases; every weight zero):
+/// `online` and `target` are dense2's biases of the two networks.
+fn constant_learner(head: Head, double: bool, online: &[f32], target: &[f32]) -> Learner {
+    let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
+    l.double = double;
+    for (net, b) in [(&mut l.online, online), (&mut l.target, target)] {
+        for p in net.params_mut() {
+            p.value.data_mut().fill(0.0);
+            if p.name == "dense2.bias" {
+                p.value.data_mut().copy_from_slice(b);
+            }
+        }
+    }
+    l
+}
+
+/// A learner with a quantile head of 2 quantiles per action whose outputs are constants:
+/// `online` and `target` are `[A, 2]` quantiles, action by action.
 fn quantile_learner(double: bool, online: [f32; 6], target: [f32; 6]) -> Learner {
     let head = Head {
         hidden: 8,
@@ -601,17 +617,7 @@ fn quantile_learner(double: bool, online: [f32; 6], target: [f32; 6]) -> Learner
         atoms: 2,
         iqn: None,
     };
-    let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
-    l.double = double;
-    for (net, b) in [(&mut l.online, online), (&mut l.target, target)] {
-        for p in net.params_mut() {
-            p.value.data_mut().fill(0.0);
-            if p.name == "dense2.bias" {
-                p.value.data_mut().copy_from_slice(&b);
-            }
-        }
-    }
-    l
+    constant_learner(head, double, &online, &target)
 }
 
 /// QR-DQN by hand. Online quantiles (τ = 1/4, 3/4) per action: [0, 2], [1, 1], [−1, 5] (means
@@ -652,8 +658,8 @@ fn quantile_targets_and_loss_match_a_hand_computation() {
 }
 
 /// A learner with an implicit quantile head (embedding after dense1) whose outputs are
-/// constants at every fraction (dense2's biases; every weight zero): `Z_τ(s, a) = online[a]` for
-/// the online network and `target[a]` for the target, whatever `τ`.
+/// constants at every fraction: `Z_τ(s, a) = online[a]` for the online network and `target[a]`
+/// for the target, whatever `τ`.
 fn iqn_learner(double: bool, online: [f32; 3], target: [f32; 3]) -> Learner {
     let head = Head {
         hidden: 8,
@@ -667,17 +673,7 @@ fn iqn_learner(double: bool, online: [f32; 3], target: [f32; 3]) -> Learner {
             policy_samples: 2,
         }),
     };
-    let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
-    l.double = double;
-    for (net, b) in [(&mut l.online, online), (&mut l.target, target)] {
-        for p in net.params_mut() {
-            p.value.data_mut().fill(0.0);
-            if p.name == "dense2.bias" {
-                p.value.data_mut().copy_from_slice(&b);
-            }
-        }
-    }
-    l
+    constant_learner(head, double, &online, &target)
 }
 
 /// IQN by hand. Online `Z` per action [1, 2, 0], the target's [4, 0, 1], at any fraction.

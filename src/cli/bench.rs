@@ -82,7 +82,6 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let threads = rayon::current_num_threads();
     let config = Config::preset(Preset::Article);
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let input = config.input_shape();
 
     // The train step on a random batch.
     // `auto`, as a run resolves it: here for the strong preset's network and batch.
@@ -98,21 +97,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let mut learner = Learner::from_config(&config, 6, &mut rng);
     learner.set_precision(precision);
     // Laid out as the agent's batches are: inside conv1's padding, a zero border.
-    let mut batch = Batch::padded(config.batch_size, input);
-    for states in [&mut batch.states, &mut batch.next_states] {
-        for v in states.data_mut() {
-            *v = rng.random_range(-1.0..1.0);
-        }
-        let [h, w, c] = input;
-        batch
-            .border
-            .zero(states.data_mut(), config.batch_size, h, w, c);
-    }
-    for i in 0..batch.len() {
-        batch.actions[i] = rng.random_range(0..6);
-        batch.rewards[i] = rng.random_range(0.0..10.0);
-        batch.dones[i] = rng.random_bool(0.05);
-    }
+    let batch = Batch::random(&config, &mut rng);
     let bf16_before = cpu::paths(Family::Bf16);
     for _ in 0..3 {
         learner.train_step(&batch);
@@ -206,18 +191,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         Some(c) => {
             let mut l = Learner::from_config(c, 6, &mut rng);
             l.set_precision(precision);
-            let mut b = Batch::padded(c.batch_size, c.input_shape());
-            for states in [&mut b.states, &mut b.next_states] {
-                for v in states.data_mut() {
-                    *v = rng.random_range(-1.0..1.0);
-                }
-                let [h, w, ch] = c.input_shape();
-                b.border.zero(states.data_mut(), c.batch_size, h, w, ch);
-            }
-            for i in 0..b.len() {
-                b.actions[i] = rng.random_range(0..6);
-                b.rewards[i] = rng.random_range(0.0..1.0);
-            }
+            let mut b = Batch::random(c, &mut rng);
             let times: Vec<f64> = (0..args.steps.max(1) + 3)
                 .map(|_| {
                     if let Some(iqn) = c.iqn() {

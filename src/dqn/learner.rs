@@ -70,6 +70,31 @@ impl Batch {
         }
     }
 
+    /// A batch for `config`'s network filled at random, laid out as the agent's (states inside
+    /// conv1's padding, [`Batch::padded`]): states uniform in [−1, 1), actions among 6, rewards
+    /// in [0, 1), one transition in 20 terminal, and an implicit quantile head's fractions. The
+    /// workload of the benchmarks and of `precision = "auto"`'s measurement.
+    pub fn random(config: &super::Config, rng: &mut impl Rng) -> Batch {
+        let input = config.input_shape();
+        let mut b = Batch::padded(config.batch_size, input);
+        for states in [&mut b.states, &mut b.next_states] {
+            for v in states.data_mut() {
+                *v = rng.random_range(-1.0..1.0);
+            }
+            let [h, w, c] = input;
+            b.border.zero(states.data_mut(), config.batch_size, h, w, c);
+        }
+        for i in 0..b.len() {
+            b.actions[i] = rng.random_range(0..6);
+            b.rewards[i] = rng.random_range(0.0..1.0);
+            b.dones[i] = rng.random_bool(0.05);
+        }
+        if let Some(iqn) = config.iqn() {
+            b.draw_fractions(rng, iqn.samples, iqn.target_samples);
+        }
+        b
+    }
+
     /// Draws an implicit quantile head's fractions, uniform on `[0, 1)`: `n` per state and
     /// `n_target` per next state (IQN trains at fresh fractions every step).
     pub fn draw_fractions(&mut self, rng: &mut impl Rng, n: usize, n_target: usize) {

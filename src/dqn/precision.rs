@@ -13,7 +13,7 @@
 
 use super::{Batch, Config, Learner};
 use crate::tensor::plan::{bf16_runs, Precision};
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
 
@@ -87,25 +87,8 @@ pub fn resolve_precision(config: &Config) -> Resolved {
 /// on a random batch (the measurement's own generator: the run's streams are not touched).
 fn time_both(config: &Config) -> (f64, f64) {
     let mut rng = ChaCha8Rng::seed_from_u64(0x7072_6563);
-    let input = config.input_shape();
     let mut learner = Learner::from_config(config, 6, &mut rng);
-    let mut batch = Batch::padded(config.batch_size, input);
-    for states in [&mut batch.states, &mut batch.next_states] {
-        for v in states.data_mut() {
-            *v = rng.random_range(-1.0..1.0);
-        }
-        let [h, w, c] = input;
-        batch
-            .border
-            .zero(states.data_mut(), config.batch_size, h, w, c);
-    }
-    for i in 0..batch.len() {
-        batch.actions[i] = rng.random_range(0..6);
-        batch.rewards[i] = rng.random_range(0.0..1.0);
-    }
-    if let Some(iqn) = config.iqn() {
-        batch.draw_fractions(&mut rng, iqn.samples, iqn.target_samples);
-    }
+    let batch = Batch::random(config, &mut rng);
     let mut times = [Vec::new(), Vec::new()];
     for round in 0..WARMUP + TIMED {
         for (k, p) in [Precision::F32, Precision::Bf16].into_iter().enumerate() {

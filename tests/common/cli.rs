@@ -51,3 +51,65 @@ pub fn tmp_dir(prefix: &str, name: &str) -> PathBuf {
     std::fs::create_dir_all(&d).unwrap();
     d
 }
+
+/// Trains `config` (a TOML file) with `seed` on one thread twice in `root`: `straight` to
+/// `total` episodes, and `split` to `stop` episodes then resumed to `total`. Returns both
+/// directories, for a test that the two end alike.
+#[allow(dead_code)]
+pub fn straight_and_resumed(
+    root: &std::path::Path,
+    config: &std::path::Path,
+    seed: u64,
+    stop: u64,
+    total: u64,
+) -> (PathBuf, PathBuf) {
+    let run = |out: &std::path::Path, episodes: u64| {
+        ok(&invaders(&[
+            "train",
+            "--config",
+            config.to_str().unwrap(),
+            "--seed",
+            &seed.to_string(),
+            "--threads",
+            "1",
+            "--episodes",
+            &episodes.to_string(),
+            "--out",
+            out.to_str().unwrap(),
+        ]))
+    };
+    let (straight, split) = (root.join("straight"), root.join("split"));
+    run(&straight, total);
+    run(&split, stop);
+    ok(&invaders(&[
+        "train",
+        "--resume",
+        split.to_str().unwrap(),
+        "--threads",
+        "1",
+        "--episodes",
+        &total.to_string(),
+    ]));
+    (straight, split)
+}
+
+/// A checkpoint's online weights, tensor by tensor.
+#[allow(dead_code)]
+pub fn online_weights(c: &invaders::dqn::checkpoint::Checkpoint) -> Vec<Vec<f32>> {
+    c.learner
+        .online
+        .params()
+        .map(|p| p.value.data().to_vec())
+        .collect()
+}
+
+/// A run's `metrics.csv` rows without their last column (the wall seconds, which differ between
+/// two runs of the same episodes).
+#[allow(dead_code)]
+pub fn metrics_but_wall_time(dir: &std::path::Path) -> Vec<String> {
+    std::fs::read_to_string(dir.join("metrics.csv"))
+        .unwrap()
+        .lines()
+        .map(|l| l.rsplit_once(',').unwrap().0.to_string())
+        .collect()
+}
