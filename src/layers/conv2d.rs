@@ -343,7 +343,7 @@ impl<T: Float> Layer<T> for Conv2d<T> {
     }
 
     /// `y = border(act(b + im2col(x)·W))`, by the kernel the plan picks for this batch
-    /// ([`Conv2d::forward_im2col`] on the portable path).
+    /// (im2col and one GEMM on the portable path).
     ///
     /// The input may also arrive already padded (see [`Conv2d::input_geometry`]).
     fn forward(&mut self, x: &Tensor<T>) {
