@@ -1,0 +1,402 @@
+//! Running an experiment's jobs: each training and evaluation is an `invaders` child process,
+//! `--jobs` at a time, each run evaluated as soon as it has trained.
+
+use super::*;
+
+/// How long each run trains.
+#[derive(Clone, Copy)]
+pub(super) enum Budget {
+    Episodes(u64),
+    Frames(u64),
+}
+
+impl Budget {
+    /// Whether a run with these counters has trained its budget.
+    fn done(self, c: &checkpoint::Counters) -> bool {
+        match self {
+            Budget::Episodes(e) => c.episodes >= e,
+            Budget::Frames(f) => c.frames >= f,
+        }
+    }
+
+    /// The `train` flag that sets it.
+    fn flag(self) -> [String; 2] {
+        match self {
+            Budget::Episodes(e) => ["--episodes".into(), e.to_string()],
+            Budget::Frames(f) => ["--frames".into(), f.to_string()],
+        }
+    }
+}
+
+/// One training run of an experiment.
+pub(super) struct Job<'a> {
+    pub(super) label: &'a str,
+    pub(super) preset: Preset,
+    pub(super) seed: u64,
+    pub(super) cfg: PathBuf,
+    pub(super) dir: PathBuf,
+    /// Kernel threads of its training (`train --threads`).
+    pub(super) threads: usize,
+}
+
+/// What an experiment asks of each finished run's final network.
+#[derive(Clone, Copy)]
+pub(super) struct Evals {
+    /// Protocol episodes (`eval --protocol`).
+    pub(super) protocol: u32,
+    /// `preprocessing`: episodes in the run's own game with ε = 0.05, on seed 1000 + the run's
+    /// seed.
+    pub(super) own_game: Option<u32>,
+}
+
+/// A run trained to its budget and evaluated: its record (kept with `--keep` or not) and where
+/// its per-episode `metrics.csv` is (in its run directory, or in its `--keep` record).
+pub(super) struct Finished {
+    pub(super) record: Record,
+    pub(super) metrics: PathBuf,
+}
+
+/// Trains every job to `budget` (each continued if it exists), `workers` at a time, and
+/// evaluates each as soon as it has trained, while the others train; with `keep`, a job whose
+/// record there answers the same question is taken as it is, and each newly finished job's
+/// record is written there. Returns the jobs in their order; fails after all have stopped if
+/// any failed, and returns [`Interrupted`] if a run or evaluation was stopped by a signal (then
+/// nothing further starts).
+pub(super) fn run_all(
+    exe: &Path,
+    jobs: &[Job<'_>],
+    workers: Option<usize>,
+    budget: Budget,
+    evals: Evals,
+    keep: Option<&Path>,
+) -> anyhow::Result<Vec<Finished>> {
+    let workers = worker_count(workers);
+    let next = Mutex::new(0..jobs.len());
+    let results: Vec<Mutex<Option<anyhow::Result<Finished>>>> =
+        jobs.iter().map(|_| Mutex::new(None)).collect();
+    // A run stopped by a signal (ours, passed on, or one sent to it alone) stops the experiment:
+    // no further run starts.
+    let stopped = AtomicBool::new(false);
+    std::thread::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|| loop {
+                if stopped.load(Ordering::SeqCst) || stop::requested() {
+                    break;
+                }
+                let Some(i) = next.lock().expect("queue").next() else {
+                    break;
+                };
+                let r = finish_one(exe, &jobs[i], budget, evals, keep);
+                if matches!(&r, Err(e) if e.is::<Interrupted>()) {
+                    stopped.store(true, Ordering::SeqCst);
+                }
+                *results[i].lock().expect("result") = Some(r);
+            });
+        }
+    });
+    let mut failures = Vec::new();
+    let mut finished = Vec::new();
+    for (job, r) in jobs.iter().zip(results) {
+        match r.into_inner().expect("result") {
+            Some(Ok(f)) => finished.push(f),
+            Some(Err(err)) if err.is::<Interrupted>() => {}
+            Some(Err(err)) => failures.push(format!("{}-seed{}: {err:#}", job.label, job.seed)),
+            None => {}
+        }
+    }
+    if !failures.is_empty() {
+        bail!("some runs failed:\n{}", failures.join("\n"));
+    }
+    if stopped.into_inner() || stop::requested() || finished.len() < jobs.len() {
+        return Err(stop::stopped());
+    }
+    Ok(finished)
+}
+
+/// One job of [`run_all`]: its `--keep` record if that answers the same question, else trained,
+/// evaluated and (with `keep`) recorded.
+pub(super) fn finish_one(
+    exe: &Path,
+    job: &Job<'_>,
+    budget: Budget,
+    evals: Evals,
+    keep: Option<&Path>,
+) -> anyhow::Result<Finished> {
+    let name = format!("{}-seed{}", job.label, job.seed);
+    let overrides = std::fs::read_to_string(&job.cfg)
+        .with_context(|| format!("cannot read {}", job.cfg.display()))?;
+    let kept = keep.map(|k| k.join(&name));
+    if let Some(k) = &kept {
+        if let Some(r) = read_record(k)? {
+            if r.preset == job.preset.name()
+                && r.seed == job.seed
+                && r.overrides == overrides
+                && r.protocol_episodes == evals.protocol
+                && r.own_game_episodes == evals.own_game
+                && budget.done(&r.counters)
+            {
+                say!(
+                    "{name}: kept in {} ({} episodes, {} frames, evaluated)",
+                    k.display(),
+                    r.counters.episodes,
+                    r.counters.frames
+                );
+                return Ok(Finished {
+                    record: r,
+                    metrics: k.join("metrics.csv"),
+                });
+            }
+            say!(
+                "{name}: the record in {} is of another configuration, budget or evaluation; \
+                 it is replaced when the run has trained and been evaluated",
+                k.display()
+            );
+        }
+    }
+    train_one(exe, job, budget)?;
+    let counters = checkpoint::load(&job.dir.join(checkpoint::CHECKPOINT_FILE))?.counters;
+    let own_game = match evals.own_game {
+        Some(episodes) => Some(evaluate(exe, &job.dir, episodes, 1000 + job.seed)?),
+        None => None,
+    };
+    let protocol = evaluate_protocol(exe, &job.dir, evals.protocol)?;
+    log_evaluations(&job.dir, &counters, &protocol, own_game.as_ref());
+    let record = Record {
+        preset: job.preset.name().to_string(),
+        seed: job.seed,
+        overrides,
+        protocol_episodes: evals.protocol,
+        own_game_episodes: evals.own_game,
+        counters,
+        protocol,
+        own_game,
+    };
+    if let Some(k) = &kept {
+        write_record(k, &job.dir, &record)?;
+        say!("{name}: recorded in {}", k.display());
+    }
+    Ok(Finished {
+        record,
+        metrics: job.dir.join("metrics.csv"),
+    })
+}
+
+/// Trains one run to `budget`, continuing it if it exists; [`Interrupted`] if a signal stopped it
+/// (or a stop came before it started).
+pub(super) fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
+    let (label, seed, dir) = (job.label, job.seed, &job.dir);
+    let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
+    let mut cmd = invaders_command(exe);
+    if ckpt.exists() {
+        let counters = checkpoint::load(&ckpt)?.counters;
+        if budget.done(&counters) {
+            say!(
+                "{label}-seed{seed}: already trained ({} episodes, {} frames)",
+                counters.episodes,
+                counters.frames
+            );
+            return Ok(());
+        }
+        cmd.args(["train", "--resume"]).arg(dir);
+    } else {
+        // `train --out` starts a run stopped before its first checkpoint again, and refuses a
+        // directory whose checkpoint was lost (its history is kept).
+        cmd.args([
+            "train",
+            "--preset",
+            job.preset.name(),
+            "--seed",
+            &seed.to_string(),
+            "--config",
+        ])
+        .arg(&job.cfg)
+        .arg("--out")
+        .arg(dir);
+    }
+    cmd.args(budget.flag())
+        .args(["--threads", &job.threads.to_string()]);
+    std::fs::create_dir_all(dir.parent().unwrap_or(Path::new(".")))?;
+    let log_path = dir.with_extension("log");
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log_path)?;
+    say!("{label}-seed{seed}: training (log: {})", log_path.display());
+    let Some(out) =
+        stop::run(cmd.stdout(log.try_clone()?).stderr(log)).context("cannot run invaders train")?
+    else {
+        return Err(Interrupted.into());
+    };
+    let status = out.status;
+    if status.code() == Some(130) {
+        say!("{label}-seed{seed}: stopped with a checkpoint");
+        return Err(Interrupted.into());
+    }
+    // Killed by the stop before it could catch it (while it loaded its replay memory, say):
+    // nothing of it was lost, and this is a stop, not a failure.
+    if stop::requested() && std::os::unix::process::ExitStatusExt::signal(&status).is_some() {
+        say!("{label}-seed{seed}: stopped before it trained");
+        return Err(Interrupted.into());
+    }
+    if !status.success() {
+        return Err(anyhow!(
+            "invaders train failed ({status}); see {}",
+            log_path.display()
+        ));
+    }
+    say!("{label}-seed{seed}: done");
+    Ok(())
+}
+
+/// The evaluation of a run's final checkpoint in its own game (its own `env` settings, ε = 0.05).
+pub(super) fn evaluate(exe: &Path, dir: &Path, episodes: u32, seed: u64) -> anyhow::Result<Scores> {
+    let (episodes, seed) = (episodes.to_string(), seed.to_string());
+    let last = run_eval(exe, dir, &["--episodes", &episodes, "--seed", &seed])?;
+    parse_scores(&last)
+}
+
+/// Runs `invaders eval` on a run's final checkpoint with `args` (one thread) and returns its
+/// summary line (`… mean M std S min A max B`); [`Interrupted`] if a stop came first or ended
+/// it.
+pub(super) fn run_eval(exe: &Path, dir: &Path, args: &[&str]) -> anyhow::Result<String> {
+    let mut cmd = invaders_command(exe);
+    cmd.args(["eval", "--threads", "1"])
+        .args(args)
+        .arg("--checkpoint")
+        .arg(dir)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped());
+    let out = stop::run(&mut cmd).context("cannot run invaders eval")?;
+    let Some(out) = out.filter(|_| !stop::requested()) else {
+        return Err(Interrupted.into());
+    };
+    if !out.status.success() {
+        bail!(
+            "eval of {} failed: {}",
+            dir.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    Ok(text.lines().last().unwrap_or_default().to_string())
+}
+
+/// An evaluation's summary.
+#[derive(Clone, Copy, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct Scores {
+    pub(super) mean: f64,
+    pub(super) std: f64,
+    pub(super) min: f64,
+    pub(super) max: f64,
+}
+
+/// Evaluates a run's final network by the protocol (`eval --protocol`: `v5`, ε = 0.01, seed
+/// 1 000 000) over `episodes` episodes. The summary is kept beside the run (`DIR.protocol`, with
+/// the frames the network was trained for): evaluation is deterministic, so asking again for
+/// the same network and episodes reads it back instead of playing them again.
+pub(super) fn evaluate_protocol(exe: &Path, dir: &Path, episodes: u32) -> anyhow::Result<Scores> {
+    let frames = checkpoint::load(&dir.join(checkpoint::CHECKPOINT_FILE))?
+        .counters
+        .frames;
+    let key = format!("frames {frames} episodes {episodes}");
+    let cache = dir.with_extension("protocol");
+    // A summary kept for this network and these episodes; anything else (another network, a
+    // file cut short) is played again.
+    let kept = std::fs::read_to_string(&cache).ok().and_then(|text| {
+        let (k, line) = text.split_once('\n')?;
+        (k == key).then(|| parse_scores(line.trim_end()).ok())?
+    });
+    if let Some(scores) = kept {
+        return Ok(scores);
+    }
+    let last = run_eval(
+        exe,
+        dir,
+        &["--protocol", "--episodes", &episodes.to_string()],
+    )?;
+    let scores = parse_scores(&last)?;
+    std::fs::write(&cache, format!("{key}\n{last}\n"))
+        .with_context(|| format!("cannot write {}", cache.display()))?;
+    Ok(scores)
+}
+
+/// The scores of an `eval` summary line (`… mean M std S min A max B`).
+pub(super) fn parse_scores(last: &str) -> anyhow::Result<Scores> {
+    let field = |name: &str| {
+        last.split(&format!(" {name} "))
+            .nth(1)
+            .and_then(|s| s.split_whitespace().next())
+            .and_then(|v| v.parse::<f64>().ok())
+            .ok_or_else(|| anyhow!("cannot read `{name}` from the eval summary `{last}`"))
+    };
+    Ok(Scores {
+        mean: field("mean")?,
+        std: field("std")?,
+        min: field("min")?,
+        max: field("max")?,
+    })
+}
+
+/// This program, which each run and evaluation runs again as a child process. On Linux that is
+/// `/proc/self/exe`: the very file this process started from, even after a `cargo build` has
+/// replaced it during an experiment of hours (its path would then name a new program, or for a
+/// moment none), so every run of an experiment trains with the program it started with.
+pub(super) fn exe_path() -> anyhow::Result<PathBuf> {
+    let own = Path::new("/proc/self/exe");
+    if cfg!(target_os = "linux") && own.exists() {
+        return Ok(own.to_path_buf());
+    }
+    std::env::current_exe().context("cannot find the invaders executable")
+}
+
+/// A command running `exe` (from [`exe_path`]), which names itself `invaders` in its messages.
+pub(super) fn invaders_command(exe: &Path) -> Command {
+    let mut cmd = Command::new(exe);
+    #[cfg(unix)]
+    std::os::unix::process::CommandExt::arg0(&mut cmd, "invaders");
+    cmd
+}
+
+/// This command as a shell would take it back: `invaders` and its arguments, each quoted where
+/// the shell would otherwise split or expand it.
+pub(super) fn command_line() -> String {
+    let quote = |a: String| {
+        if !a.is_empty()
+            && a.chars()
+                .all(|c| c.is_ascii_alphanumeric() || "-_./,=:+".contains(c))
+        {
+            a
+        } else {
+            format!("'{}'", a.replace('\'', "'\\''"))
+        }
+    };
+    std::iter::once("invaders".to_string())
+        .chain(std::env::args().skip(1).map(quote))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// What a finished run reports beside its score.
+pub(super) struct RunSummary {
+    pub(super) frames: u64,
+    pub(super) hours: f64,
+    pub(super) steps_per_second: f64,
+    /// The mean reward of its last 100 training episodes.
+    pub(super) last100: f64,
+    /// Its training curve: (frames, reward) per episode.
+    pub(super) points: Vec<(f64, f64)>,
+}
+
+pub(super) fn summarize(run: &Finished) -> anyhow::Result<RunSummary> {
+    let c = run.record.counters;
+    let points = read_frame_metrics(&run.metrics)?;
+    let tail = &points[points.len().saturating_sub(100)..];
+    Ok(RunSummary {
+        frames: c.frames,
+        hours: c.wall_seconds / 3600.0,
+        steps_per_second: c.agent_steps as f64 / c.wall_seconds.max(1e-9),
+        last100: tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64,
+        points,
+    })
+}
