@@ -303,74 +303,57 @@ impl Learner {
     ///    one Adam step.
     pub fn q_step(&mut self, batch: &Batch) -> StepStats {
         let (b, na, k) = (batch.len(), self.n_actions, self.atoms);
-        self.q_taken.resize(b * k, 0.0);
-        self.y.resize(b * k, 0.0);
-        self.dq_taken.resize(b * k, 0.0);
-        self.next_greedy.resize(b, 0);
-        // The passes over s' are inference (no backward follows): `infer`, which skips the
-        // zeros the ReLUs leave where they are most of the activations (a trained network).
-        if self.double && self.munchausen.is_none() {
-            let q_next = self.online.infer(&batch.next_states);
-            for (g, row) in self
-                .next_greedy
-                .iter_mut()
-                .zip(q_next.data().chunks_exact(na * k))
-            {
-                *g = greedy_atoms(row, k);
-            }
+        for buf in [&mut self.q_taken, &mut self.y, &mut self.dq_taken] {
+            buf.resize(b * k, 0.0);
+        }
+        // Double DQN: the online network picks a' (the soft target of Munchausen needs none).
+        // The passes over s' are inference (no backward follows): `infer` skips the zeros the
+        // ReLUs leave where they are most of the activations (a trained network).
+        let double = self.double && self.munchausen.is_none();
+        if double {
+            let q_next = self.online.infer(&batch.next_states).data();
+            greedy_actions(q_next, b, k, &mut self.next_greedy);
         }
         // The target network's pass over s' and the online network's over s are independent:
-        // they run side by side, each layer's work still split over the pool (a thread that
-        // finishes its share early takes work from the other pass instead of waiting).
+        // they run side by side, each layer's work still split over the pool.
         let (target, online) = (&mut self.target, &mut self.online);
         let (q_next, q) = rayon::join(
             || target.infer(&batch.next_states),
             || online.forward(&batch.states),
         );
-        if let Some(m) = self.munchausen {
-            // The soft target needs the target network's values of s too.
-            let q_next = q_next.data().to_vec();
-            let q_s = target.infer(&batch.states).data();
-            for (i, y) in self.y.iter_mut().enumerate() {
-                let (now, next) = (&q_s[i * na..(i + 1) * na], &q_next[i * na..(i + 1) * na]);
-                let cont = if batch.dones[i] { 0.0 } else { 1.0 };
-                let discount = self.gamma.powi(batch.steps[i] as i32);
-                *y = batch.rewards[i]
-                    + m.bonus(now, batch.actions[i])
-                    + discount * cont * m.soft_value(next, next);
+        // 1. The TD targets y.
+        match self.munchausen {
+            None => {
+                let picked = double.then_some(&self.next_greedy[..]);
+                td_targets(batch, q_next.data(), picked, self.gamma, k, &mut self.y)
             }
-        } else {
-            // y: one TD target per sample, or with a quantile head K target samples per
-            // sample: `T_j = R + γ^m·(1 − done)·θ_j(s', a')`, each quantile of the bootstrapped
-            // action.
-            for (i, row) in q_next.data().chunks_exact(na * k).enumerate() {
-                let a_next = if self.double {
-                    self.next_greedy[i]
-                } else {
-                    greedy_atoms(row, k)
-                };
-                let cont = if batch.dones[i] { 0.0 } else { 1.0 };
-                let discount = self.gamma.powi(batch.steps[i] as i32);
-                for (y, &future) in self.y[i * k..(i + 1) * k]
-                    .iter_mut()
-                    .zip(&row[a_next * k..(a_next + 1) * k])
-                {
-                    *y = batch.rewards[i] + discount * cont * future;
-                }
+            Some(m) => {
+                let q_next = q_next.data().to_vec();
+                let q_s = target.infer(&batch.states).data();
+                m.targets(batch, &q_next, q_s, self.gamma, &mut self.y)
             }
         }
-        let mut max_q_sum = 0.0;
-        for (i, row) in q.data().chunks_exact(na * k).enumerate() {
-            let a = batch.actions[i];
-            self.q_taken[i * k..(i + 1) * k].copy_from_slice(&row[a * k..(a + 1) * k]);
-            max_q_sum += if k == 1 {
-                row[argmax(row)]
-            } else {
-                let best = greedy_atoms(row, k);
-                mean(&row[best * k..(best + 1) * k])
-            };
+        // 2. Q(s, a) of the taken actions.
+        let max_q_sum = taken_values(q.data(), batch, k, &mut self.q_taken);
+        // 3. The loss and its gradient ∂L/∂Q(s, a), weighted under prioritized sampling.
+        let loss = self.regression_loss(batch);
+        // 4. Backward from dQ (non-zero at the taken actions only), then one Adam step.
+        scatter_rows(&self.dq_taken, batch, na * k, k, &mut self.dq);
+        let grad_norm = self.backward_and_step(batch);
+        StepStats {
+            loss,
+            mean_max_q: max_q_sum / b as f32,
+            grad_norm,
         }
-        let mut loss = if k == 1 {
+    }
+
+    /// The loss of `q_taken` against `y` (MSE or Huber; with a quantile head the quantile Huber
+    /// loss), writing `∂L/∂Q` into `dq_taken` and the TD errors (of the means, with a quantile
+    /// head) for prioritized replay; under prioritized sampling each term and its gradient are
+    /// weighted by `batch.weights` ([`weight_terms`]).
+    fn regression_loss(&mut self, batch: &Batch) -> f32 {
+        let (b, k) = (batch.len(), self.atoms);
+        let loss = if k == 1 {
             self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken)
         } else {
             self.per_sample.resize(b, 0.0);
@@ -382,7 +365,6 @@ impl Learner {
                 &mut self.per_sample,
             )
         };
-        // The TD errors (of the means, with a quantile head), for prioritized replay.
         self.td.clear();
         self.td.extend(
             self.q_taken
@@ -396,36 +378,22 @@ impl Learner {
                     }
                 }),
         );
-        if !batch.weights.is_empty() {
-            // The weighted mean: each term's share of the mean loss and its gradient scaled by
-            // its weight (one-term losses recomputed from the same function).
-            let mut one = [0.0f32];
-            loss = 0.0;
-            for (i, &w) in batch.weights.iter().enumerate() {
-                let l = if k == 1 {
+        if batch.weights.is_empty() {
+            return loss;
+        }
+        // One-term losses recomputed from the same function.
+        let mut one = [0.0f32];
+        let terms: Vec<f32> = (0..b)
+            .map(|i| {
+                if k == 1 {
                     self.loss
                         .eval(&self.q_taken[i..=i], &self.y[i..=i], &mut one)
                 } else {
                     self.per_sample[i]
-                };
-                loss += w * l / b as f32;
-                for d in &mut self.dq_taken[i * k..(i + 1) * k] {
-                    *d *= w;
                 }
-            }
-        }
-        self.dq.set_shape(&[b, na * k]);
-        self.dq.fill_zero();
-        for (i, row) in self.dq.data_mut().chunks_exact_mut(na * k).enumerate() {
-            let a = batch.actions[i];
-            row[a * k..(a + 1) * k].copy_from_slice(&self.dq_taken[i * k..(i + 1) * k]);
-        }
-        let grad_norm = self.backward_and_step(batch);
-        StepStats {
-            loss,
-            mean_max_q: max_q_sum / b as f32,
-            grad_norm,
-        }
+            })
+            .collect();
+        weight_terms(&batch.weights, &terms, k, &mut self.dq_taken)
     }
 
     /// One update of an implicit quantile network (IQN, Dabney et al. 2018) on `batch`, whose
@@ -461,9 +429,12 @@ impl Learner {
         if self.double && self.munchausen.is_none() {
             self.online.set_fractions(&midpoints(k, b));
             let q_next = self.online.infer(&batch.next_states).data();
-            for (g, rows) in self.next_greedy.iter_mut().zip(q_next.chunks_exact(k * na)) {
-                *g = greedy_rows(rows, na);
-            }
+            self.next_greedy.clear();
+            self.next_greedy.extend(
+                q_next
+                    .chunks_exact(k * na)
+                    .map(|rows| greedy_rows(rows, na)),
+            );
         }
         self.target.set_fractions(&next_taus);
         self.online.set_fractions(&batch.taus);
@@ -543,20 +514,10 @@ impl Learner {
                 .map(|(q, y)| mean(q) - mean(y)),
         );
         if !batch.weights.is_empty() {
-            loss = 0.0;
-            for (i, &w) in batch.weights.iter().enumerate() {
-                loss += w * self.per_sample[i] / b as f32;
-                for d in &mut self.dq_taken[i * n..(i + 1) * n] {
-                    *d *= w;
-                }
-            }
+            loss = weight_terms(&batch.weights, &self.per_sample, n, &mut self.dq_taken);
         }
         // 4. `dZ`: each row's gradient at its sample's action only.
-        self.dq.set_shape(&[b * n, na]);
-        self.dq.fill_zero();
-        for (r, row) in self.dq.data_mut().chunks_exact_mut(na).enumerate() {
-            row[batch.actions[r / n]] = self.dq_taken[r];
-        }
+        scatter_rows(&self.dq_taken, batch, na, 1, &mut self.dq);
         let grad_norm = self.backward_and_step(batch);
         StepStats {
             loss,
@@ -580,6 +541,88 @@ impl Learner {
     }
 }
 
+/// The TD targets `y` (`[B, k]`) from the target network's outputs for the next states
+/// (`q_next`, `[B, A·k]`): `y = R + γ^m·(1 − done)·Q_target(s', a')` with `a'` the greedy action of
+/// `q_next`, or `picked` (Double DQN: the online network's). With a quantile head, one target
+/// sample per quantile of `a'`: `T_j = R + γ^m·(1 − done)·θ_j(s', a')`.
+fn td_targets(
+    batch: &Batch,
+    q_next: &[f32],
+    picked: Option<&[usize]>,
+    gamma: f32,
+    k: usize,
+    y: &mut [f32],
+) {
+    let per = q_next.len() / batch.len();
+    for (i, row) in q_next.chunks_exact(per).enumerate() {
+        let a_next = match picked {
+            Some(p) => p[i],
+            None => greedy_atoms(row, k),
+        };
+        let cont = if batch.dones[i] { 0.0 } else { 1.0 };
+        let discount = gamma.powi(batch.steps[i] as i32);
+        for (y, &future) in y[i * k..(i + 1) * k]
+            .iter_mut()
+            .zip(&row[a_next * k..(a_next + 1) * k])
+        {
+            *y = batch.rewards[i] + discount * cont * future;
+        }
+    }
+}
+
+/// The greedy action of each of `b` samples' outputs (`q`: `[B, A·k]`, [`greedy_atoms`]), into
+/// `out`.
+fn greedy_actions(q: &[f32], b: usize, k: usize, out: &mut Vec<usize>) {
+    out.clear();
+    out.extend(q.chunks_exact(q.len() / b).map(|row| greedy_atoms(row, k)));
+}
+
+/// Copies the outputs of the taken actions (`k` values each) from `q` (`[B, A·k]`) into `taken`
+/// (`[B, k]`); returns the sum over the batch of `max_a Q(s, a)` (a quantile head's best mean).
+fn taken_values(q: &[f32], batch: &Batch, k: usize, taken: &mut [f32]) -> f32 {
+    let mut max_q_sum = 0.0;
+    let per = q.len() / batch.len();
+    for (i, row) in q.chunks_exact(per).enumerate() {
+        let a = batch.actions[i];
+        taken[i * k..(i + 1) * k].copy_from_slice(&row[a * k..(a + 1) * k]);
+        max_q_sum += if k == 1 {
+            row[argmax(row)]
+        } else {
+            let best = greedy_atoms(row, k);
+            mean(&row[best * k..(best + 1) * k])
+        };
+    }
+    max_q_sum
+}
+
+/// The upstream gradient `dQ` (`[R, width]`), zero but at the taken actions: `d_taken` holds `k`
+/// values per row (the atoms of one action), which go at the action of the row's sample; a
+/// sample has `R/B` rows, one after another (an implicit quantile head's fractions; else one).
+fn scatter_rows(d_taken: &[f32], batch: &Batch, width: usize, k: usize, dq: &mut Tensor<f32>) {
+    let rows = d_taken.len() / k;
+    let per_sample = rows / batch.len();
+    dq.set_shape(&[rows, width]);
+    dq.fill_zero();
+    for (r, row) in dq.data_mut().chunks_exact_mut(width).enumerate() {
+        let a = batch.actions[r / per_sample];
+        row[a * k..(a + 1) * k].copy_from_slice(&d_taken[r * k..(r + 1) * k]);
+    }
+}
+
+/// Prioritized replay's weighted mean loss `(1/B) Σ_b w_b·ℓ_b` from each sample's term `ℓ_b`,
+/// with each sample's `per` gradient entries in `d` scaled by its weight `w_b`.
+fn weight_terms(weights: &[f32], terms: &[f32], per: usize, d: &mut [f32]) -> f32 {
+    let b = weights.len();
+    let mut loss = 0.0;
+    for (i, (&w, &l)) in weights.iter().zip(terms).enumerate() {
+        loss += w * l / b as f32;
+        for d in &mut d[i * per..(i + 1) * per] {
+            *d *= w;
+        }
+    }
+    loss
+}
+
 /// Munchausen RL's targets (Vieillard et al. 2020): a soft Q-learning target, `π = softmax(q/τ)`
 /// of the target network's values, plus the scaled log-policy of the action taken as a bonus
 ///
@@ -601,6 +644,20 @@ pub struct Munchausen {
 }
 
 impl Munchausen {
+    /// M-DQN's targets `y` (`[B]`) from the target network's values of the next states
+    /// (`q_next`) and of the states (`q_s`), both `[B, A]`.
+    pub fn targets(&self, batch: &Batch, q_next: &[f32], q_s: &[f32], gamma: f32, y: &mut [f32]) {
+        let na = q_s.len() / batch.len();
+        for (i, y) in y.iter_mut().enumerate() {
+            let (now, next) = (&q_s[i * na..(i + 1) * na], &q_next[i * na..(i + 1) * na]);
+            let cont = if batch.dones[i] { 0.0 } else { 1.0 };
+            let discount = gamma.powi(batch.steps[i] as i32);
+            *y = batch.rewards[i]
+                + self.bonus(now, batch.actions[i])
+                + discount * cont * self.soft_value(next, next);
+        }
+    }
+
     /// `τ·log π(·|s)` for one state's values `q` (`[A]`), into `out`.
     pub fn scaled_log_policy(&self, q: &[f32], out: &mut [f32]) {
         let max = q.iter().copied().fold(f32::NEG_INFINITY, f32::max);
