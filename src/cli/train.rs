@@ -236,7 +236,7 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         Some((mut ckpt, replay)) => {
             // A longer budget given on the command line is part of the resumed config.
             ckpt.config = config.clone();
-            Agent::resume(env, ckpt, replay)
+            ckpt.into_agent(env, replay)
                 .with_context(|| format!("cannot resume {}", dir.display()))?
         }
         None => Agent::new(config.clone(), env),

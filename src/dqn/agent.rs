@@ -17,7 +17,6 @@
 //!
 //! The code marks these lines `ALGO 1` … `ALGO 8`.
 
-use super::checkpoint::{AgentState, Checkpoint, Counters};
 use super::{Batch, Config, Head, Learner, Replay, StepStats};
 use crate::env::{Game, Observer, StepResult, FRAME_LEN};
 use crate::layers::Sequential;
@@ -26,6 +25,37 @@ use anyhow::{bail, Context};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
+
+/// Progress counters of a run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Counters {
+    /// Episodes finished.
+    pub episodes: u64,
+    /// Agent steps (actions chosen).
+    pub agent_steps: u64,
+    /// Emulator frames.
+    pub frames: u64,
+    /// Gradient steps.
+    pub train_steps: u64,
+    /// Training wall time so far, in seconds.
+    pub wall_seconds: f64,
+}
+
+/// What an agent needs, besides its learner, counters and replay memory, to continue exactly.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AgentState {
+    /// ε-greedy coin flips and random actions.
+    pub explore_rng: ChaCha8Rng,
+    /// Minibatch sampling.
+    pub sample_rng: ChaCha8Rng,
+    /// The composer's latest composite frame (88·80 bytes).
+    pub composite: Vec<u8>,
+    /// The frame stack, oldest first (`k`·88·80 bytes).
+    pub stack: Vec<u8>,
+    /// The game's saved state, if it can be saved.
+    pub game: Option<Vec<u8>>,
+}
 
 /// One row of a run's `metrics.csv`.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -217,14 +247,14 @@ impl<G: Game> Agent<G> {
     /// Continues a run from a checkpoint: its learner and counters, every random generator, the
     /// observer, the game's state (if saved) and `replay` (if saved; else an empty memory).
     /// `game` must be built with the checkpoint's environment settings.
-    pub fn resume(game: G, ckpt: Checkpoint, replay: Option<Replay>) -> anyhow::Result<Self> {
-        let Checkpoint {
-            config,
-            counters,
-            learner,
-            agent: state,
-            ..
-        } = ckpt;
+    pub fn resume(
+        game: G,
+        config: Config,
+        counters: Counters,
+        learner: Learner,
+        state: AgentState,
+        replay: Option<Replay>,
+    ) -> anyhow::Result<Self> {
         if learner.n_actions() != game.n_actions() {
             bail!(
                 "the checkpoint's network has {} actions, the game {}",

@@ -1,121 +1,13 @@
 //! The learning half of DQN: one gradient step on a minibatch of transitions.
 
 use super::qnet::midpoints;
-use super::{input_border, qnet, Head, Iqn};
+use super::{qnet, Batch, Head, Iqn};
 use crate::layers::init::VarianceScaling;
 use crate::layers::loss::{quantile_huber, quantile_huber_at, LossKind};
 use crate::layers::Sequential;
 use crate::optim::{clip_grad_norm, Adam};
-use crate::tensor::{Border, Tensor};
+use crate::tensor::Tensor;
 use rand::Rng;
-
-/// A minibatch of transitions `(s, a, r, s', done)`, laid out for the network.
-pub struct Batch {
-    /// `[B, H, W, C]`, normalised network inputs (inside `border`, if any).
-    pub states: Tensor<f32>,
-    /// `[B]`, indices into the action set.
-    pub actions: Vec<usize>,
-    /// `[B]`: the (n-step, discounted) returns `R` up to `s'`.
-    pub rewards: Vec<f32>,
-    /// `[B]`: the steps `m` from `s` to `s'` (1 for the one-step target); `s'` is discounted by `γ^m`.
-    pub steps: Vec<u32>,
-    /// `[B, H, W, C]`, likewise.
-    pub next_states: Tensor<f32>,
-    /// `[B]`, whether `s'` is terminal (then there is no future to bootstrap from).
-    pub dones: Vec<bool>,
-    /// `[B]` loss weights of prioritized sampling ([`super::Replay::with_priorities`]), or empty: all 1.
-    pub weights: Vec<f32>,
-    /// `[B]` the replay entries drawn, when sampling is prioritized (else empty).
-    pub entries: Vec<u64>,
-    /// `[B, N]`: an implicit quantile head's fractions `τ` for the online network's quantiles of
-    /// each state ([`Batch::draw_fractions`]; else empty).
-    pub taus: Vec<f64>,
-    /// `[B, N']`: its fractions for the target's samples of each next state.
-    pub target_taus: Vec<f64>,
-    /// The zero border around each state image: none, or the network's first padding
-    /// ([`input_border`]), so that conv1 reads the states in place (it would otherwise copy each
-    /// batch into a padded buffer, about 11 MB of memory traffic per train step at batch 48).
-    pub border: Border,
-}
-
-impl Batch {
-    /// An empty batch for inputs of shape `[H, W, C]`, to be filled by the replay memory.
-    pub fn new(batch: usize, input: [usize; 3]) -> Self {
-        Batch::with_border(batch, input, Border::default())
-    }
-
-    /// An empty batch laid out for the article's network: states inside conv1's padding
-    /// ([`input_border`]), which conv1 then reads in place. What the agent trains on.
-    pub fn padded(batch: usize, input: [usize; 3]) -> Self {
-        Batch::with_border(batch, input, input_border(input))
-    }
-
-    /// An empty batch whose states are `[H + top + bottom, W + left + right, C]` images with
-    /// the `[H, W, C]` input inside a zero border (the replay memory writes only the interior).
-    pub fn with_border(batch: usize, input: [usize; 3], border: Border) -> Self {
-        let (hb, wb) = border.around(input[0], input[1]);
-        let shape = [batch, hb, wb, input[2]];
-        Batch {
-            states: Tensor::zeros(&shape),
-            actions: vec![0; batch],
-            rewards: vec![0.0; batch],
-            steps: vec![1; batch],
-            next_states: Tensor::zeros(&shape),
-            dones: vec![false; batch],
-            weights: Vec::new(),
-            entries: Vec::new(),
-            taus: Vec::new(),
-            target_taus: Vec::new(),
-            border,
-        }
-    }
-
-    /// A batch for `config`'s network filled at random, laid out as the agent's (states inside
-    /// conv1's padding, [`Batch::padded`]): states uniform in [−1, 1), actions among 6, rewards
-    /// in [0, 1), one transition in 20 terminal, and an implicit quantile head's fractions. The
-    /// workload of the benchmarks and of `precision = "auto"`'s measurement.
-    pub fn random(config: &super::Config, rng: &mut impl Rng) -> Batch {
-        let input = config.input_shape();
-        let mut b = Batch::padded(config.batch_size, input);
-        for states in [&mut b.states, &mut b.next_states] {
-            for v in states.data_mut() {
-                *v = rng.random_range(-1.0..1.0);
-            }
-            let [h, w, c] = input;
-            b.border.zero(states.data_mut(), config.batch_size, h, w, c);
-        }
-        for i in 0..b.len() {
-            b.actions[i] = rng.random_range(0..6);
-            b.rewards[i] = rng.random_range(0.0..1.0);
-            b.dones[i] = rng.random_bool(0.05);
-        }
-        if let Some(iqn) = config.iqn() {
-            b.draw_fractions(rng, iqn.samples, iqn.target_samples);
-        }
-        b
-    }
-
-    /// Draws an implicit quantile head's fractions, uniform on `[0, 1)`: `n` per state and
-    /// `n_target` per next state (IQN trains at fresh fractions every step).
-    pub fn draw_fractions(&mut self, rng: &mut impl Rng, n: usize, n_target: usize) {
-        let b = self.len();
-        self.taus.clear();
-        self.taus.extend((0..b * n).map(|_| rng.random::<f64>()));
-        self.target_taus.clear();
-        self.target_taus
-            .extend((0..b * n_target).map(|_| rng.random::<f64>()));
-    }
-
-    /// The number of transitions.
-    pub fn len(&self) -> usize {
-        self.actions.len()
-    }
-
-    /// Whether the batch is empty.
-    pub fn is_empty(&self) -> bool {
-        self.actions.is_empty()
-    }
-}
 
 /// What one train step measured.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]

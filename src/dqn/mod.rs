@@ -15,8 +15,8 @@ pub use config::{
     merge_toml, Config, Preset, ARTICLE_HIDDEN, IMPORTANCE_EXPONENT, NO_EPISODE_LIMIT,
     PRIORITY_EXPONENT, STRONG_FRAMES,
 };
-pub use learner::{argmax, greedy_atoms, greedy_rows, Batch, Learner, Munchausen, StepStats};
+pub use learner::{argmax, greedy_atoms, greedy_rows, Learner, Munchausen, StepStats};
 pub use precision::{resolve_precision, Resolved};
 pub use qnet::{article_qnet, input_border, midpoints, qnet, Head, Iqn, IqnMerge};
-pub use replay::{Replay, FLAG_ACTED, FLAG_DONE, FLAG_START, PRIORITY_EPSILON};
+pub use replay::{Batch, Replay, FLAG_ACTED, FLAG_DONE, FLAG_START, PRIORITY_EPSILON};
 pub use sumtree::SumTree;

@@ -4,7 +4,7 @@ use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
 use crate::layers::{Conv2d, Dense, Dueling, QuantileEmbedding, Relu, Sequential};
 use crate::tensor::plan;
-use crate::tensor::{Border, ConvGeom, Float, Padding, Tensor};
+use crate::tensor::{Border, ConvGeom, Float, Tensor};
 use rand::Rng;
 
 /// The convolutions as the article defines them: `(filters, kernel size, stride)`, SAME.
@@ -154,17 +154,11 @@ pub fn qnet<T: Float>(
     let mut same = Vec::new();
     let mut shape = [h, w, c];
     for (cout, k, s) in CONVS {
-        let g = ConvGeom::new(
-            shape[0],
-            shape[1],
-            shape[2],
-            cout,
-            k,
-            k,
-            (s, s),
-            Padding::Same,
-        )
-        .expect("SAME convolution of a non-empty input");
+        let g = ConvGeom::input(shape[0], shape[1], shape[2])
+            .filters(cout, k, k)
+            .stride(s, s)
+            .same()
+            .expect("SAME convolution of a non-empty input");
         same.push(g);
         shape = [g.oh, g.ow, cout];
     }
@@ -193,7 +187,7 @@ pub fn qnet<T: Float>(
         );
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
-    let flat = shape.iter().product();
+    let flat = net.output_len();
     let Head {
         hidden,
         dueling,
@@ -241,7 +235,10 @@ pub fn qnet<T: Float>(
 pub fn input_border(input: [usize; 3]) -> Border {
     let [h, w, c] = input;
     let (cout, k, s) = CONVS[0];
-    ConvGeom::new(h, w, c, cout, k, k, (s, s), Padding::Same)
+    ConvGeom::input(h, w, c)
+        .filters(cout, k, k)
+        .stride(s, s)
+        .same()
         .expect("SAME convolution of a non-empty input")
         .as_valid()
         .1

@@ -32,6 +32,12 @@ impl<T: Float> Sequential<T> {
             .unwrap_or_default()
     }
 
+    /// Values in one sample's output (the product of [`Sequential::output_shape`]): the input
+    /// width of a dense layer pushed next.
+    pub fn output_len(&self) -> usize {
+        self.output_shape().iter().product()
+    }
+
     /// The layers, in order.
     pub fn layers(&self) -> &[Box<dyn Layer<T>>] {
         &self.layers

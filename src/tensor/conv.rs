@@ -107,7 +107,78 @@ pub struct ConvGeom {
     pub pad_left: usize,
 }
 
+/// A convolution's geometry by name rather than by position:
+/// `ConvGeom::input(88, 80, 4).filters(32, 8, 8).stride(4, 4).same()` is the article's conv1
+/// ([`ConvGeom::new`] with the same numbers). A stride of 1 unless set.
+#[derive(Clone, Copy, Debug)]
+pub struct GeomBuilder {
+    h: usize,
+    w: usize,
+    cin: usize,
+    cout: usize,
+    kh: usize,
+    kw: usize,
+    stride: (usize, usize),
+}
+
+impl GeomBuilder {
+    /// `cout` filters of `kh × kw`.
+    pub fn filters(self, cout: usize, kh: usize, kw: usize) -> Self {
+        GeomBuilder {
+            cout,
+            kh,
+            kw,
+            ..self
+        }
+    }
+
+    /// Strides down and across.
+    pub fn stride(self, sh: usize, sw: usize) -> Self {
+        GeomBuilder {
+            stride: (sh, sw),
+            ..self
+        }
+    }
+
+    /// With `padding`; `None` if the shape is impossible (see [`ConvGeom::new`]).
+    pub fn padding(self, padding: Padding) -> Option<ConvGeom> {
+        let GeomBuilder {
+            h,
+            w,
+            cin,
+            cout,
+            kh,
+            kw,
+            stride,
+        } = self;
+        ConvGeom::new(h, w, cin, cout, kh, kw, stride, padding)
+    }
+
+    /// SAME padding (TensorFlow's: the output is the input divided by the stride, rounded up).
+    pub fn same(self) -> Option<ConvGeom> {
+        self.padding(Padding::Same)
+    }
+
+    /// VALID padding (no padding).
+    pub fn valid(self) -> Option<ConvGeom> {
+        self.padding(Padding::Valid)
+    }
+}
+
 impl ConvGeom {
+    /// Starts a geometry for `[h, w, cin]` inputs ([`GeomBuilder`]).
+    pub fn input(h: usize, w: usize, cin: usize) -> GeomBuilder {
+        GeomBuilder {
+            h,
+            w,
+            cin,
+            cout: 0,
+            kh: 0,
+            kw: 0,
+            stride: (1, 1),
+        }
+    }
+
     /// Works out output size and padding by TensorFlow's rules. `None` if the shape is impossible
     /// (a zero size or stride, or a VALID filter larger than the input).
     #[allow(clippy::too_many_arguments)]

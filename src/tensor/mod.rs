@@ -29,7 +29,7 @@ pub use align::CacheAligned;
 pub use background::Background;
 pub use conv::{
     col2im, conv2d_reference, conv2d_reference_backward, im2col, pad_input, unpad_input, Border,
-    ConvGeom, Padding,
+    ConvGeom, GeomBuilder, Padding,
 };
 pub use cpu::vectorized;
 pub use float::Float;

@@ -1,0 +1,326 @@
+//! `checkpoint.safetensors` (format `invaders-checkpoint-3`, see the module above): its bytes
+//! written and read back, with every check of [`super::from_bytes`].
+
+use super::*;
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(super) struct Rngs {
+    explore: ChaCha8Rng,
+    sample: ChaCha8Rng,
+}
+
+pub(super) fn view(t: &Tensor<f32>) -> Result<TensorView<'_>, safetensors::SafeTensorError> {
+    TensorView::new(
+        Dtype::F32,
+        t.shape().to_vec(),
+        bytemuck::cast_slice(t.data()),
+    )
+}
+
+/// The CRC-32 of tensors: each name, then its data bytes, in name order.
+pub fn tensors_checksum<'a>(tensors: impl IntoIterator<Item = (&'a str, &'a [u8])>) -> u32 {
+    let mut sorted: Vec<(&str, &[u8])> = tensors.into_iter().collect();
+    sorted.sort_by_key(|t| t.0);
+    let mut h = crc32fast::Hasher::new();
+    for (name, data) in sorted {
+        h.update(name.as_bytes());
+        h.update(data);
+    }
+    h.finalize()
+}
+
+/// Checks a loaded file's `checksum` metadata against its tensors.
+pub(super) fn verify_checksum(
+    st: &SafeTensors<'_>,
+    meta: &HashMap<String, String>,
+) -> anyhow::Result<u32> {
+    let stored = parse_checksum(meta_get(meta, "checksum")?)?;
+    let tensors = st.tensors();
+    let actual = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
+    if actual != stored {
+        bail!(
+            "its contents are damaged: checksum {actual:08x}, but the file was written with {stored:08x}"
+        );
+    }
+    Ok(stored)
+}
+
+pub(super) fn parse_checksum(text: &str) -> anyhow::Result<u32> {
+    u32::from_str_radix(text, 16).map_err(|_| anyhow!("bad checksum `{text}`"))
+}
+
+/// Serialises a checkpoint to safetensors bytes; `replay` names the replay file saved with it,
+/// and that file's checksum, if any.
+pub fn to_bytes(
+    config: &Config,
+    counters: &Counters,
+    learner: &Learner,
+    agent: &AgentState,
+    replay: Option<(&str, u32)>,
+) -> anyhow::Result<Vec<u8>> {
+    let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
+    for (prefix, net) in [("online", &learner.online), ("target", &learner.target)] {
+        for p in net.params() {
+            tensors.push((format!("{prefix}.{}", p.name), view(&p.value)?));
+        }
+    }
+    for (i, p) in learner.online.params().enumerate() {
+        if let (Some(m), Some(v)) = (learner.adam.m.get(i), learner.adam.v.get(i)) {
+            tensors.push((format!("adam.m.{}", p.name), view(m)?));
+            tensors.push((format!("adam.v.{}", p.name), view(v)?));
+        }
+    }
+    let k = agent.stack.len() / FRAME_LEN;
+    tensors.push((
+        "observer.composite".into(),
+        TensorView::new(Dtype::U8, vec![FRAME_HEIGHT, FRAME_WIDTH], &agent.composite)?,
+    ));
+    tensors.push((
+        "observer.stack".into(),
+        TensorView::new(Dtype::U8, vec![k, FRAME_HEIGHT, FRAME_WIDTH], &agent.stack)?,
+    ));
+    if let Some(g) = &agent.game {
+        tensors.push((
+            "game.state".into(),
+            TensorView::new(Dtype::U8, vec![g.len()], g)?,
+        ));
+    }
+    let mut counters_json = serde_json::to_value(counters)?;
+    counters_json["adam_steps"] = learner.adam.t.into();
+    let rngs = Rngs {
+        explore: agent.explore_rng.clone(),
+        sample: agent.sample_rng.clone(),
+    };
+    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
+    let meta = HashMap::from([
+        ("format".to_string(), FORMAT.to_string()),
+        ("checksum".to_string(), format!("{checksum:08x}")),
+        ("config".to_string(), config.to_toml()),
+        ("counters".to_string(), counters_json.to_string()),
+        ("rngs".to_string(), serde_json::to_string(&rngs)?),
+        (
+            "replay".to_string(),
+            replay.map(|r| r.0).unwrap_or_default().to_string(),
+        ),
+        (
+            "replay_checksum".to_string(),
+            replay.map(|r| format!("{:08x}", r.1)).unwrap_or_default(),
+        ),
+    ]);
+    Ok(safetensors::serialize(tensors, &Some(meta))?)
+}
+
+/// Copies the named tensors into `net`'s parameters after checking every name, dtype and shape.
+pub(super) fn load_net(
+    st: &SafeTensors<'_>,
+    prefix: &str,
+    net: &mut Sequential<f32>,
+) -> anyhow::Result<()> {
+    for p in net.params_mut() {
+        let name = format!("{prefix}.{}", p.name);
+        read_into(st, &name, &mut p.value)?;
+    }
+    Ok(())
+}
+
+/// The tensor `name` after checking its dtype and shape.
+pub(super) fn tensor<'a>(
+    st: &'a SafeTensors<'_>,
+    name: &str,
+    dtype: Dtype,
+    shape: &[usize],
+) -> anyhow::Result<TensorView<'a>> {
+    let v = st.tensor(name).map_err(|_| anyhow!("no tensor `{name}`"))?;
+    if v.dtype() != dtype {
+        bail!(
+            "tensor `{name}` has dtype {:?}, expected {dtype:?}",
+            v.dtype()
+        );
+    }
+    if v.shape() != shape {
+        bail!(
+            "tensor `{name}` has shape {:?}, expected {shape:?}",
+            v.shape()
+        );
+    }
+    Ok(v)
+}
+
+pub(super) fn read_into(
+    st: &SafeTensors<'_>,
+    name: &str,
+    t: &mut Tensor<f32>,
+) -> anyhow::Result<()> {
+    let v = tensor(st, name, Dtype::F32, t.shape())?;
+    let values: Vec<f32> = bytemuck::pod_collect_to_vec(v.data());
+    if let Some(bad) = values.iter().position(|x| !x.is_finite()) {
+        bail!("tensor `{name}` holds a non-finite value at index {bad}");
+    }
+    t.data_mut().copy_from_slice(&values);
+    Ok(())
+}
+
+/// Parses a safetensors file with metadata; returns the tensors and a metadata getter.
+pub(super) fn parse(bytes: &[u8]) -> anyhow::Result<(SafeTensors<'_>, HashMap<String, String>)> {
+    let (_, header) =
+        SafeTensors::read_metadata(bytes).map_err(|e| anyhow!("not a safetensors file: {e}"))?;
+    let st = SafeTensors::deserialize(bytes).map_err(|e| anyhow!("not a safetensors file: {e}"))?;
+    let meta = header
+        .metadata()
+        .clone()
+        .ok_or_else(|| anyhow!("no metadata"))?;
+    Ok((st, meta))
+}
+
+pub(super) fn meta_get<'a>(meta: &'a HashMap<String, String>, k: &str) -> anyhow::Result<&'a str> {
+    meta.get(k)
+        .map(String::as_str)
+        .ok_or_else(|| anyhow!("metadata has no `{k}`"))
+}
+
+/// The configuration, counters, Adam's step count and action count recorded in a checkpoint's or
+/// model file's metadata, checked.
+pub(super) fn header(
+    st: &SafeTensors<'_>,
+    meta: &HashMap<String, String>,
+) -> anyhow::Result<(Config, Counters, u64, usize)> {
+    let config: Config = toml::from_str(meta_get(meta, "config")?).context("checkpoint config")?;
+    config.validate().context("checkpoint config")?;
+    let mut json: serde_json::Value =
+        serde_json::from_str(meta_get(meta, "counters")?).context("checkpoint counters")?;
+    let adam_steps = json
+        .get("adam_steps")
+        .and_then(|v| v.as_u64())
+        .ok_or_else(|| anyhow!("checkpoint counters lack adam_steps"))?;
+    if let Some(o) = json.as_object_mut() {
+        o.remove("adam_steps");
+    }
+    let counters: Counters = serde_json::from_value(json).context("checkpoint counters")?;
+    // The action count is the last layer's bias length (over the values per action), less the
+    // value row of a dueling head.
+    let bias = st
+        .tensor("online.dense2.bias")
+        .map_err(|_| anyhow!("no tensor `online.dense2.bias`"))?
+        .shape()
+        .first()
+        .copied()
+        .unwrap_or(0);
+    let n_actions = (bias / config.atoms()).saturating_sub(config.dueling as usize);
+    if n_actions == 0 || n_actions > 18 {
+        bail!("checkpoint has {n_actions} actions");
+    }
+    Ok((config, counters, adam_steps, n_actions))
+}
+
+/// Parses checkpoint bytes into a fresh learner; nothing is returned unless every check passes.
+pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
+    let (st, meta) = parse(bytes)?;
+    let format = meta_get(&meta, "format")?;
+    if format == MODEL_FORMAT {
+        bail!(
+            "this is a weights-only model file (`invaders export`): it holds the online network \
+             for `eval`, but no target network, optimizer state or random generators, so a run \
+             cannot be resumed from it"
+        );
+    }
+    if format == FORMAT {
+        verify_checksum(&st, &meta)?;
+    } else if format != FORMAT_V2 {
+        bail!("unknown checkpoint format `{format}` (expected `{FORMAT}`)");
+    }
+    let (config, counters, adam_steps, n_actions) = header(&st, &meta)?;
+    let rngs: Rngs =
+        serde_json::from_str(meta_get(&meta, "rngs")?).context("checkpoint random generators")?;
+    let replay_file = match meta_get(&meta, "replay")? {
+        "" => None,
+        name if is_replay_name(name) => Some(name.to_string()),
+        name => bail!("checkpoint names a bad replay file `{name}`"),
+    };
+    let replay_checksum = match (format == FORMAT, &replay_file) {
+        (true, Some(_)) => Some(parse_checksum(meta_get(&meta, "replay_checksum")?)?),
+        _ => None,
+    };
+    // The initial weights are overwritten below; any generator will do.
+    let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
+    let mut learner = Learner::from_config(&config, n_actions, &mut rng);
+    load_net(&st, "online", &mut learner.online)?;
+    load_net(&st, "target", &mut learner.target)?;
+    if adam_steps > 0 {
+        for p in learner.online.params() {
+            let mut m = Tensor::zeros(p.value.shape());
+            let mut v = Tensor::zeros(p.value.shape());
+            read_into(&st, &format!("adam.m.{}", p.name), &mut m)?;
+            read_into(&st, &format!("adam.v.{}", p.name), &mut v)?;
+            learner.adam.m.push(m);
+            learner.adam.v.push(v);
+        }
+    }
+    learner.adam.t = adam_steps;
+    let k = config.pipeline.channels();
+    let composite = tensor(
+        &st,
+        "observer.composite",
+        Dtype::U8,
+        &[FRAME_HEIGHT, FRAME_WIDTH],
+    )?
+    .data()
+    .to_vec();
+    let stack = tensor(
+        &st,
+        "observer.stack",
+        Dtype::U8,
+        &[k, FRAME_HEIGHT, FRAME_WIDTH],
+    )?
+    .data()
+    .to_vec();
+    let game = match st.tensor("game.state") {
+        Ok(v) => {
+            if v.dtype() != Dtype::U8 || v.shape().len() != 1 {
+                bail!(
+                    "tensor `game.state` has dtype {:?} and shape {:?}, expected U8 [n]",
+                    v.dtype(),
+                    v.shape()
+                );
+            }
+            Some(v.data().to_vec())
+        }
+        Err(_) => None,
+    };
+    let nets = 2 * learner.online.params().count() * if adam_steps > 0 { 2 } else { 1 };
+    let expected = nets + 2 + game.is_some() as usize;
+    if st.len() != expected {
+        let mut names = st.names();
+        names.sort();
+        bail!(
+            "checkpoint has {} tensors, expected {expected} (found: {})",
+            st.len(),
+            names
+                .iter()
+                .map(|s| s.as_str())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    Ok(Checkpoint {
+        config,
+        counters,
+        learner,
+        agent: AgentState {
+            explore_rng: rngs.explore,
+            sample_rng: rngs.sample,
+            composite,
+            stack,
+            game,
+        },
+        replay_file,
+        replay_checksum,
+    })
+}
+
+/// Loads a checkpoint file (not its replay memory: see [`load_run`]).
+pub fn load(path: &Path) -> anyhow::Result<Checkpoint> {
+    let bytes = std::fs::read(path)
+        .with_context(|| format!("cannot read checkpoint {}", path.display()))?;
+    from_bytes(&bytes).with_context(|| format!("{} is not a valid checkpoint", path.display()))
+}

@@ -1,0 +1,83 @@
+//! A weights-only model file (format `invaders-model-1`): what `invaders export` writes and
+//! `eval` reads.
+
+use super::*;
+
+/// A trained network for playing: from a checkpoint or a weights-only model file.
+pub struct Model {
+    /// The configuration it was trained with (input pipeline, normalisation, game).
+    pub config: Config,
+    /// The training progress it was saved at.
+    pub counters: Counters,
+    /// The online network.
+    pub online: Sequential<f32>,
+    /// The number of actions.
+    pub n_actions: usize,
+}
+
+/// Serialises the online network of a learner with its configuration and counters: a
+/// weights-only model file (format [`MODEL_FORMAT`]).
+pub fn model_to_bytes(
+    config: &Config,
+    counters: &Counters,
+    learner: &Learner,
+) -> anyhow::Result<Vec<u8>> {
+    let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
+    for p in learner.online.params() {
+        tensors.push((format!("online.{}", p.name), view(&p.value)?));
+    }
+    let mut counters_json = serde_json::to_value(counters)?;
+    counters_json["adam_steps"] = learner.adam.t.into();
+    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
+    let meta = HashMap::from([
+        ("format".to_string(), MODEL_FORMAT.to_string()),
+        ("checksum".to_string(), format!("{checksum:08x}")),
+        ("config".to_string(), config.to_toml()),
+        ("counters".to_string(), counters_json.to_string()),
+    ]);
+    Ok(safetensors::serialize(tensors, &Some(meta))?)
+}
+
+/// Parses a model file, or takes the online network of a checkpoint, checking everything.
+pub fn model_from_bytes(bytes: &[u8]) -> anyhow::Result<Model> {
+    let (st, meta) = parse(bytes)?;
+    if meta_get(&meta, "format")? != MODEL_FORMAT {
+        let c = from_bytes(bytes)?;
+        let n_actions = c.learner.n_actions();
+        return Ok(Model {
+            config: c.config,
+            counters: c.counters,
+            online: c.learner.online,
+            n_actions,
+        });
+    }
+    verify_checksum(&st, &meta)?;
+    let (config, counters, _, n_actions) = header(&st, &meta)?;
+    let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
+    let mut online = crate::dqn::qnet(
+        config.input_shape(),
+        n_actions,
+        crate::dqn::Head::of(&config),
+        &crate::layers::init::VarianceScaling::HE,
+        &mut rng,
+    );
+    load_net(&st, "online", &mut online)?;
+    let expected = online.params().count();
+    if st.len() != expected {
+        bail!("model file has {} tensors, expected {expected}", st.len());
+    }
+    Ok(Model {
+        config,
+        counters,
+        online,
+        n_actions,
+    })
+}
+
+/// Loads a network to play with: a model file or a checkpoint.
+pub fn load_model(path: &Path) -> anyhow::Result<Model> {
+    let bytes =
+        std::fs::read(path).with_context(|| format!("cannot read model {}", path.display()))?;
+    model_from_bytes(&bytes)
+        .with_context(|| format!("{} is not a valid checkpoint or model", path.display()))
+}

@@ -1,0 +1,62 @@
+//! A run directory's checkpoint pair: the replay file, then the checkpoint that names it.
+
+use super::*;
+
+/// Writes the agent's checkpoint into `dir`: the replay file first (if the config asks for it),
+/// then `checkpoint.safetensors` naming it, then deletes replay files no longer named. A crash at
+/// any point leaves a consistent pair; an error leaves the previous pair intact.
+pub fn save_run<G: Game>(dir: &Path, agent: &Agent<G>) -> anyhow::Result<()> {
+    let replay_name = agent
+        .config
+        .checkpoint_replay
+        .then(|| replay_file_name(&agent.counters));
+    let replay = match &replay_name {
+        Some(name) => Some((
+            name.as_str(),
+            save_replay(&dir.join(name), &agent.replay, &agent.counters)?,
+        )),
+        None => None,
+    };
+    let bytes = to_bytes(
+        &agent.config,
+        &agent.counters,
+        &agent.learner,
+        &agent.state(),
+        replay,
+    )?;
+    if let Err(e) = write_atomic(&dir.join(CHECKPOINT_FILE), &bytes) {
+        if let Some(name) = &replay_name {
+            let _ = std::fs::remove_file(dir.join(name));
+        }
+        return Err(e);
+    }
+    // Stale replay files (and temporaries of interrupted writes) are no longer referenced.
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let stale_tmp = name.starts_with(".replay-") && name.ends_with(".tmp");
+            if (is_replay_name(&name) && Some(&name) != replay_name.as_ref()) || stale_tmp {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Loads a run directory's checkpoint and the replay memory saved with it (if any).
+pub fn load_run(dir: &Path) -> anyhow::Result<(Checkpoint, Option<Replay>)> {
+    let ckpt = load(&dir.join(CHECKPOINT_FILE))?;
+    let replay = match &ckpt.replay_file {
+        None => None,
+        Some(name) => {
+            let path = dir.join(name);
+            let bytes = std::fs::read(&path)
+                .with_context(|| format!("cannot read replay memory {}", path.display()))?;
+            Some(
+                replay_from_bytes(&bytes, &ckpt)
+                    .with_context(|| format!("{} is not a valid replay file", path.display()))?,
+            )
+        }
+    };
+    Ok((ckpt, replay))
+}
