@@ -12,7 +12,7 @@
 //!   `/` (an absolute path: the reader's machine) or `runs/` (what the commands write) are left
 //!   out; so are, by that rule, formulas such as `x/128` and benchmark filters such as
 //!   `sparse_act/conv1`. It is resolved against the repository root and must exist inside the
-//!   repository: a path through `../` to a neighbour that a clone does not have fails. A word
+//!   repository (a folder must hold a file: git keeps no empty folder, so a clone lacks it): a path through `../` to a neighbour that a clone does not have fails. A word
 //!   ending in `/` must be a folder; a `*` in the last component must match at least one file.
 //! - **Examples and benchmarks.** Every `--example NAME` and `--bench NAME` must name
 //!   `examples/NAME.rs` or `benches/NAME.rs`.
@@ -151,9 +151,20 @@ fn exists(rel: &Path, want_dir: bool) -> bool {
                 })
             })
         }
-        _ if want_dir => full.is_dir(),
+        _ if full.is_dir() => holds_a_file(&full),
+        _ if want_dir => false,
         _ => full.exists(),
     }
+}
+
+/// Whether the folder holds a file at some depth: git keeps no empty folder, so a clone (and CI)
+/// has only the folders that hold files.
+fn holds_a_file(dir: &Path) -> bool {
+    std::fs::read_dir(dir).is_ok_and(|entries| {
+        entries
+            .filter_map(Result::ok)
+            .any(|e| !e.path().is_dir() || holds_a_file(&e.path()))
+    })
 }
 
 fn check_path(doc: &Path, base: &Path, word: &str, errors: &mut Vec<String>) {
@@ -366,6 +377,18 @@ fn the_checker_catches_renamed_files_and_functions() {
         "`NoSuchType::forward`",
     ];
     for text in bad {
+        assert!(
+            !stale_references(doc, text, &sources).is_empty(),
+            "not caught: {text}"
+        );
+    }
+    // A folder that exists here but holds no file is absent from a clone: caught too.
+    let empty = root().join("target/docs-checker-empty");
+    std::fs::create_dir_all(&empty).expect("a scratch folder under target/");
+    for text in [
+        "`target/docs-checker-empty`",
+        "`target/docs-checker-empty/`",
+    ] {
         assert!(
             !stale_references(doc, text, &sources).is_empty(),
             "not caught: {text}"
