@@ -7,7 +7,7 @@
 
 mod common;
 
-use common::{assert_close, avx512_expected, on_path, rng, set_params, uniform};
+use common::{assert_close, avx2_expected, avx512_expected, on_path, rng, set_params, uniform};
 use invaders::layers::{Conv2d, Layer};
 use invaders::tensor::cpu::Family;
 use invaders::tensor::plan::{self, Kernel, Product};
@@ -1060,6 +1060,7 @@ fn winograd_thresholds_choose_the_kernel() {
                 let n = x.batch();
                 let wino = avx && cin >= chans && n >= batch;
                 let want = match (avx, wino) {
+                    (false, _) if avx2_expected() => Kernel::Gather,
                     (false, _) => Kernel::Im2col,
                     (true, true) => Kernel::Winograd(kind),
                     (true, false) => Kernel::Gather,

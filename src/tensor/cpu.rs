@@ -23,8 +23,14 @@ use std::sync::OnceLock;
 /// The CPU features the kernels use, as detected once per process.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Features {
-    /// AVX-512F and FMA, and `INVADERS_NO_SIMD` unset: the AVX-512 kernels run.
+    /// AVX-512F and FMA, and neither `INVADERS_NO_SIMD` nor `INVADERS_NO_AVX512` set: the
+    /// AVX-512 kernels run.
     pub avx512: bool,
+    /// AVX2 and FMA where the AVX-512 kernels do not run, and `INVADERS_NO_SIMD` unset: the AVX2
+    /// family runs (the gather GEMM: a convolution's forward pass, weight gradient and input
+    /// gradient by phases; see [`crate::tensor::plan`]). `INVADERS_NO_AVX512` makes an AVX-512
+    /// host run exactly this.
+    pub avx2: bool,
     /// That, AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later), and
     /// `INVADERS_NO_BF16` unset.
     pub avx512_bf16: bool,
@@ -36,15 +42,35 @@ pub struct Features {
 pub fn features() -> Features {
     static FEATURES: OnceLock<Features> = OnceLock::new();
     *FEATURES.get_or_init(|| {
-        let avx512 = detect_avx512() && std::env::var_os("INVADERS_NO_SIMD").is_none();
+        let simd = std::env::var_os("INVADERS_NO_SIMD").is_none();
+        let no_avx512 = std::env::var_os("INVADERS_NO_AVX512").is_some();
+        let avx512 = detect_avx512() && simd && !no_avx512;
+        let avx2 = !avx512 && detect_avx2() && simd;
         let bf16 = avx512 && detect_avx512_bf16();
         let off = std::env::var_os("INVADERS_NO_BF16").is_some();
         Features {
             avx512,
+            avx2,
             avx512_bf16: bf16 && !off,
             bf16_switched_off: bf16 && off,
         }
     })
+}
+
+#[cfg(target_arch = "x86_64")]
+fn detect_avx2() -> bool {
+    is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn detect_avx2() -> bool {
+    false
+}
+
+/// Whether the AVX2 family runs (see [`Features::avx2`]).
+#[inline]
+pub fn avx2() -> bool {
+    features().avx2
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -88,6 +114,9 @@ pub fn why_portable() -> Option<String> {
     }
     if std::env::var_os("INVADERS_NO_SIMD").is_some() {
         return Some("INVADERS_NO_SIMD is set".into());
+    }
+    if std::env::var_os("INVADERS_NO_AVX512").is_some() {
+        return Some("INVADERS_NO_AVX512 is set".into());
     }
     #[cfg(target_arch = "x86_64")]
     {
@@ -156,6 +185,8 @@ pub struct Paths {
     pub avx512: u64,
     /// Calls that ran the portable loop.
     pub portable: u64,
+    /// Calls that ran the AVX2 loop.
+    pub avx2: u64,
 }
 
 impl Paths {
@@ -164,13 +195,38 @@ impl Paths {
         Paths {
             avx512: self.avx512 - before.avx512,
             portable: self.portable - before.portable,
+            avx2: self.avx2 - before.avx2,
         }
     }
 }
 
+/// A loop a kernel family ran.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Path {
+    /// The AVX-512 loop.
+    Avx512 = 0,
+    /// The portable loop.
+    Portable = 1,
+    /// The AVX2 and FMA loop.
+    Avx2 = 2,
+}
+
+/// The loop a family with AVX-512, AVX2 and portable loops runs here.
+pub fn path() -> Path {
+    if avx512() {
+        Path::Avx512
+    } else if avx2() {
+        Path::Avx2
+    } else {
+        Path::Portable
+    }
+}
+
 thread_local! {
-    static TAKEN: [[Cell<u64>; 2]; FAMILIES] =
-        const { [const { [const { Cell::new(0) }, const { Cell::new(0) }] }; FAMILIES] };
+    static TAKEN: [[Cell<u64>; 3]; FAMILIES] = const {
+        [const { [const { Cell::new(0) }, const { Cell::new(0) }, const { Cell::new(0) }] };
+            FAMILIES]
+    };
 }
 
 /// Records that a call of `family` runs its AVX-512 loop (`avx512`) or its portable one, on
@@ -178,20 +234,28 @@ thread_local! {
 /// cannot disagree with what ran.
 #[inline]
 pub fn took(family: Family, avx512: bool) -> bool {
+    let p = if avx512 { Path::Avx512 } else { Path::Portable };
+    took_path(family, p) == Path::Avx512
+}
+
+/// [`took`] for a family with an AVX2 loop as well: records `path` and returns it.
+#[inline]
+pub fn took_path(family: Family, path: Path) -> Path {
     TAKEN.with(|t| {
-        let c = &t[family as usize][usize::from(!avx512)];
+        let c = &t[family as usize][path as usize];
         c.set(c.get() + 1);
     });
-    avx512
+    path
 }
 
 /// How many calls of `family` ran each loop on this thread so far.
 pub fn paths(family: Family) -> Paths {
     TAKEN.with(|t| {
-        let [a, p] = &t[family as usize];
+        let [a, p, v] = &t[family as usize];
         Paths {
             avx512: a.get(),
             portable: p.get(),
+            avx2: v.get(),
         }
     })
 }

@@ -38,8 +38,15 @@ pub trait Float:
         false
     }
 
-    /// The gather GEMM of [`crate::tensor::GatherGemm`]: the SIMD kernel where [`Float::simd`],
-    /// else the portable loops.
+    /// Whether [`Float::gather_gemm`] runs a SIMD kernel for this type on this CPU: f32 with
+    /// AVX-512 ([`Float::simd`]) or with AVX2 and FMA, which has the gather GEMM and not the
+    /// other families ([`crate::tensor::cpu::avx2`]).
+    fn gather_simd() -> bool {
+        false
+    }
+
+    /// The gather GEMM of [`crate::tensor::GatherGemm`]: the SIMD kernel where
+    /// [`Float::gather_simd`], else the portable loops.
     fn gather_gemm(g: GatherGemm<'_, Self>) {
         took(Family::Gather, false);
         gather_gemm_portable(g)
@@ -145,11 +152,16 @@ impl Float for f32 {
         super::cpu::avx512()
     }
     #[cfg(target_arch = "x86_64")]
+    fn gather_simd() -> bool {
+        super::cpu::avx512() || super::cpu::avx2()
+    }
+    #[cfg(target_arch = "x86_64")]
     fn gather_gemm(g: GatherGemm<'_, f32>) {
-        if took(Family::Gather, Self::simd()) {
-            super::gather::avx512::gather_gemm(g)
-        } else {
-            gather_gemm_portable(g)
+        use super::cpu::{path, took_path, Path};
+        match took_path(Family::Gather, path()) {
+            Path::Avx512 => super::gather::avx512::gather_gemm(g),
+            Path::Avx2 => super::x86_64::gather_avx2::gather_gemm(g),
+            Path::Portable => gather_gemm_portable(g),
         }
     }
     #[cfg(target_arch = "x86_64")]

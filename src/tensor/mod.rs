@@ -24,6 +24,8 @@ pub mod plan;
 mod sparse;
 mod transpose;
 mod winograd;
+#[cfg(target_arch = "x86_64")]
+mod x86_64;
 
 pub use align::CacheAligned;
 pub use background::Background;

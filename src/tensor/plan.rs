@@ -242,6 +242,21 @@ pub fn conv<T: Float>(
             ),
         };
     }
+    if !T::simd() && T::gather_simd() {
+        // AVX2 and FMA (no AVX-512): the gather GEMM for the forward pass and the weight
+        // gradient, the input gradient by phases (gather GEMMs too) for an input read in place,
+        // and scattered onto a padded copy's gradient otherwise (the first layer's, which
+        // training never asks for). No Winograd: its transforms are AVX-512 code.
+        return ConvPlan {
+            forward: Kernel::Gather,
+            weight_grad: Kernel::Gather,
+            input_grad: if g.reads_input_directly() {
+                Kernel::Phases
+            } else {
+                Kernel::Scatter
+            },
+        };
+    }
     if !T::simd() {
         return ConvPlan {
             forward: Kernel::Im2col,
@@ -344,7 +359,7 @@ mod tests {
     use crate::tensor::{Padding, Tensor};
 
     /// The layer records what it ran: f64 always takes im2col (what the gradient checks test);
-    /// f32 takes the plan's AVX-512 kernels where the CPU has them.
+    /// f32 takes the plan's AVX-512 kernels where the CPU has them, the gather GEMM on AVX2.
     #[test]
     fn the_layer_reports_the_kernel_it_ran() {
         let g = ConvGeom::new(10, 10, 32, 16, 3, 3, (1, 1), Padding::Valid).unwrap();
@@ -362,12 +377,14 @@ mod tests {
         conv.forward(&x);
         let expected = if f32::simd() {
             Kernel::Winograd(WinogradKind::F2x3)
+        } else if f32::gather_simd() {
+            Kernel::Gather
         } else {
             Kernel::Im2col
         };
         assert_eq!(last(Product::ConvForward), Some(expected));
         conv.forward(&Tensor::zeros(&[1, 10, 10, 32]));
-        let at_one = if f32::simd() {
+        let at_one = if f32::gather_simd() {
             Kernel::Gather
         } else {
             Kernel::Im2col

@@ -1438,7 +1438,9 @@ mod tests {
         let has = is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("fma");
         #[cfg(not(target_arch = "x86_64"))]
         let has = false;
-        let on = has && std::env::var_os("INVADERS_NO_SIMD").is_none();
+        let on = has
+            && std::env::var_os("INVADERS_NO_SIMD").is_none()
+            && std::env::var_os("INVADERS_NO_AVX512").is_none();
         if !on {
             static NOTE: std::sync::Once = std::sync::Once::new();
             #[allow(clippy::print_stderr)] // a test's note
@@ -1510,6 +1512,7 @@ mod tests {
         let one = |on: bool| cpu::Paths {
             avx512: on as u64,
             portable: !on as u64,
+            avx2: 0,
         };
         assert_eq!(ran, (one(avx), one(avx)), "recorded paths");
         let f64s = Transforms::choose::<f64>(s, len);

@@ -190,9 +190,10 @@ pub fn set_params<T: Float>(layer: &mut dyn Layer<T>, values: &[&Tensor<T>]) {
 }
 
 /// Whether this host must run the f32 kernels' AVX-512 loops, judged without the library's own
-/// check: x86-64 with AVX-512F and FMA, and `INVADERS_NO_SIMD` unset. Where not, says once on
-/// stderr which feature is missing: the tests then prove that the portable loops ran, and the
-/// AVX-512 ones go unchecked on this host.
+/// check: x86-64 with AVX-512F and FMA, and neither `INVADERS_NO_SIMD` nor `INVADERS_NO_AVX512`
+/// set. Where not, says once on stderr which feature is missing: the tests then prove that the
+/// AVX2 loops (for the families that have them, where the CPU has AVX2) or the portable ones
+/// ran, and the AVX-512 ones go unchecked on this host.
 pub fn avx512_expected() -> bool {
     static NOTE: std::sync::Once = std::sync::Once::new();
     #[cfg(target_arch = "x86_64")]
@@ -203,11 +204,14 @@ pub fn avx512_expected() -> bool {
     #[cfg(not(target_arch = "x86_64"))]
     let (f, fma) = (false, false);
     let off = std::env::var_os("INVADERS_NO_SIMD").is_some();
-    let on = f && fma && !off;
+    let no512 = std::env::var_os("INVADERS_NO_AVX512").is_some();
+    let on = f && fma && !off && !no512;
     if !on {
         NOTE.call_once(|| {
             let why = if off {
                 "INVADERS_NO_SIMD is set".to_string()
+            } else if no512 {
+                "INVADERS_NO_AVX512 is set".to_string()
             } else {
                 let missing: Vec<&str> = [("avx512f", f), ("fma", fma)]
                     .into_iter()
@@ -216,8 +220,8 @@ pub fn avx512_expected() -> bool {
                 format!("this CPU lacks {}", missing.join(" and "))
             };
             eprintln!(
-                "skip: AVX-512 kernels not checked on this host ({why}); asserting the \
-                 portable loops ran instead"
+                "skip: AVX-512 kernels not checked on this host ({why}); asserting the AVX2 \
+                 (where the CPU has it) or portable loops ran instead"
             );
         });
     }
@@ -229,21 +233,54 @@ pub fn avx512_expected() -> bool {
     on
 }
 
-/// Runs `f` and asserts that every call of `family` in it, on this thread, ran the AVX-512 loop
-/// (`avx512`) or every one the portable loop, and that there was at least one.
+/// Whether this host must run the AVX2 family (for the kernels that have it): AVX2 and FMA, no
+/// AVX-512 run ([`avx512_expected`]), `INVADERS_NO_SIMD` unset.
+pub fn avx2_expected() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    let has = is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
+    #[cfg(not(target_arch = "x86_64"))]
+    let has = false;
+    let on = has && !avx512_expected() && std::env::var_os("INVADERS_NO_SIMD").is_none();
+    assert_eq!(
+        cpu::avx2(),
+        on,
+        "the library's AVX2 check disagrees with the host"
+    );
+    on
+}
+
+/// The families with an AVX2 loop.
+fn has_avx2(family: Family) -> bool {
+    matches!(family, Family::Gather)
+}
+
+/// Runs `f` and asserts that every call of `family` in it, on this thread, ran one loop, and
+/// that there was at least one: the AVX-512 loop if `avx512`, else the AVX2 loop where the
+/// family has one and this host runs it ([`avx2_expected`]), else the portable loop.
 pub fn on_path<R>(family: Family, avx512: bool, what: &str, f: impl FnOnce() -> R) -> R {
     let before = cpu::paths(family);
     let out = f();
     let p = cpu::paths(family).since(before);
-    let path = if avx512 { "AVX-512" } else { "portable" };
+    let expected = if avx512 {
+        cpu::Path::Avx512
+    } else if has_avx2(family) && avx2_expected() {
+        cpu::Path::Avx2
+    } else {
+        cpu::Path::Portable
+    };
     assert!(
-        p.avx512 + p.portable > 0,
+        p.avx512 + p.portable + p.avx2 > 0,
         "{what}: no {family:?} kernel ran"
     );
+    let ran = (p.avx512 > 0, p.avx2 > 0, p.portable > 0);
+    let want = (
+        expected == cpu::Path::Avx512,
+        expected == cpu::Path::Avx2,
+        expected == cpu::Path::Portable,
+    );
     assert_eq!(
-        (p.avx512 > 0, p.portable > 0),
-        (avx512, !avx512),
-        "{what}: the {family:?} kernels ran {p:?}, expected only the {path} loop"
+        ran, want,
+        "{what}: the {family:?} kernels ran {p:?}, expected only the {expected:?} loop"
     );
     out
 }
