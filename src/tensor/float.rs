@@ -166,10 +166,12 @@ impl Float for f32 {
     }
     #[cfg(target_arch = "x86_64")]
     fn scatter_gemm(g: ScatterGemm<'_, f32>) {
-        if took(Family::Scatter, Self::simd()) {
-            super::gather::avx512::scatter_gemm(g)
-        } else {
-            scatter_gemm_portable(g)
+        use super::cpu::{path, took_path, Path};
+        match took_path(Family::Scatter, path()) {
+            Path::Avx512 => super::gather::avx512::scatter_gemm(g),
+            // SAFETY: `cpu::path` chose AVX2 only where the CPU runs AVX2 and FMA.
+            Path::Avx2 => unsafe { super::x86_64::scatter_avx2::scatter_gemm(g) },
+            Path::Portable => scatter_gemm_portable(g),
         }
     }
     unsafe fn gemm_raw(

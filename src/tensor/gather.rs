@@ -219,6 +219,7 @@ impl<T: Float> ScatterGemm<'_, T> {
 }
 
 /// The portable scatter GEMM (fallback and test oracle): each row's sums, then added in row order.
+#[inline(always)]
 pub fn scatter_gemm_portable<T: Float>(g: ScatterGemm<'_, T>) {
     g.check();
     let mut row = vec![T::zero(); g.n];

@@ -52,7 +52,7 @@
 //! takes a contiguous run of images with its own scratch. Every output is computed from its own
 //! tile in a fixed order, so the results do not depend on the thread count.
 
-use super::cpu::{took, Family};
+use super::cpu::{self, took_path, Family, Path};
 use super::{fill_iota, Float, GatherGemm, Init};
 use rayon::prelude::*;
 
@@ -702,13 +702,12 @@ pub fn winograd_wgrad<T: Float>(
 /// `(y₀, y₀ + y₁, y₀ − y₁, −y₁)`: the transpose of `Aᵀ`'s rows `m₀ + m₁ + m₂` and
 /// `m₁ − m₂ − m₃`. (A few adds per value: one thread does the whole chunk.)
 ///
-/// `fast`: by the AVX-512 transform ([`Transforms::output`]).
-fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T], fast: bool) {
+/// `path`: the loop [`Transforms::output`] chose.
+fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T], path: Path) {
     let (ty, tx) = s.tiles();
     let co = s.co;
     let places = s.places();
     let stride = m.len() / places;
-    let zeros = [T::zero(); L];
     let mut t = 0;
     for img in dz.chunks_exact(s.oh * s.ow * co) {
         for a in 0..ty {
@@ -720,47 +719,68 @@ fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T], fast: bool
                 });
                 let mt = &mut m[t * co..];
                 t += 1;
-                #[cfg(target_arch = "x86_64")]
-                if fast {
-                    let (img32, mt32) = (
-                        bytemuck::cast_slice::<T, f32>(img),
-                        bytemuck::cast_slice_mut::<T, f32>(mt),
-                    );
-                    // SAFETY: AVX-512F, T = f32 and `co` a multiple of 16 checked (`Transforms::
-                    // choose`); every `Some` output holds `co`
-                    // values inside the image; `mt` reaches the last place of this tile (`t`
-                    // is below the chunk's tile count, `stride / co`).
-                    unsafe {
-                        if places == 16 {
-                            avx512::adjoint_tile(img32, at, mt32, stride, co)
-                        } else {
-                            avx512::adjoint_tile9(img32, at, mt32, stride, co)
-                        }
-                    };
-                    continue;
-                }
-                // A·dY, column by column, then ·Aᵀ, row by row: with F(2×2, 3×3)'s `A`,
-                // (y₀, y₁) ↦ (y₀, y₀ + y₁, y₀ − y₁, −y₁); with F(2×2, 2×2)'s, (y₀, y₀ + y₁, y₁).
-                let side = if places == 16 { 4 } else { 3 };
-                let a1 = |y0: &Lanes<T>, y1: &Lanes<T>| -> [Lanes<T>; 4] {
-                    if side == 4 {
-                        [*y0, add(y0, y1), sub(y0, y1), sub(&zeros, y1)]
-                    } else {
-                        [*y0, add(y0, y1), *y1, zeros]
-                    }
-                };
-                for c0 in (0..co).step_by(L) {
-                    let l = (co - c0).min(L);
-                    let y: [Lanes<T>; 4] =
-                        std::array::from_fn(|k| at[k].map_or(zeros, |o| load(&img[o + c0..], l)));
-                    let cols = [a1(&y[0], &y[2]), a1(&y[1], &y[3])];
-                    for r in 0..side {
-                        let row = a1(&cols[0][r], &cols[1][r]);
-                        for (c, val) in row[..side].iter().enumerate() {
-                            store(&mut mt[(side * r + c) * stride + c0..], val, l);
+                match path {
+                    #[cfg(target_arch = "x86_64")]
+                    Path::Avx512 => {
+                        let (img32, mt32) = (
+                            bytemuck::cast_slice::<T, f32>(img),
+                            bytemuck::cast_slice_mut::<T, f32>(mt),
+                        );
+                        // SAFETY: AVX-512F, T = f32 and `co` a multiple of 16 checked
+                        // (`Transforms::choose`); every `Some` output holds `co` values inside
+                        // the image; `mt` reaches the last place of this tile (`t` is below
+                        // the chunk's tile count, `stride / co`).
+                        unsafe {
+                            if places == 16 {
+                                avx512::adjoint_tile(img32, at, mt32, stride, co)
+                            } else {
+                                avx512::adjoint_tile9(img32, at, mt32, stride, co)
+                            }
                         }
                     }
+                    // SAFETY: chosen only where the CPU runs AVX2 and FMA.
+                    #[cfg(target_arch = "x86_64")]
+                    Path::Avx2 => unsafe {
+                        super::x86_64::winograd_avx2::adjoint_tile(img, at, mt, stride, co, places)
+                    },
+                    _ => adjoint_tile_portable(img, at, mt, stride, co, places),
                 }
+            }
+        }
+    }
+}
+
+/// One tile of [`output_adjoint`] by the portable loop (also what the AVX2 family compiles for
+/// AVX2): the outputs `at` of `img` (zeros where `None`) into `mt`, places `stride` apart.
+#[inline(always)]
+pub(super) fn adjoint_tile_portable<T: Float>(
+    img: &[T],
+    at: [Option<usize>; 4],
+    mt: &mut [T],
+    stride: usize,
+    co: usize,
+    places: usize,
+) {
+    let zeros = [T::zero(); L];
+    // A·dY, column by column, then ·Aᵀ, row by row: with F(2×2, 3×3)'s `A`,
+    // (y₀, y₁) ↦ (y₀, y₀ + y₁, y₀ − y₁, −y₁); with F(2×2, 2×2)'s, (y₀, y₀ + y₁, y₁).
+    let side = if places == 16 { 4 } else { 3 };
+    let a1 = |y0: &Lanes<T>, y1: &Lanes<T>| -> [Lanes<T>; 4] {
+        if side == 4 {
+            [*y0, add(y0, y1), sub(y0, y1), sub(&zeros, y1)]
+        } else {
+            [*y0, add(y0, y1), *y1, zeros]
+        }
+    };
+    for c0 in (0..co).step_by(L) {
+        let l = (co - c0).min(L);
+        let y: [Lanes<T>; 4] =
+            std::array::from_fn(|k| at[k].map_or(zeros, |o| load(&img[o + c0..], l)));
+        let cols = [a1(&y[0], &y[2]), a1(&y[1], &y[3])];
+        for r in 0..side {
+            let row = a1(&cols[0][r], &cols[1][r]);
+            for (c, val) in row[..side].iter().enumerate() {
+                store(&mut mt[(side * r + c) * stride + c0..], val, l);
             }
         }
     }
@@ -914,7 +934,7 @@ impl<T: Float> Chunk<'_, T> {
         let (ty, tx) = s.tiles();
         let (pieces, places) = (s.out_pieces, s.places());
         let len = s.co / pieces;
-        let fast = self.fast.output;
+        let path = self.fast.output;
         let mut tiles = m.chunks_exact(s.m_stride());
         // Where piece `j` of each of a tile's 2×2 outputs goes (channels `j·len ..+ len`).
         let mut at = [[None; 4]; MAX_PIECES];
@@ -934,30 +954,34 @@ impl<T: Float> Chunk<'_, T> {
                             };
                         }
                     }
-                    let at = &at[..];
-                    #[cfg(target_arch = "x86_64")]
-                    if fast {
-                        let bias = self.bias.map(bytemuck::cast_slice::<T, f32>);
-                        let (mt32, img32) = (
-                            bytemuck::cast_slice::<T, f32>(mt),
-                            bytemuck::cast_slice_mut::<T, f32>(img),
-                        );
-                        // SAFETY: AVX-512F, T = f32 and `len` a multiple of 16 checked
-                        // (`Transforms::choose`); `mt` holds places·co values, the bias `co`,
-                        // each destination `len` inside the image (checked on entry).
-                        unsafe {
-                            if places == 16 {
-                                avx512::output_tile(mt32, len, bias, self.relu, img32, at)
-                            } else {
-                                avx512::output_tile9(mt32, len, bias, self.relu, img32, at)
+                    let (at, bias, relu) = (&at[..], self.bias, self.relu);
+                    match path {
+                        #[cfg(target_arch = "x86_64")]
+                        Path::Avx512 => {
+                            let bias = bias.map(bytemuck::cast_slice::<T, f32>);
+                            let (mt32, img32) = (
+                                bytemuck::cast_slice::<T, f32>(mt),
+                                bytemuck::cast_slice_mut::<T, f32>(img),
+                            );
+                            // SAFETY: AVX-512F, T = f32 and `len` a multiple of 16 checked
+                            // (`Transforms::choose`); `mt` holds places·co values, the bias
+                            // `co`, each destination `len` inside the image (checked on entry).
+                            unsafe {
+                                if places == 16 {
+                                    avx512::output_tile(mt32, len, bias, relu, img32, at)
+                                } else {
+                                    avx512::output_tile9(mt32, len, bias, relu, img32, at)
+                                }
                             }
-                        };
-                        continue;
-                    }
-                    if places == 16 {
-                        output_tile(mt, len, self.bias, self.relu, img, at, output_transform);
-                    } else {
-                        output_tile(mt, len, self.bias, self.relu, img, at, output_transform9);
+                        }
+                        // SAFETY: chosen only where the CPU runs AVX2 and FMA.
+                        #[cfg(target_arch = "x86_64")]
+                        Path::Avx2 => unsafe {
+                            super::x86_64::winograd_avx2::output_tile(
+                                mt, len, bias, relu, img, at, places,
+                            )
+                        },
+                        _ => output_tile_portable(mt, len, bias, relu, img, at, places),
                     }
                 }
             }
@@ -965,11 +989,29 @@ impl<T: Float> Chunk<'_, T> {
     }
 }
 
+/// One tile's output transform by the portable loop ([`output_tile`] with the transform of the
+/// tile's `places`; also what the AVX2 family compiles for AVX2).
+#[inline(always)]
+pub(super) fn output_tile_portable<T: Float>(
+    mt: &[T],
+    len: usize,
+    bias: Option<&[T]>,
+    relu: bool,
+    img: &mut [T],
+    at: &[[Option<usize>; 4]],
+    places: usize,
+) {
+    if places == 16 {
+        output_tile(mt, len, bias, relu, img, at, output_transform);
+    } else {
+        output_tile(mt, len, bias, relu, img, at, output_transform9);
+    }
+}
+
 /// One tile's input transform, all its block rows: `v[ξ·stride + dy·seg + c]` from the rows
-/// `starts[k·blk + dy]` of `img` (`zeros` outside it), on the AVX-512 transforms where they run.
-/// `stride` is `s²I` for the tile-major `V` of the forward pass, the image's tiles times that
-/// for the place-major `V` of the weight gradient. `fast`: by the AVX-512 transform
-/// ([`Transforms::input`]).
+/// `starts[k·blk + dy]` of `img` (`zeros` outside it), by the loop `path` chose
+/// ([`Transforms::input`]). `stride` is `s²I` for the tile-major `V` of the forward pass, the
+/// image's tiles times that for the place-major `V` of the weight gradient.
 fn input_tile_any<T: Float>(
     s: &WinogradShape,
     img: &[T],
@@ -977,27 +1019,47 @@ fn input_tile_any<T: Float>(
     starts: &[Option<usize>],
     v: &mut [T],
     stride: usize,
-    fast: bool,
+    path: Path,
+) {
+    match path {
+        #[cfg(target_arch = "x86_64")]
+        Path::Avx512 => {
+            let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
+            let img32 = bytemuck::cast_slice::<T, f32>(img);
+            let z32 = bytemuck::cast_slice::<T, f32>(zeros);
+            let v32 = bytemuck::cast_slice_mut::<T, f32>(v);
+            // SAFETY: `Transforms::choose` checked AVX-512F, that T is f32 and that `seg` is a
+            // multiple of 16; every start is a block row of `seg` values inside the image
+            // (checked where the table is built), `zeros` holds `seg`, `v` reaches place
+            // `places − 1` (the callers' slices run to the end of their block).
+            unsafe {
+                if places == 16 {
+                    avx512::input_tile(img32, z32, starts, v32, stride, blk, seg)
+                } else {
+                    avx512::input_tile9(img32, z32, starts, v32, stride, blk, seg)
+                }
+            }
+        }
+        // SAFETY: `Transforms::choose` chose AVX2 only where the CPU runs AVX2 and FMA.
+        #[cfg(target_arch = "x86_64")]
+        Path::Avx2 => unsafe {
+            super::x86_64::winograd_avx2::input_tile(s, img, zeros, starts, v, stride)
+        },
+        _ => input_tile_portable(s, img, zeros, starts, v, stride),
+    }
+}
+
+/// [`input_tile_any`]'s portable loop (also what the AVX2 family compiles for AVX2).
+#[inline(always)]
+pub(super) fn input_tile_portable<T: Float>(
+    s: &WinogradShape,
+    img: &[T],
+    zeros: &[T],
+    starts: &[Option<usize>],
+    v: &mut [T],
+    stride: usize,
 ) {
     let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
-    #[cfg(target_arch = "x86_64")]
-    if fast {
-        let img32 = bytemuck::cast_slice::<T, f32>(img);
-        let z32 = bytemuck::cast_slice::<T, f32>(zeros);
-        let v32 = bytemuck::cast_slice_mut::<T, f32>(v);
-        // SAFETY: `Transforms::choose` checked AVX-512F, that T is f32 and that `seg` is a
-        // multiple of 16; every start is a block row of `seg` values inside the image (checked
-        // where the table is built), `zeros` holds `seg`, `v` reaches place `places − 1` (the
-        // callers' slices run to the end of their block).
-        unsafe {
-            if places == 16 {
-                avx512::input_tile(img32, z32, starts, v32, stride, blk, seg)
-            } else {
-                avx512::input_tile9(img32, z32, starts, v32, stride, blk, seg)
-            }
-        };
-        return;
-    }
     // Block row dy of every position: `seg` values each, channels dy·seg.. of each place.
     for dy in 0..blk {
         let row = |k: usize| starts[k * blk + dy].map_or(zeros, |o| &img[o..o + seg]);
@@ -1014,6 +1076,7 @@ fn input_tile_any<T: Float>(
 
 /// One tile's input transform for `len` channels: `V[ξ, off + c] = transform(d)[ξ][c]` (rows of
 /// `V` `stride` apart) from its `P` input pixels or block rows, `L` channels at a time.
+#[inline(always)]
 fn input_tile<T: Float, const P: usize>(
     px: &[&[T]; P],
     v: &mut [T],
@@ -1037,6 +1100,7 @@ fn input_tile<T: Float, const P: usize>(
 /// One tile's output transform from `M[ξ, o]` (`P × co`, `co = at.len()·len`): the 2×2 outputs
 /// (+ bias, ReLU), channels `j·len ..+ len` of output `k` stored at `at[j][k]` in `img` if it is
 /// `Some` (inside the output, and not skipped).
+#[inline(always)]
 fn output_tile<T: Float, const P: usize>(
     m: &[T],
     len: usize,
@@ -1076,44 +1140,44 @@ fn output_tile<T: Float, const P: usize>(
     }
 }
 
-/// Whether `T` is f32 and the AVX-512 kernels run ([`Float::simd`], which honours
-/// `INVADERS_NO_SIMD` like every kernel family): then the transforms run as intrinsics
-/// ([`avx512`]), the same operations in the same order as [`input_tile`] and [`output_tile`].
-fn fast_f32<T: Float>() -> bool {
-    cfg!(target_arch = "x86_64")
-        && std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>()
-        && T::simd()
-}
-
-/// Which of a call's transforms run on AVX-512: chosen once per [`winograd_conv`] or
-/// [`winograd_wgrad`], on the calling thread, where it is recorded ([`took`]); every task of
-/// the call follows it. The unsafe AVX-512 calls rely on these flags, so they are set only by
+/// Which loops a call's transforms run: chosen once per [`winograd_conv`] or
+/// [`winograd_wgrad`], on the calling thread, where it is recorded ([`took_path`]); every task
+/// of the call follows it. For f32 on AVX-512 the intrinsics of [`avx512`], for whole vectors
+/// only; for f32 on AVX2 the portable loops compiled for AVX2 and FMA
+/// ([`super::x86_64::winograd_avx2`]); otherwise the portable loops. All three do the same
+/// operations in the same order. The unsafe calls rely on these paths, so they are set only by
 /// [`Transforms::choose`].
 #[derive(Clone, Copy, Debug)]
 struct Transforms {
-    /// The input transform: f32 on AVX-512 ([`fast_f32`]) and block rows of whole vectors
-    /// (`s·I` a multiple of 16).
-    input: bool,
-    /// The output transform, or its adjoint: f32 on AVX-512 and whole vectors per output piece.
-    output: bool,
+    /// The input transform: AVX-512 needs block rows of whole vectors (`s·I` a multiple of 16).
+    input: Path,
+    /// The output transform, or its adjoint: AVX-512 needs whole vectors per output piece.
+    output: Path,
 }
 
 impl Transforms {
     /// The transforms for shape `s` whose outputs come in pieces of `len` channels.
     fn choose<T: Float>(s: &WinogradShape, len: usize) -> Self {
-        let fast = fast_f32::<T>();
+        let f32 = cfg!(target_arch = "x86_64")
+            && std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
+        // `cpu::path` honours INVADERS_NO_SIMD and INVADERS_NO_AVX512 like every family.
+        let path = if f32 { cpu::path() } else { Path::Portable };
+        let whole = |n: usize| match path {
+            Path::Avx512 if !n.is_multiple_of(L) => Path::Portable,
+            p => p,
+        };
         Transforms {
-            input: took(Family::WinogradInput, fast && s.seg().is_multiple_of(L)),
-            output: took(Family::WinogradOutput, fast && len.is_multiple_of(L)),
+            input: took_path(Family::WinogradInput, whole(s.seg())),
+            output: took_path(Family::WinogradOutput, whole(len)),
         }
     }
 
-    /// The portable transforms, whatever the CPU (the AVX-512 ones' oracle in the tests).
+    /// The portable transforms, whatever the CPU (the SIMD ones' oracle in the tests).
     #[cfg(test)]
     fn portable() -> Self {
         Transforms {
-            input: false,
-            output: false,
+            input: Path::Portable,
+            output: Path::Portable,
         }
     }
 }
@@ -1423,37 +1487,56 @@ mod avx512 {
 
 #[cfg(test)]
 mod tests {
-    //! The AVX-512 transforms against their portable twins, bit for bit: each is the same
-    //! additions and subtractions in the same order, lane by lane (no multiplication, no fused
-    //! operation), so any difference is a wrong index or a wrong sign.
+    //! The AVX-512 and AVX2 transforms against their portable twins, bit for bit: each is the
+    //! same additions and subtractions in the same order, lane by lane (no multiplication, no
+    //! fused operation), so any difference is a wrong index or a wrong sign.
     use super::*;
     use crate::tensor::cpu;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
-    /// Whether this host must run the AVX-512 transforms, judged without the library's check:
-    /// x86-64 with AVX-512F and FMA, and `INVADERS_NO_SIMD` unset. Says once why not.
-    fn host_runs_avx512() -> bool {
+    /// The loop this host must run the transforms on, judged without the library's check:
+    /// AVX-512 on x86-64 with AVX-512F and FMA, AVX2 with AVX2 and FMA, unless
+    /// `INVADERS_NO_SIMD` (both) or `INVADERS_NO_AVX512` (the first) is set. Says once where
+    /// the SIMD loops are not checked.
+    fn host_path() -> Path {
         #[cfg(target_arch = "x86_64")]
-        let has = is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("fma");
+        let (avx512, avx2) = (
+            is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("fma"),
+            is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma"),
+        );
         #[cfg(not(target_arch = "x86_64"))]
-        let has = false;
-        let on = has
-            && std::env::var_os("INVADERS_NO_SIMD").is_none()
-            && std::env::var_os("INVADERS_NO_AVX512").is_none();
-        if !on {
+        let (avx512, avx2) = (false, false);
+        let simd = std::env::var_os("INVADERS_NO_SIMD").is_none();
+        let path = if avx512 && simd && std::env::var_os("INVADERS_NO_AVX512").is_none() {
+            Path::Avx512
+        } else if avx2 && simd {
+            Path::Avx2
+        } else {
+            Path::Portable
+        };
+        if path != Path::Avx512 {
             static NOTE: std::sync::Once = std::sync::Once::new();
             #[allow(clippy::print_stderr)] // a test's note
             NOTE.call_once(|| {
                 eprintln!(
                     "skip: the AVX-512 Winograd transforms are not checked here ({}); the \
-                     portable ones are compared with themselves",
+                     {path:?} ones are compared with the portable loops",
                     cpu::why_portable().unwrap_or_default()
                 )
             });
         }
-        assert_eq!(cpu::avx512(), on, "the library's CPU check disagrees");
-        on
+        assert_eq!(cpu::path(), path, "the library's CPU check disagrees");
+        path
+    }
+
+    /// One recorded call of `path`.
+    fn once(path: Path) -> cpu::Paths {
+        cpu::Paths {
+            avx512: u64::from(path == Path::Avx512),
+            portable: u64::from(path == Path::Portable),
+            avx2: u64::from(path == Path::Avx2),
+        }
     }
 
     fn values(n: usize, rng: &mut ChaCha8Rng) -> Vec<f32> {
@@ -1496,35 +1579,35 @@ mod tests {
     }
 
     /// Each shape's transforms as chosen for f32 (recorded on this thread) and as the portable
-    /// loops, with the path asserted: AVX-512 on a host that runs it, else portable.
+    /// loops, with the path asserted: the host's SIMD family where it runs one, else portable.
     fn twins(s: &WinogradShape, len: usize) -> (Transforms, Transforms) {
         let before = (
             cpu::paths(Family::WinogradInput),
             cpu::paths(Family::WinogradOutput),
         );
         let fast = Transforms::choose::<f32>(s, len);
-        let avx = host_runs_avx512();
-        assert_eq!((fast.input, fast.output), (avx, avx), "{s:?}");
+        let path = host_path();
+        assert_eq!((fast.input, fast.output), (path, path), "{s:?}");
         let ran = (
             cpu::paths(Family::WinogradInput).since(before.0),
             cpu::paths(Family::WinogradOutput).since(before.1),
         );
-        let one = |on: bool| cpu::Paths {
-            avx512: on as u64,
-            portable: !on as u64,
-            avx2: 0,
-        };
-        assert_eq!(ran, (one(avx), one(avx)), "recorded paths");
+        assert_eq!(ran, (once(path), once(path)), "recorded paths");
         let f64s = Transforms::choose::<f64>(s, len);
-        assert!(!f64s.input && !f64s.output, "f64 runs the portable loops");
+        assert_eq!(
+            (f64s.input, f64s.output),
+            (Path::Portable, Path::Portable),
+            "f64 runs the portable loops"
+        );
         (fast, Transforms::portable())
     }
 
     /// The transforms take their AVX-512 loops only for whole vectors: block rows of 8 input
-    /// values and pieces of 24 output channels stay portable on any host.
+    /// values and pieces of 24 output channels stay portable on an AVX-512 host. The AVX2
+    /// loops (the portable ones compiled for AVX2) take any length.
     #[test]
     fn transforms_need_whole_vectors() {
-        let avx = host_runs_avx512();
+        let path = host_path();
         let shape = |ci, co| WinogradShape {
             n: 1,
             h: 4,
@@ -1539,17 +1622,21 @@ mod tests {
             out_pieces: 1,
             kind: WinogradKind::F2x3,
         };
+        let on = |whole: bool| match path {
+            Path::Avx512 if !whole => Path::Portable,
+            p => p,
+        };
         for (ci, co, input, output) in [
-            (8, 24, false, false),
-            (16, 24, avx, false),
-            (8, 48, false, avx),
-            (48, 48, avx, avx),
+            (8, 24, on(false), on(false)),
+            (16, 24, on(true), on(false)),
+            (8, 48, on(false), on(true)),
+            (48, 48, on(true), on(true)),
         ] {
             let before = cpu::paths(Family::WinogradInput);
             let t = Transforms::choose::<f32>(&shape(ci, co), co);
             assert_eq!((t.input, t.output), (input, output), "{ci} → {co} channels");
             let ran = cpu::paths(Family::WinogradInput).since(before);
-            assert_eq!((ran.avx512, ran.portable), (input as u64, !input as u64));
+            assert_eq!(ran, once(input));
         }
     }
 

@@ -251,7 +251,10 @@ pub fn avx2_expected() -> bool {
 
 /// The families with an AVX2 loop.
 fn has_avx2(family: Family) -> bool {
-    matches!(family, Family::Gather)
+    matches!(
+        family,
+        Family::Gather | Family::Scatter | Family::WinogradInput | Family::WinogradOutput
+    )
 }
 
 /// Runs `f` and asserts that every call of `family` in it, on this thread, ran one loop, and
