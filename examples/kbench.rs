@@ -2,6 +2,9 @@
 //! `perf stat` when the machine is shared (CPU time and cycles are robust to preemption where
 //! criterion's wall time is not): `cargo run --release --example kbench -- conv1 fwd 50`;
 //! `-- step train 30` (and `step act 300`) for the whole train step with its minimum and median;
+//! `-- step infer 300` for acting as `invaders bench` times it (game frames from random play,
+//! an article network after `bench`'s 33 train steps, `Sequential::infer` and the argmax), for
+//! profiling under `perf`;
 //! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders);
 //! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input); a layer's
 //! batch and then `bf16` after the count time its bf16 products (`-- conv1p wgrad 300 48 bf16`).
@@ -49,6 +52,31 @@ fn run() {
         args[3].parse::<usize>().unwrap(),
     );
     let mut rng = ChaCha8Rng::seed_from_u64(0);
+    if what == "step" && op == "infer" {
+        let config = invaders::dqn::Config::preset(invaders::dqn::Preset::Article);
+        let mut learner = Learner::from_config(&config, 6, &mut rng);
+        // As in `bench`, whose acting follows its timed train steps on a random batch.
+        let batch = Batch::random(&config, &mut rng);
+        for _ in 0..33 {
+            learner.train_step(&batch);
+        }
+        let frames = invaders::dqn::random_play_inputs(&config, 64, 10, &mut rng).unwrap();
+        let head = invaders::dqn::Head::of(&config);
+        let (mut times, c0) = (Vec::with_capacity(iters), cpu_seconds());
+        for i in 0..iters {
+            let t = Instant::now();
+            head.greedy(&mut learner.online, &frames[i % frames.len()], 6);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        let cpu = (cpu_seconds() - c0) * 1e3 / iters as f64;
+        times.sort_by(f64::total_cmp);
+        println!(
+            "step infer: {cpu:.3} ms CPU, min {:.3} median {:.3} per action",
+            times[0],
+            times[iters / 2]
+        );
+        return;
+    }
     if what == "step" {
         let mut learner = Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut rng);
         if args.get(4).map(String::as_str) == Some("bf16") {

@@ -89,6 +89,8 @@ fn bench_in_bf16_says_which_kernels_ran() {
             "avx512-bf16"
         } else if cpu::avx512() {
             "avx512-f32"
+        } else if cpu::avx2() {
+            "avx2-f32"
         } else {
             "portable-f32"
         };
@@ -161,6 +163,8 @@ fn train_by_frames() {
     assert_eq!(json["precision"], "f32", "{text}");
     let family = if invaders::tensor::cpu::avx512() {
         "avx512-f32"
+    } else if invaders::tensor::cpu::avx2() {
+        "avx2-f32"
     } else {
         "portable-f32"
     };

@@ -4,11 +4,13 @@
 
 mod common;
 
-use common::{assert_close, avx2_expected, avx512_expected, on_path, rng, set_params, uniform};
+use common::{
+    assert_close, avx2_expected, avx512_expected, on_exactly, on_path, rng, set_params, uniform,
+};
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
-use invaders::tensor::cpu::Family;
+use invaders::tensor::cpu::{self, Family};
 use invaders::tensor::plan::{self, Kernel, Product};
 use invaders::tensor::{
     conv2d_reference, pad_input, Background, Border, ConvGeom, Float, Nonzeros, Padding, Tensor,
@@ -424,12 +426,24 @@ fn gamma(n: usize) -> f64 {
 
 /// The output channel counts the sparse and background products' AVX-512 kernels take (a
 /// multiple of 16 up to 128, one register per 16: every arm of their dispatch), and two they
-/// leave to the portable loops.
-const COUTS: [usize; 10] = [16, 32, 48, 64, 80, 96, 112, 128, 40, 144];
+/// leave to the portable loops (the AVX2 kernels take both, in columns of 64, 40 and 16
+/// channels); 20, which every host leaves to the portable loop.
+const COUTS: [usize; 11] = [16, 32, 48, 64, 80, 96, 112, 128, 40, 144, 20];
 
-/// Whether a sparse or background product of `cout` channels must run its AVX-512 kernel here.
-fn takes_avx(cout: usize) -> bool {
-    avx512_expected() && cout.is_multiple_of(16) && cout <= 128
+/// The loop a sparse or background product of `cout` channels must run here: AVX-512 for a
+/// multiple of 16 up to 128, AVX2 for a multiple of 8, else the portable one.
+fn acting_path(cout: usize) -> cpu::Path {
+    if avx512_expected() {
+        if cout.is_multiple_of(16) && cout <= 128 {
+            cpu::Path::Avx512
+        } else {
+            cpu::Path::Portable
+        }
+    } else if avx2_expected() && cout.is_multiple_of(8) {
+        cpu::Path::Avx2
+    } else {
+        cpu::Path::Portable
+    }
 }
 
 fn f64s(v: &[f32]) -> Vec<f64> {
@@ -453,17 +467,19 @@ fn within(what: &str, got: &[f32], want: &[f64], bound: &[f64], n: usize) {
 
 /// The sparse product at every output channel count its dispatch knows (16 to 128 by 16: the
 /// AVX-512 kernels of 3, 5, 6 and 7 registers included, which the network never reaches) and
-/// at two it leaves to the portable loop (40, 144), for a convolution and a dense layer acting
-/// on one image: `infer` takes the sparse product (the plan's record), by the AVX-512 kernel
-/// where the host has it (the kernel's record), and gives the forward pass's bits there (the
-/// same fused multiply-adds in the same order, zero terms left out). On every path it is
+/// at three it leaves to the portable loop (40, 144 and 20; AVX2 takes the first two), for a
+/// convolution and a dense layer acting on one image: `infer` takes the sparse product (the
+/// plan's record), by the host's SIMD kernel where it has one (the kernel's record), and gives
+/// the forward pass's bits there (the same fused multiply-adds in the same order, zero terms
+/// left out; a dense layer's forward pass on AVX2 is faer's GEMM, so there only the
+/// convolution's). On every path it is
 /// within the rounding bound of the f64 reference, `γ_{K+1}·(|b| + Σ|x||w|)` over its `K`
 /// terms: the portable loop rounds each product, so it matches no other kernel's bits.
 #[test]
 fn sparse_products_at_every_channel_count() {
     let mut r = rng(21);
     for cout in COUTS {
-        let avx = takes_avx(cout);
+        let path = acting_path(cout);
         // A 3×3 SAME convolution of 16 channels: 1024 padded values, about 58 nonzero.
         let g = ConvGeom::new(6, 6, 16, cout, 3, 3, (1, 1), Padding::Same).unwrap();
         let mut conv = Conv2d::<f32>::new("c", g).with_sparse_inference(true);
@@ -474,7 +490,7 @@ fn sparse_products_at_every_channel_count() {
         set_params(&mut conv, &[&w, &b]);
         let x = sparse::<f32>(&[1, 6, 6, 16], 0.9, &mut r);
         let what = format!("conv, {cout} channels");
-        let got = on_path(Family::Sparse, avx, &what, || {
+        let got = on_exactly(Family::Sparse, path, &what, || {
             conv.infer(&x);
             conv.output().data().to_vec()
         });
@@ -483,7 +499,7 @@ fn sparse_products_at_every_channel_count() {
             Some(Kernel::Sparse),
             "{what}"
         );
-        if avx {
+        if path != cpu::Path::Portable {
             conv.forward(&x);
             assert_eq!(got, conv.output().data(), "{what}: the forward pass's bits");
         }
@@ -510,7 +526,7 @@ fn sparse_products_at_every_channel_count() {
         set_params(&mut dense, &[&w, &b]);
         let x = sparse::<f32>(&[1, 200], 0.5, &mut r);
         let what = format!("dense, {cout} outputs");
-        let got = on_path(Family::Sparse, avx, &what, || {
+        let got = on_exactly(Family::Sparse, path, &what, || {
             dense.infer(&x);
             dense.output().data().to_vec()
         });
@@ -519,7 +535,7 @@ fn sparse_products_at_every_channel_count() {
             Some(Kernel::Sparse),
             "{what}"
         );
-        if avx {
+        if path == cpu::Path::Avx512 {
             dense.forward(&x);
             assert_eq!(
                 got,
@@ -543,9 +559,9 @@ fn sparse_products_at_every_channel_count() {
 }
 
 /// conv1's background split at every output channel count of [`COUTS`], on a frame with a
-/// few differing pixels: `infer` takes the split (the plan's record), scans by the AVX-512
-/// comparison where the host has it and sums by the AVX-512 kernel for the counts its dispatch
-/// takes (the kernels' records). The split groups the sum differently from the direct product
+/// few differing pixels: `infer` takes the split (the plan's record), scans by the host's SIMD
+/// loop where it has one and sums by its SIMD kernel for the counts its dispatch takes (the
+/// kernels' records). The split groups the sum differently from the direct product
 /// (`b + conv(B) + conv(x − B)`, with `x − β` rounded), so it is checked against the f64
 /// reference within `γ_N·(|b| + Σ(|x| + 2|β|)|w|)`, `N = 2K + KH + KW + 2`: the
 /// background's sums (`Cin`, then `KW` and `KH` terms), the differences' products (`Cin` each)
@@ -564,7 +580,7 @@ fn background_products_at_every_channel_count() {
         let x = frame::<f32>(&[1, 16, 16, 4], 0.95, &mut r);
         let what = format!("background, {cout} channels");
         let got = on_path(Family::BackgroundSplit, avx512_expected(), &what, || {
-            on_path(Family::Background, takes_avx(cout), &what, || {
+            on_exactly(Family::Background, acting_path(cout), &what, || {
                 conv.infer(&x);
                 conv.output().data().to_vec()
             })

@@ -108,6 +108,8 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         "avx512-bf16"
     } else if cpu::avx512() {
         "avx512-f32"
+    } else if cpu::avx2() {
+        "avx2-f32"
     } else {
         "portable-f32"
     };

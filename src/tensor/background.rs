@@ -27,7 +27,7 @@
 //! grouped differently. (On AVX-512 each pixel's sum is taken by fused multiply-adds, and the
 //! portable loops round each product, so the two also differ by rounding; each is deterministic.)
 
-use super::cpu::{took, Family};
+use super::cpu::{took_path, Family, Path};
 use super::{ConvGeom, Float};
 use std::ops::Range;
 
@@ -92,27 +92,50 @@ impl<T: Float> Background<T> {
         self.at.clear();
         self.diff.resize(g.h * g.w * c, T::zero());
         let rows = (0..g.h).map(|iy| &x[first + iy * row..][..g.w * c]);
-        let fast = took(Family::BackgroundSplit, T::simd());
-        #[cfg(target_arch = "x86_64")]
-        if fast {
+        let path = if T::simd() {
+            Path::Avx512
+        } else if T::gather_simd() {
+            Path::Avx2
+        } else {
+            Path::Portable
+        };
+        self.complete = match took_path(Family::BackgroundSplit, path) {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
-            self.complete = unsafe { avx512::split(self, g, rows, limit) };
-            return self.complete;
-        }
-        self.complete = self.differing(g, rows, limit, |block, tiled| {
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx512 => unsafe { avx512::split(self, g, rows, limit) },
+            // SAFETY: `gather_simd` without `simd`: the CPU runs AVX2 and FMA.
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx2 => unsafe { super::x86_64::acting_avx2::split(self, g, rows, limit) },
+            _ => self.split_portable(g, rows, limit),
+        };
+        self.complete
+    }
+
+    /// [`Background::differing`] with the portable block comparison (also what the AVX2 family
+    /// compiles for AVX2).
+    #[inline(always)]
+    pub(super) fn split_portable<'x>(
+        &mut self,
+        g: &ConvGeom,
+        rows: impl Iterator<Item = &'x [T]>,
+        limit: usize,
+    ) -> bool
+    where
+        T: 'x,
+    {
+        self.differing(g, rows, limit, |block, tiled| {
             block
                 .iter()
                 .zip(tiled)
                 .fold(false, |any, (&v, &b)| any | (v != b))
-        });
-        self.complete
+        })
     }
 
     /// [`Background::split`]'s scan over the image's `rows`. Most 16-value blocks of a row
     /// equal `β`'s tiling (`differs(block, tiling)` is false: one comparison on AVX-512); only
     /// the pixels of the others are looked at one by one.
     #[inline(always)]
-    fn differing<'x>(
+    pub(super) fn differing<'x>(
         &mut self,
         g: &ConvGeom,
         rows: impl Iterator<Item = &'x [T]>,
@@ -171,23 +194,25 @@ impl<T: Float> Background<T> {
         );
         assert_eq!(rows.len(), g.oh * g.ow, "Background: output rows");
         assert!(self.complete, "Background: conv after a split that gave up");
-        let fast = took(
-            Family::Background,
-            T::simd() && cout.is_multiple_of(16) && cout <= 128,
-        );
-        #[cfg(target_arch = "x86_64")]
-        if fast {
-            // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
-            return unsafe { avx512::conv(self, g, w, bias, relu, y, rows) };
+        match took_path(Family::Background, super::sparse::acting_path::<T>(cout)) {
+            // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there, `cout` a
+            // multiple of 16 up to 128.
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx512 => unsafe { avx512::conv(self, g, w, bias, relu, y, rows) },
+            // SAFETY: AVX2 and FMA, `T` f32, `cout` a multiple of 8 (`acting_path`).
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx2 => unsafe {
+                super::x86_64::acting_avx2::background_conv(self, g, w, bias, relu, y, rows)
+            },
+            _ => self.run(g, w, bias, relu, y, rows, add_products),
         }
-        self.run(g, w, bias, relu, y, rows, add_products);
     }
 
     /// [`Background::conv`]'s body, with `add` the kernel that adds a pixel's terms into an
     /// output ([`Background::scatter`]).
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn run(
+    pub(super) fn run(
         &mut self,
         g: &ConvGeom,
         w: &[T],

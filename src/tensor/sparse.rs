@@ -24,7 +24,7 @@
 //! conv1 reads frames, which have no zeros but a constant background: acting splits that off
 //! instead ([`super::Background`]), and agrees with the forward pass up to rounding.
 
-use super::cpu::{took, Family};
+use super::cpu::{took_path, Family, Path};
 use super::Float;
 
 /// The nonzero values of an image `[P, C]` (pixels, channels), pixel by pixel: pixel `p`'s are
@@ -55,12 +55,33 @@ impl<T: Float> Nonzeros<T> {
         // even when zero.
         self.index.resize(x.len() + 16, 0);
         self.value.resize(x.len() + 16, T::zero());
-        let fast = took(Family::Nonzeros, T::simd() && c.is_multiple_of(16));
-        #[cfg(target_arch = "x86_64")]
-        if fast {
+        let path = if T::simd() {
+            if c.is_multiple_of(16) {
+                Path::Avx512
+            } else {
+                Path::Portable
+            }
+        } else if T::gather_simd() {
+            Path::Avx2
+        } else {
+            Path::Portable
+        };
+        match took_path(Family::Nonzeros, path) {
             // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
-            return unsafe { avx512::collect(self, x, c) };
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx512 => unsafe { avx512::collect(self, x, c) },
+            // SAFETY: `gather_simd` without `simd`: the CPU runs AVX2 and FMA.
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx2 => unsafe { super::x86_64::acting_avx2::collect(self, x, c) },
+            _ => self.collect_portable(x, c),
         }
+    }
+
+    /// [`Nonzeros::collect`]'s portable loop (also what the AVX2 family compiles for AVX2), on
+    /// buffers sized by it.
+    #[inline(always)]
+    pub(super) fn collect_portable(&mut self, x: &[T], c: usize) {
+        let pixels = x.len() / c;
         let mut k = 0;
         for (p, px) in x.chunks_exact(c).enumerate() {
             self.start[p] = k;
@@ -139,15 +160,21 @@ impl<T: Float> SparseConv<'_, T> {
         if cout == 0 || self.windows.is_empty() {
             return;
         }
-        let fast = took(
-            Family::Sparse,
-            T::simd() && cout.is_multiple_of(16) && cout <= 128,
-        );
-        #[cfg(target_arch = "x86_64")]
-        if fast {
-            // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there.
-            return unsafe { avx512::run(self, cin, cout) };
+        match took_path(Family::Sparse, acting_path::<T>(cout)) {
+            // SAFETY: `simd` holds only where the CPU runs AVX-512F; `T` is f32 there, `cout` a
+            // multiple of 16 up to 128.
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx512 => unsafe { avx512::run(self, cin, cout) },
+            // SAFETY: `gather_simd` without `simd`: AVX2 and FMA, `T` f32, `cout` a multiple
+            // of 8.
+            #[cfg(target_arch = "x86_64")]
+            Path::Avx2 => unsafe { super::x86_64::acting_avx2::sparse_run(self, cin, cout) },
+            _ => self.run_portable(cin, cout),
         }
+    }
+
+    /// [`SparseConv::run`]'s portable loop: each product rounded, then added.
+    fn run_portable(self, cin: usize, cout: usize) {
         // Each row is summed in place in `y`: no scratch, nothing allocated per call.
         for (&p, &r) in self.windows.iter().zip(self.rows) {
             let out = &mut self.y[r..r + cout];
@@ -168,6 +195,25 @@ impl<T: Float> SparseConv<'_, T> {
                 }
             }
         }
+    }
+}
+
+/// The loop a sparse or background product of `cout` output channels runs: AVX-512 for f32
+/// where it runs and `cout` is a multiple of 16 up to 128 (one register per 16 channels); AVX2
+/// and FMA for f32 where they run instead and `cout` is a multiple of 8 (columns of up to 64
+/// channels at a time); else the portable loop. The SIMD loops give the same bits: each output
+/// channel is the same fused multiply-adds in the same order.
+pub(super) fn acting_path<T: Float>(cout: usize) -> Path {
+    if T::simd() {
+        if cout.is_multiple_of(16) && cout <= 128 {
+            Path::Avx512
+        } else {
+            Path::Portable
+        }
+    } else if T::gather_simd() && cout.is_multiple_of(8) {
+        Path::Avx2
+    } else {
+        Path::Portable
     }
 }
 

@@ -253,7 +253,12 @@ pub fn avx2_expected() -> bool {
 fn has_avx2(family: Family) -> bool {
     matches!(
         family,
-        Family::Gather | Family::Scatter | Family::WinogradInput | Family::WinogradOutput
+        Family::Gather
+            | Family::Scatter
+            | Family::WinogradInput
+            | Family::WinogradOutput
+            | Family::Nonzeros
+            | Family::BackgroundSplit
     )
 }
 
@@ -261,9 +266,6 @@ fn has_avx2(family: Family) -> bool {
 /// that there was at least one: the AVX-512 loop if `avx512`, else the AVX2 loop where the
 /// family has one and this host runs it ([`avx2_expected`]), else the portable loop.
 pub fn on_path<R>(family: Family, avx512: bool, what: &str, f: impl FnOnce() -> R) -> R {
-    let before = cpu::paths(family);
-    let out = f();
-    let p = cpu::paths(family).since(before);
     let expected = if avx512 {
         cpu::Path::Avx512
     } else if has_avx2(family) && avx2_expected() {
@@ -271,6 +273,15 @@ pub fn on_path<R>(family: Family, avx512: bool, what: &str, f: impl FnOnce() -> 
     } else {
         cpu::Path::Portable
     };
+    on_exactly(family, expected, what, f)
+}
+
+/// Runs `f` and asserts that every call of `family` in it, on this thread, ran the `expected`
+/// loop, and that there was at least one.
+pub fn on_exactly<R>(family: Family, expected: cpu::Path, what: &str, f: impl FnOnce() -> R) -> R {
+    let before = cpu::paths(family);
+    let out = f();
+    let p = cpu::paths(family).since(before);
     assert!(
         p.avx512 + p.portable + p.avx2 > 0,
         "{what}: no {family:?} kernel ran"

@@ -2,6 +2,7 @@
 //! switched off by `INVADERS_NO_AVX512`). Each kernel is checked against its portable twin, with
 //! which it agrees to the bit (`tests/kernels.rs`, and the Winograd module's tests).
 
+pub(crate) mod acting_avx2;
 pub mod gather_avx2;
 pub(crate) mod scatter_avx2;
 pub(crate) mod winograd_avx2;
