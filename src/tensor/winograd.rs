@@ -348,7 +348,7 @@ impl WinogradKind {
     }
 
     /// The side of a block in pixels (1 for F(2×2, 3×3)).
-    fn block(self) -> usize {
+    pub(super) fn block(self) -> usize {
         match self {
             WinogradKind::F2x3 => 1,
             WinogradKind::S2d(s) => s,
@@ -395,12 +395,12 @@ impl WinogradShape {
     }
 
     /// Products per tile: 16 or 9.
-    fn places(&self) -> usize {
+    pub(super) fn places(&self) -> usize {
         self.kind.side() * self.kind.side()
     }
 
     /// Values one input block contributes per `dy` (a row of `s` pixels).
-    fn seg(&self) -> usize {
+    pub(super) fn seg(&self) -> usize {
         self.kind.block() * self.ci
     }
 
@@ -1550,10 +1550,10 @@ mod tests {
         }
     }
 
-    /// The shapes the layers run, small: F(2×2, 3×3) with odd output edges (a tile's second
-    /// row and column dropped) and padding; F(2×2, 2×2) over 2×2 blocks (conv2) and 4×4 blocks
-    /// of 4 channels (conv1's, 16 values per block row); over blocks of one pixel with the
-    /// output in 4 pieces (conv2's input gradient).
+    /// The shapes the layers run, small, and one of odd channel counts: F(2×2, 3×3) with odd
+    /// output edges (a tile's second row and column dropped) and padding; F(2×2, 2×2) over
+    /// 2×2 blocks (conv2) and 4×4 blocks of 4 channels (conv1's, 16 values per block row);
+    /// over blocks of one pixel with the output in 4 pieces (conv2's input gradient).
     fn shapes() -> Vec<WinogradShape> {
         let shape = |h, w, ci, oh, ow, pad, co, pieces, kind| WinogradShape {
             n: 3,
@@ -1575,6 +1575,8 @@ mod tests {
             shape(12, 12, 32, 5, 5, 0, 64, 1, WinogradKind::S2d(2)),
             shape(16, 16, 4, 3, 3, 0, 32, 1, WinogradKind::S2d(4)),
             shape(5, 5, 64, 6, 6, 1, 128, 4, WinogradKind::S2d(1)),
+            // Rows of 12 input and 20 output channels: no whole vectors for any SIMD loop.
+            shape(5, 5, 12, 5, 5, 1, 20, 1, WinogradKind::F2x3),
         ]
     }
 
