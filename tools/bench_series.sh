@@ -8,6 +8,8 @@
 #        CKPT, if set, is a trained network whose acting `bench` times too, e.g.
 #        models/strong/model.safetensors)
 #
+# SCRIPTS names the reference scripts to run (default: all four), e.g. SCRIPTS="tf_step
+# torch_step" for a shorter series once the bf16 ones are known to be far behind.
 # ISA=avx2 times what a CPU without AVX-512 runs, on any host: ours under INVADERS_NO_AVX512=1
 # (in f32: bf16 needs AVX512-BF16),
 # the frameworks under ONEDNN_MAX_CPU_ISA=AVX2 (TensorFlow and PyTorch) and
@@ -47,7 +49,7 @@ for r in $(seq 1 "$ROUNDS"); do
     for p in $precisions; do
       echo "round $r ours-$p threads=$t $(env "${OURS_ENV[@]}" $BIN bench --json --threads "$t" --precision $p --steps 30 ${CKPT:+--checkpoint "$CKPT"} 2>/dev/null)" >> "$OUT"
     done
-    for script in tf_step tf_step_bf16 torch_step torch_step_bf16; do
+    for script in ${SCRIPTS:-tf_step tf_step_bf16 torch_step torch_step_bf16}; do
       echo "round $r $(env "${PY_ENV[@]}" $PY "$B/$script.py" "$t" 30 2>/dev/null | tail -1)" >> "$OUT"
     done
   done
