@@ -159,7 +159,7 @@ impl Float for f32 {
     fn gather_gemm(g: GatherGemm<'_, f32>) {
         use super::cpu::{path, took_path, Path};
         match took_path(Family::Gather, path()) {
-            Path::Avx512 => super::gather::avx512::gather_gemm(g),
+            Path::Avx512 => super::x86_64::gather_avx512::gather_gemm(g),
             Path::Avx2 => super::x86_64::gather_avx2::gather_gemm(g),
             Path::Portable => gather_gemm_portable(g),
         }
@@ -168,7 +168,7 @@ impl Float for f32 {
     fn scatter_gemm(g: ScatterGemm<'_, f32>) {
         use super::cpu::{path, took_path, Path};
         match took_path(Family::Scatter, path()) {
-            Path::Avx512 => super::gather::avx512::scatter_gemm(g),
+            Path::Avx512 => super::x86_64::gather_avx512::scatter_gemm(g),
             // SAFETY: `cpu::path` chose AVX2 only where the CPU runs AVX2 and FMA.
             Path::Avx2 => unsafe { super::x86_64::scatter_avx2::scatter_gemm(g) },
             Path::Portable => scatter_gemm_portable(g),

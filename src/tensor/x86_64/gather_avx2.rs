@@ -12,8 +12,8 @@
 
 use std::arch::x86_64::*;
 
-use super::super::gather::avx512::{split_tasks, Dest};
 use super::super::gather::{row_start, GatherGemm, Init};
+use super::gather_avx512::{split_tasks, Dest};
 
 /// Reduction steps per block: the block's `b` rows of one panel (128 × 16 floats, 8 KiB) stay in
 /// L1 while every row tile of a task runs over them.

@@ -1,8 +1,19 @@
-//! x86-64 code that is not AVX-512: the AVX2 and FMA family, for CPUs without AVX-512 (or with it
-//! switched off by `INVADERS_NO_AVX512`). Each kernel is checked against its portable twin, with
-//! which it agrees to the bit (`tests/kernels.rs`, and the Winograd module's tests).
+//! The x86-64 kernels, one file per family and instruction set: the AVX-512 families
+//! (`*_avx512.rs`; AVX512-BF16 in `bf16_avx512.rs` and `gather_bf16_avx512.rs`) and the AVX2
+//! and FMA family (`*_avx2.rs`) for CPUs without AVX-512 (or with it switched off by
+//! `INVADERS_NO_AVX512`). `crate::tensor::cpu` says which runs; each kernel's portable twin is
+//! in its family's module one level up (`gather.rs`, `winograd.rs`, …), and the tests check
+//! each kernel against it (`tests/kernels.rs`, `tests/sparse.rs`, `tests/bf16.rs`, the Winograd
+//! module's tests).
 
 pub(crate) mod acting_avx2;
-pub mod gather_avx2;
+pub(crate) mod background_avx512;
+pub(crate) mod bf16_avx512;
+pub(crate) mod gather_avx2;
+pub(crate) mod gather_avx512;
+pub(crate) mod gather_bf16_avx512;
 pub(crate) mod scatter_avx2;
+pub(crate) mod sparse_avx512;
+pub(crate) mod transpose_avx512;
 pub(crate) mod winograd_avx2;
+pub(crate) mod winograd_avx512;

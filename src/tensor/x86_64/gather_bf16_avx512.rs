@@ -1,0 +1,266 @@
+//! The AVX512-BF16 kernel: an `MR × 16·NV` block of `C` in `MR·NV ≤ 24` zmm accumulators,
+//! as the f32 kernel's tiles ([`crate::tensor::gather`]). Each pair step loads `NV` vectors
+//! of `b` (16 columns × 2 bf16 each), broadcasts each row's pair (one 32-bit load), and
+//! issues `MR·NV` `vdpbf16ps`: `MR + NV` loads per `2·16·MR·NV` multiply-adds.
+
+use crate::tensor::gather::Init;
+use crate::tensor::gather_bf16::GatherGemmBf16;
+use crate::tensor::x86_64::gather_avx512::{
+    by_height, by_panel, panel_masks, split_tasks, tile_rows, Dest,
+};
+use std::arch::x86_64::*;
+
+/// Pairs per block: the task's row tiles run over one block of `b` (256 pairs × 64 columns ×
+/// 4 bytes, 64 KiB, in L2) before the next, and `C`'s tiles are stored and loaded again
+/// between blocks. 64-pair blocks (16 KiB, in L1) made the article's train step 4% slower on
+/// Zen 5 (docs/performance.md): the weight gradients' long reductions (conv1's, 10 560 pairs
+/// of output pixels at batch 48) went back to `C` every 64 pairs. 128 and 512 measured level
+/// with 256.
+const TP: usize = 256;
+
+/// The operands every task reads.
+#[derive(Clone, Copy)]
+struct Operands<'a> {
+    a: &'a [u16],
+    q: &'a [usize],
+    b: &'a [u16],
+    ldb: usize,
+    n: usize,
+    relu: bool,
+}
+
+#[derive(Clone, Copy)]
+enum Start {
+    Zero,
+    Load,
+    Bias(*const f32),
+}
+
+/// One `MR × 16·NV` tile over the pairs `q` of one block.
+///
+/// # Safety
+/// AVX-512F and AVX512-BF16; every `a` pair `p[r] + q[u]` (two u16) readable, `b` pair rows
+/// `u` readable over the masked columns, `c` rows `crow[r]` readable and writable likewise,
+/// a `Bias` pointer readable likewise.
+#[target_feature(enable = "avx512f,avx512bf16")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
+    a: *const u16,
+    p: &[usize],
+    q: &[usize],
+    b: *const u16,
+    ldb: usize,
+    c: *mut f32,
+    crow: &[usize],
+    masks: [u16; NV],
+    start: Start,
+    relu: bool,
+) {
+    let mut acc = [[_mm512_setzero_ps(); NV]; MR];
+    for r in 0..MR {
+        for v in 0..NV {
+            acc[r][v] = match start {
+                Start::Zero => _mm512_setzero_ps(),
+                Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
+                Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
+            };
+        }
+    }
+    let mut rows = [a; MR];
+    for r in 0..MR {
+        rows[r] = a.add(p[r]);
+    }
+    let mut brow = b;
+    for &qu in q {
+        let mut bv = [_mm512_setzero_si512(); NV];
+        for v in 0..NV {
+            // Column j's pair is one 32-bit lane: the column mask is the lane mask.
+            let at = brow.add(32 * v) as *const i32;
+            bv[v] = if FULL {
+                _mm512_loadu_si512(at as *const __m512i)
+            } else {
+                _mm512_maskz_loadu_epi32(masks[v], at)
+            };
+        }
+        for r in 0..MR {
+            let pair = (rows[r].add(qu) as *const i32).read_unaligned();
+            let av: __m512bh = std::mem::transmute(_mm512_set1_epi32(pair));
+            for v in 0..NV {
+                let bh: __m512bh = std::mem::transmute(bv[v]);
+                acc[r][v] = _mm512_dpbf16_ps(acc[r][v], av, bh);
+            }
+        }
+        brow = brow.add(2 * ldb);
+    }
+    for r in 0..MR {
+        for v in 0..NV {
+            let val = if relu {
+                _mm512_max_ps(acc[r][v], _mm512_setzero_ps())
+            } else {
+                acc[r][v]
+            };
+            _mm512_mask_storeu_ps(c.add(crow[r] + 16 * v), masks[v], val);
+        }
+    }
+}
+
+/// Dispatches one tile on the panel width (in vectors) and whether it is full.
+///
+/// # Safety
+/// As [`tile`], with `nv` in `1..=4` and `m[..nv]` the panel's lane masks.
+#[target_feature(enable = "avx512f,avx512bf16")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_nv<const MR: usize>(
+    nv: usize,
+    a: *const u16,
+    p: &[usize],
+    q: &[usize],
+    b: *const u16,
+    ldb: usize,
+    c: *mut f32,
+    crow: &[usize],
+    m: [u16; 4],
+    start: Start,
+    relu: bool,
+) {
+    by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, relu))
+}
+
+/// A tile of any height `h < 10` (the rows left over after the full tiles).
+///
+/// # Safety
+/// As [`tile_nv`] for `h` rows.
+#[target_feature(enable = "avx512f,avx512bf16")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_any(
+    h: usize,
+    nv: usize,
+    a: *const u16,
+    p: &[usize],
+    q: &[usize],
+    b: *const u16,
+    ldb: usize,
+    c: *mut f32,
+    crow: &[usize],
+    m: [u16; 4],
+    start: Start,
+    relu: bool,
+) {
+    by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, relu))
+}
+
+/// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part):
+/// blocks of [`TP`] pairs outer, 64-column panels, then row tiles.
+///
+/// # Safety
+/// AVX-512F and AVX512-BF16; the bounds of [`GatherGemmBf16::check`] hold for these rows.
+#[target_feature(enable = "avx512f,avx512bf16")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn task(mr: usize, op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start) {
+    let Operands {
+        a,
+        q,
+        b,
+        ldb,
+        n,
+        relu,
+    } = op;
+    let (nr, pairs) = (p.len(), q.len());
+    let nblocks = pairs.div_ceil(TP).max(1);
+    for blk in 0..nblocks {
+        let u0 = blk * TP;
+        let qb = &q[u0.min(pairs)..(u0 + TP).min(pairs)];
+        let bb = if qb.is_empty() {
+            b.as_ptr()
+        } else {
+            b.as_ptr().add(2 * u0 * ldb)
+        };
+        let start = if blk == 0 { init } else { Start::Load };
+        let relu = relu && blk + 1 == nblocks;
+        for j0 in (0..n).step_by(64) {
+            let (m, nv) = panel_masks(n, j0);
+            let mut r = 0;
+            while r < nr {
+                let h = (nr - r).min(mr);
+                let d0 = dest.at(r);
+                let pr = &p[r..r + h];
+                let crow: [usize; 10] =
+                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
+                let st = match start {
+                    Start::Bias(bias) => Start::Bias(bias.add(j0)),
+                    s => s,
+                };
+                let (ap, cp, bp) = (a.as_ptr(), c.add(d0 + j0), bb.add(2 * j0));
+                if h == mr {
+                    match mr {
+                        10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
+                        8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
+                        _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
+                    }
+                } else {
+                    tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu);
+                }
+                r += mr;
+            }
+        }
+    }
+}
+
+/// The product by AVX512-BF16, split over rayon by blocks of rows whose size depends only
+/// on the shape (the same split as the f32 kernel). Call only if the CPU has it.
+pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
+    assert!(
+        crate::tensor::cpu::avx512_bf16(),
+        "gather_gemm_bf16: AVX512-BF16 needed"
+    );
+    g.check();
+    let rows = g.p.len();
+    if rows == 0 || g.n == 0 {
+        return;
+    }
+    let mr = tile_rows(g.n);
+    let flops = 4 * rows * g.q.len().max(1) * g.n;
+    let threads = rayon::current_num_threads();
+    let most = if 16 * rows < g.q.len() {
+        threads
+    } else {
+        4 * threads
+    };
+    let tasks = flops.div_ceil(1 << 22).clamp(1, most);
+    let rpt = rows.div_ceil(tasks).div_ceil(mr) * mr;
+    let tasks = rows.div_ceil(rpt);
+    let (c_rows, ldc) = (g.c_rows, g.ldc);
+    let end = crate::tensor::gather::row_start(c_rows, ldc, rows - 1) + g.n;
+    let start = move |t: usize| crate::tensor::gather::row_start(c_rows, ldc, t * rpt);
+    let op = Operands {
+        a: g.a,
+        q: g.q,
+        b: g.b,
+        ldb: g.ldb,
+        n: g.n,
+        relu: g.relu,
+    };
+    let (p, init) = (g.p, g.init);
+    let run = |t: usize, cc: &mut [f32], base: usize| {
+        let r0 = t * rpt;
+        let pr = &p[r0..(r0 + rpt).min(rows)];
+        let dest = Dest {
+            c_rows,
+            ldc,
+            r0,
+            base,
+        };
+        let st = match init {
+            Init::Zero => Start::Zero,
+            Init::Accumulate => Start::Load,
+            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
+        };
+        // SAFETY: AVX512-BF16 checked above; `check` proved every `a`, `b` and bias index
+        // in bounds, and this task's rows of C lie inside `cc` (rows increase and the next
+        // task's part starts where its first row does), which no other task touches.
+        unsafe { task(mr, op, pr, cc.as_mut_ptr(), dest, st) }
+    };
+    split_tasks(&mut g.c[..end], 0, 0, tasks, &start, &run);
+}
