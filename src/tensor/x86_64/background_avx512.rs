@@ -35,7 +35,8 @@ pub unsafe fn split<'x, T: Float>(
     })
 }
 
-/// [`Background::conv`] with [`crate::tensor::background::add_products`] in `Cout / 16` registers, each
+/// [`Background::conv`] with [`crate::tensor::background::add_products`] in `Cout / 16` registers,
+/// each
 /// pixel's sum by fused multiply-adds.
 ///
 /// # Safety

@@ -2,7 +2,8 @@
 
 use std::arch::x86_64::*;
 
-/// [`crate::tensor::bf16::dot_bf16`]'s AVX512-BF16 loop: 32 terms per step into 16 f32 lanes, the tail (fewer than 32
+/// [`crate::tensor::bf16::dot_bf16`]'s AVX512-BF16 loop: 32 terms per step into 16 f32 lanes, the
+/// tail (fewer than 32
 /// terms) zero-padded through a masked load, then the 16 lanes summed.
 ///
 /// # Safety

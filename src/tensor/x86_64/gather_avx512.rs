@@ -444,7 +444,8 @@ pub(crate) fn tile_rows(n: usize) -> usize {
     }
 }
 
-/// [`crate::tensor::gather::ScatterGemm`] on AVX-512, one rayon task per group. Call only if [`available`].
+/// [`crate::tensor::gather::ScatterGemm`] on AVX-512, one rayon task per group. Call only if
+/// [`available`].
 pub fn scatter_gemm(g: crate::tensor::gather::ScatterGemm<'_, f32>) {
     assert!(available(), "scatter_gemm: AVX-512F and FMA needed");
     g.check();
@@ -510,7 +511,8 @@ pub fn scatter_gemm(g: crate::tensor::gather::ScatterGemm<'_, f32>) {
 /// One group's rows of a scatter GEMM.
 ///
 /// # Safety
-/// AVX-512F available; the bounds of [`crate::tensor::gather::ScatterGemm::check`] hold, with `o` the group's
+/// AVX-512F available; the bounds of [`crate::tensor::gather::ScatterGemm::check`] hold, with `o`
+/// the group's
 /// output slice starting at index `base` of the whole output.
 #[target_feature(enable = "avx512f")]
 #[allow(clippy::too_many_arguments)]

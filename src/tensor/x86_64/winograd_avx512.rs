@@ -16,7 +16,8 @@ unsafe fn row(img: &[f32], zeros: &[f32], at: Option<usize>) -> *const f32 {
     }
 }
 
-/// [`crate::tensor::winograd::input_tile`] with [`crate::tensor::winograd::input_transform`] for a whole tile (all `blk` block
+/// [`crate::tensor::winograd::input_tile`] with [`crate::tensor::winograd::input_transform`] for a
+/// whole tile (all `blk` block
 /// rows), for f32: `v[ξ·stride + dy·seg + c]` from the rows `starts[k·blk + dy]`.
 ///
 /// # Safety
@@ -107,7 +108,8 @@ pub unsafe fn input_tile9(
     }
 }
 
-/// [`crate::tensor::winograd::output_adjoint`] for one tile, f32: `m[ξ·stride + c]` from the tile's 2×2
+/// [`crate::tensor::winograd::output_adjoint`] for one tile, f32: `m[ξ·stride + c]` from the
+/// tile's 2×2
 /// outputs at `img[at[k] + c]` (zeros for `None`).
 ///
 /// # Safety
@@ -150,7 +152,8 @@ pub unsafe fn adjoint_tile(
     }
 }
 
-/// [`crate::tensor::winograd::output_adjoint`] of F(2×2, 2×2) for one tile, f32: `m[ξ·stride + c]` (9 places)
+/// [`crate::tensor::winograd::output_adjoint`] of F(2×2, 2×2) for one tile, f32: `m[ξ·stride + c]`
+/// (9 places)
 /// from the tile's 2×2 outputs, `A` mapping `(y₀, y₁)` to `(y₀, y₀ + y₁, y₁)`.
 ///
 /// # Safety
@@ -221,7 +224,8 @@ unsafe fn finish(
     }
 }
 
-/// [`crate::tensor::winograd::output_tile`] with [`crate::tensor::winograd::output_transform`], for f32.
+/// [`crate::tensor::winograd::output_tile`] with [`crate::tensor::winograd::output_transform`],
+/// for f32.
 ///
 /// # Safety
 /// AVX-512F must be available; `m` must hold `16·co` values (`co = at.len()·len`), `bias`
@@ -261,7 +265,8 @@ pub unsafe fn output_tile(
     }
 }
 
-/// [`crate::tensor::winograd::output_tile`] with [`crate::tensor::winograd::output_transform9`], for f32.
+/// [`crate::tensor::winograd::output_tile`] with [`crate::tensor::winograd::output_transform9`],
+/// for f32.
 ///
 /// # Safety
 /// As [`output_tile`], with `m` holding `9·co` values.
