@@ -85,6 +85,24 @@ avx512_twin! {
     }
 }
 
+/// Rows of `C` per rayon task for a gather GEMM of `rows` rows, `steps` reduction steps and `n`
+/// columns, a multiple of the register tile's `mr` rows: tasks of about 2²² flops, a few per
+/// thread (enough to balance two cores, one of which may be busy; few enough that each task's
+/// row tiles share every block of `b` while it is in cache), but one per thread for a weight
+/// gradient (few rows, a long reduction: each task streams all of `a` and `b`). Any split gives
+/// the same bits.
+pub(crate) fn rows_per_task(rows: usize, steps: usize, n: usize, mr: usize) -> usize {
+    let flops = 2 * rows * steps.max(1) * n;
+    let threads = rayon::current_num_threads();
+    let most = if 8 * rows < steps {
+        threads
+    } else {
+        4 * threads
+    };
+    let tasks = flops.div_ceil(1 << 22).clamp(1, most);
+    rows.div_ceil(tasks).div_ceil(mr) * mr
+}
+
 /// Where row `r` of `C` starts in `c`: `c_rows[r]`, or `r·ldc` without a table.
 #[inline]
 pub(crate) fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize {

@@ -12,7 +12,7 @@
 
 use std::arch::x86_64::*;
 
-use super::super::gather::{row_start, GatherGemm, Init};
+use super::super::gather::{row_start, rows_per_task, GatherGemm, Init};
 use super::gather_avx512::{split_tasks, Dest};
 
 /// Reduction steps per block: the block's `b` rows of one panel (128 × 16 floats, 8 KiB) stay in
@@ -323,17 +323,7 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
     if rows == 0 || g.n == 0 {
         return;
     }
-    // As the AVX-512 kernel splits: a few tasks per thread, one per thread for a weight
-    // gradient (few rows, a long reduction). Any split gives the same bits.
-    let flops = 2 * rows * g.q.len().max(1) * g.n;
-    let threads = rayon::current_num_threads();
-    let most = if 8 * rows < g.q.len() {
-        threads
-    } else {
-        4 * threads
-    };
-    let tasks = flops.div_ceil(1 << 22).clamp(1, most);
-    let rpt = rows.div_ceil(tasks).div_ceil(MR) * MR;
+    let rpt = rows_per_task(rows, g.q.len(), g.n, MR);
     let tasks = rows.div_ceil(rpt);
     let end = g.row_start(rows - 1) + g.n;
     let (c_rows, ldc) = (g.c_rows, g.ldc);

@@ -6,7 +6,7 @@
 //! with the column tail under a mask, except a lone row (a GEMV) which takes 128-column
 //! panels. Leftover rows get one tile of their height.
 
-use crate::tensor::gather::{row_start, GatherGemm, Init};
+use crate::tensor::gather::{row_start, rows_per_task, GatherGemm, Init};
 use rayon::prelude::*;
 use std::arch::x86_64::*;
 
@@ -603,20 +603,7 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
     }
     // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
     let mr = tile_rows(g.n);
-    // A few tasks per thread: enough to balance two cores (one of which may be busy), few
-    // enough that each task's row tiles share every block of `b` rows (and, for a weight
-    // gradient, of gathered input) while it is in cache. Any split gives the same bits.
-    let flops = 2 * rows * g.q.len().max(1) * g.n;
-    let threads = rayon::current_num_threads();
-    // A weight gradient (few rows, a long reduction) streams all of `a` and `b` once per
-    // task: one task per thread, not four.
-    let most = if 8 * rows < g.q.len() {
-        threads
-    } else {
-        4 * threads
-    };
-    let tasks = flops.div_ceil(1 << 22).clamp(1, most);
-    let rpt = rows.div_ceil(tasks).div_ceil(mr) * mr;
+    let rpt = rows_per_task(rows, g.q.len(), g.n, mr);
     let tasks = rows.div_ceil(rpt);
     let end = g.row_start(rows - 1) + g.n;
     let (c_rows, ldc) = (g.c_rows, g.ldc);

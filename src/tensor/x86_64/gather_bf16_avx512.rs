@@ -221,15 +221,8 @@ pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
         return;
     }
     let mr = tile_rows(g.n);
-    let flops = 4 * rows * g.q.len().max(1) * g.n;
-    let threads = rayon::current_num_threads();
-    let most = if 16 * rows < g.q.len() {
-        threads
-    } else {
-        4 * threads
-    };
-    let tasks = flops.div_ceil(1 << 22).clamp(1, most);
-    let rpt = rows.div_ceil(tasks).div_ceil(mr) * mr;
+    // `q` counts pairs: two reduction steps each.
+    let rpt = crate::tensor::gather::rows_per_task(rows, 2 * g.q.len(), g.n, mr);
     let tasks = rows.div_ceil(rpt);
     let (c_rows, ldc) = (g.c_rows, g.ldc);
     let end = crate::tensor::gather::row_start(c_rows, ldc, rows - 1) + g.n;
