@@ -11,7 +11,7 @@
 use invaders::dqn::{article_qnet, Batch, Learner};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::Sequential;
-use invaders::tensor::plan::Precision;
+use invaders::ops::plan::Precision;
 use invaders::tensor::{Float, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

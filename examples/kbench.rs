@@ -80,7 +80,7 @@ fn run() {
     if what == "step" {
         let mut learner = Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut rng);
         if args.get(4).map(String::as_str) == Some("bf16") {
-            learner.set_precision(invaders::tensor::plan::Precision::Bf16);
+            learner.set_precision(invaders::ops::plan::Precision::Bf16);
         }
         // Laid out as the agent's batches are: inside conv1's padding (a zero border).
         let mut batch = Batch::padded(48, [88, 80, 4]);
@@ -117,7 +117,7 @@ fn run() {
         let init = invaders::layers::init::VarianceScaling::HE;
         let mut net = invaders::dqn::article_qnet::<f32>([88, 80, 4], 6, &init, &mut rng);
         if args.get(4).map(String::as_str) == Some("bf16") {
-            net.set_precision(invaders::tensor::plan::Precision::Bf16);
+            net.set_precision(invaders::ops::plan::Precision::Bf16);
         }
         let x = random(&[48, 88, 80, 4], &mut rng);
         net.forward(&x);
@@ -192,7 +192,7 @@ fn run() {
         _ => (Box::new(Dense::new(what, 128, 6)), vec![batch, 128]),
     };
     if args.get(5).map(String::as_str) == Some("bf16") {
-        layer.set_precision(invaders::tensor::plan::Precision::Bf16);
+        layer.set_precision(invaders::ops::plan::Precision::Bf16);
     }
     for p in layer.params_mut() {
         for v in p.value.data_mut() {

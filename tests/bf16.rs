@@ -6,11 +6,11 @@ mod common;
 
 use common::{avx512_expected, on_path, rng, set_params, uniform};
 use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::ops::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::bf16::to_bf16;
 use invaders::tensor::bf16::{dot_bf16, dot_bf16_reference, dot_error_bound, round_bf16};
 use invaders::tensor::cpu::Family;
 use invaders::tensor::gather_bf16::{pack_pairs, pack_shifted, pair_shifted, to_bf16_vec};
-use invaders::tensor::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, pad_input, ConvGeom, Padding, Tensor,
 };

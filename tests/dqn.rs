@@ -6,7 +6,7 @@ mod common;
 use invaders::dqn::checkpoint;
 use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
 use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
-use invaders::tensor::plan::Precision;
+use invaders::ops::plan::Precision;
 use invaders::tensor::Tensor;
 use proptest::prelude::*;
 use rand::Rng;

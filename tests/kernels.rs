@@ -9,8 +9,8 @@ mod common;
 
 use common::{assert_close, avx2_expected, avx512_expected, on_path, rng, set_params, uniform};
 use invaders::layers::{Conv2d, Layer};
+use invaders::ops::plan::{self, Kernel, Product};
 use invaders::tensor::cpu::Family;
-use invaders::tensor::plan::{self, Kernel, Product};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, fill_iota, gather_gemm_portable, gemm,
     gemm_matrixmultiply, gemm_reference, pad_input, scatter_gemm_portable, transpose,

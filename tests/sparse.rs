@@ -10,8 +10,8 @@ use common::{
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::ops::plan::{self, Kernel, Product};
 use invaders::tensor::cpu::{self, Family};
-use invaders::tensor::plan::{self, Kernel, Product};
 use invaders::tensor::{
     conv2d_reference, pad_input, Background, Border, ConvGeom, Float, Nonzeros, Padding, Tensor,
 };

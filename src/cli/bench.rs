@@ -17,8 +17,8 @@ use rand_chacha::ChaCha8Rng;
 use invaders::dqn::{checkpoint, random_play_inputs, Agent, Batch, Config, Learner, Preset};
 use invaders::env::{Observer, SpaceInvaders};
 use invaders::layers::Sequential;
+use invaders::ops::plan::{self, Precision, Product};
 use invaders::tensor::cpu::{self, Family};
-use invaders::tensor::plan::{self, Precision, Product};
 
 #[derive(Debug, Args)]
 pub struct BenchArgs {

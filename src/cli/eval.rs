@@ -51,7 +51,7 @@ pub struct EvalArgs {
     threads: Option<usize>,
     /// The products' arithmetic while acting (default: the checkpoint's).
     #[arg(long, value_enum, requires = "checkpoint")]
-    precision: Option<invaders::tensor::plan::Precision>,
+    precision: Option<invaders::ops::plan::Precision>,
     /// Number of episodes [default: 30; 100 with --protocol].
     #[arg(long)]
     episodes: Option<u32>,

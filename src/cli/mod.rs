@@ -95,9 +95,9 @@ pub fn in_pool<R: Send>(
 pub const MAX_THREADS: usize = 256;
 
 /// Says once, on stderr, when `precision` asks for bf16 on a CPU that cannot run it (its
-/// products then run in f32: [`invaders::tensor::plan::bf16_runs`]).
-pub fn note_precision(precision: invaders::tensor::plan::Precision) {
-    use invaders::tensor::plan::{bf16_runs, Precision};
+/// products then run in f32: [`invaders::ops::plan::bf16_runs`]).
+pub fn note_precision(precision: invaders::ops::plan::Precision) {
+    use invaders::ops::plan::{bf16_runs, Precision};
     static NOTE: std::sync::Once = std::sync::Once::new();
     if precision == Precision::Bf16 && !bf16_runs(precision) {
         NOTE.call_once(|| {

@@ -29,7 +29,7 @@ use super::figures::{plot_rewards, Curve};
 use super::guard;
 use invaders::dqn::{Agent, Config, EpisodeRow, Preset, NO_EPISODE_LIMIT};
 use invaders::env::SpaceInvaders;
-use invaders::tensor::plan::Precision;
+use invaders::ops::plan::Precision;
 
 #[derive(Debug, Args)]
 pub struct TrainArgs {

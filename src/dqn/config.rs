@@ -7,7 +7,7 @@
 use super::Replay;
 use crate::env::{Downsample, EnvConfig, EnvMode, Normalization, Pipeline};
 use crate::layers::loss::LossKind;
-use crate::tensor::plan::Precision;
+use crate::ops::plan::Precision;
 use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 
@@ -235,7 +235,7 @@ pub struct Config {
     /// Clip gradients to this global norm (0: no clipping).
     pub clip_grad_norm: f64,
     /// The training products' arithmetic: `f32`, or `bf16` operands with f32 sums where the CPU
-    /// has AVX512-BF16 (elsewhere f32; [`crate::tensor::plan::Precision`]), or `auto`: whichever
+    /// has AVX512-BF16 (elsewhere f32; [`crate::ops::plan::Precision`]), or `auto`: whichever
     /// trains faster here, measured when the run starts and recorded in its `config.toml`
     /// ([`super::resolve_precision`]). Weights, gradients, Adam's state and checkpoints stay f32.
     #[serde(default)]

@@ -124,8 +124,8 @@ impl Learner {
         l
     }
 
-    /// Both networks' training arithmetic ([`crate::tensor::plan::Precision`]).
-    pub fn set_precision(&mut self, precision: crate::tensor::plan::Precision) {
+    /// Both networks' training arithmetic ([`crate::ops::plan::Precision`]).
+    pub fn set_precision(&mut self, precision: crate::ops::plan::Precision) {
         self.online.set_precision(precision);
         self.target.set_precision(precision);
     }

@@ -12,7 +12,7 @@
 //! `config.toml`, so a resumed run, its evaluation and a rerun from that file keep it.
 
 use super::{Batch, Config, Learner};
-use crate::tensor::plan::{bf16_runs, Precision};
+use crate::ops::plan::{bf16_runs, Precision};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;

@@ -3,7 +3,7 @@
 use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
 use crate::layers::{Conv2d, Dense, Dueling, QuantileEmbedding, Relu, Sequential};
-use crate::tensor::plan;
+use crate::ops::plan;
 use crate::tensor::{Border, ConvGeom, Float, Tensor};
 use rand::Rng;
 

@@ -27,7 +27,7 @@ pub use quantile_embedding::QuantileEmbedding;
 pub use relu::Relu;
 pub use sequential::Sequential;
 
-use crate::tensor::plan::Precision;
+use crate::ops::Precision;
 use crate::tensor::{Float, Tensor};
 
 /// One trainable tensor and its gradient.
@@ -101,8 +101,8 @@ pub trait Layer<T: Float>: Send {
     /// of the batch, sample by sample ([`QuantileEmbedding`]); layers that take none ignore them.
     fn set_fractions(&mut self, _taus: &[f64]) {}
 
-    /// The arithmetic of the layer's training products ([`crate::tensor::plan::conv`] and
-    /// [`crate::tensor::plan::dense`] pick their kernels by it). Layers without products ignore
+    /// The arithmetic of the layer's training products ([`crate::ops::plan::conv`] and
+    /// [`crate::ops::plan::dense`] pick their kernels by it). Layers without products ignore
     /// it.
     fn set_precision(&mut self, _precision: Precision) {}
 }

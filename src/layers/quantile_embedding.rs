@@ -2,7 +2,8 @@
 //! al. 2018) multiply into a state's features.
 
 use super::{Layer, Param};
-use crate::tensor::{gemm, Float, Op, Tensor};
+use crate::ops::{gemm, Op};
+use crate::tensor::{Float, Tensor};
 use rayon::prelude::*;
 
 /// Evaluates a state's features at `N` quantile fractions `τ ∈ (0, 1)` each: for every sample

@@ -1,7 +1,8 @@
 //! Rectified linear unit.
 
 use super::Layer;
-use crate::tensor::{vectorized, Float, Tensor};
+use crate::ops::vectorized;
+use crate::tensor::{Float, Tensor};
 use rayon::prelude::*;
 
 /// Elements per rayon task: element-wise work, so any split gives the same result.

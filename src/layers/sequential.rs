@@ -152,7 +152,7 @@ impl<T: Float> Sequential<T> {
     }
 
     /// Sets every layer's training arithmetic ([`Layer::set_precision`]).
-    pub fn set_precision(&mut self, precision: crate::tensor::plan::Precision) {
+    pub fn set_precision(&mut self, precision: crate::ops::plan::Precision) {
         for l in &mut self.layers {
             l.set_precision(precision);
         }

@@ -10,7 +10,7 @@
 //! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32. Both
 //! are read once, at the first call, so a process runs one way throughout.
 //!
-//! The kernels are selected by [`crate::tensor::plan`]; nothing else asks the CPU.
+//! The kernels are selected by [`crate::ops::plan`]; nothing else asks the CPU.
 //!
 //! Each hand-written kernel family records which of its two loops ran ([`took`], read back by
 //! [`paths`]), per thread, on the thread that called it: a test can then prove that the
@@ -28,7 +28,7 @@ pub struct Features {
     pub avx512: bool,
     /// AVX2 and FMA where the AVX-512 kernels do not run, and `INVADERS_NO_SIMD` unset: the AVX2
     /// family runs (the gather GEMM: a convolution's forward pass, weight gradient and input
-    /// gradient by phases; see [`crate::tensor::plan`]). `INVADERS_NO_AVX512` makes an AVX-512
+    /// gradient by phases; see [`crate::ops::plan`]). `INVADERS_NO_AVX512` makes an AVX-512
     /// host run exactly this.
     pub avx2: bool,
     /// That, AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later), and

@@ -20,7 +20,6 @@ mod float;
 mod gather;
 pub mod gather_bf16;
 mod gemm;
-pub mod plan;
 mod sparse;
 mod transpose;
 mod winograd;

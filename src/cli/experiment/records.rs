@@ -155,7 +155,7 @@ pub(super) fn config_differences(had: &Config, asked: &Config) -> Vec<String> {
         out.remove("episodes");
         out.remove("max_frames");
         // `auto` asks for whichever precision the run measured faster: either answers it.
-        if asked.precision == invaders::tensor::plan::Precision::Auto {
+        if asked.precision == invaders::ops::plan::Precision::Auto {
             out.remove("precision");
         }
         out

@@ -1,7 +1,7 @@
-//! The fast kernels of [`Conv2d`], as chosen by [`crate::tensor::plan::conv`]: the gather GEMMs
+//! The fast kernels of a convolution's products, as chosen by [`crate::ops::plan::conv`]: the gather GEMMs
 //! on a padded input (or the input itself), Winograd's minimal filtering, and for acting the
-//! sparse and background products. Each computes the same products as the im2col path in
-//! `conv2d.rs`, which is the reference they are tested against (`tests/kernels.rs`,
+//! sparse and background products. Each computes the same products as the im2col kernel in
+//! `mod.rs`, which is the reference they are tested against (`tests/kernels.rs`,
 //! `tests/sparse.rs`); the f64 gradient checks run that one.
 //!
 //! Where the input is read: a zero-padded copy `xpad` (`[N, HP, WP, Cin]`), or the input itself
@@ -9,11 +9,11 @@
 //! starts from the bias and stores `max(·, 0)` straight into the interior of the bordered
 //! output; the weight gradient reduces over all output pixels straight from the padded input.
 
-use super::Conv2d;
+use super::{ConvOps, ConvSpec};
+use crate::ops::plan::{self, Kernel};
 use crate::tensor::gather_bf16::{
     f32s, f32s_mut, pack_pairs, pack_shifted, pair_shifted, pair_steps, round_into, to_bf16_vec,
 };
-use crate::tensor::plan::{self, ConvPlan, Kernel};
 use crate::tensor::{
     fill_iota, gather_gemm_bf16, pad_input, unpad_input, winograd_conv, winograd_filters,
     winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Background, ConvGeom,
@@ -79,13 +79,57 @@ pub(super) struct Scratch<T> {
     bf_p: Vec<usize>,
 }
 
-impl<T: Float> Conv2d<T> {
+/// The input the fast kernels read: `x` itself where the geometry reads it in place, else its
+/// zero-padded copy `xpad` (written by [`ConvOps::read_input`]).
+fn input<'a, T: Float>(g: &ConvGeom, x: &'a Tensor<T>, xpad: &'a [T]) -> &'a [T] {
+    if g.reads_input_directly() {
+        x.data()
+    } else {
+        xpad
+    }
+}
+
+/// Where each output pixel starts in the bordered output, or `None` without a border (the
+/// output rows are then consecutive).
+fn bordered_rows<'a>(s: &ConvSpec, n: usize, rows: &'a mut Vec<usize>) -> Option<&'a [usize]> {
+    let g = s.geom;
+    if s.border.is_none() {
+        None
+    } else {
+        s.border.interior_offsets(n, g.oh, g.ow, g.cout, rows);
+        Some(&rows[..])
+    }
+}
+
+impl<T: Float> ConvOps<T> {
+    /// Pads `x` into `xpad` where it cannot be read in place, and lays out where each output
+    /// pixel's window starts (`pixels`) and each patch element's offset from there (`patch`):
+    /// what the forward products read, and the backward products after them.
+    fn read_input(&mut self, g: &ConvGeom, x: &Tensor<T>) {
+        if !g.reads_input_directly() {
+            pad_input(g, x.batch(), x.data(), &mut self.fast.xpad);
+        }
+        g.gather_offsets(x.batch(), &mut self.fast.pixels, &mut self.fast.patch);
+        self.fast.bf_x_of = None;
+    }
+
+    /// Checks that the last forward pass laid out this batch's windows (see `read_input`).
+    fn check_forward(&self, s: &ConvSpec, n: usize) {
+        assert_eq!(
+            self.fast.pixels.len(),
+            s.rows(n),
+            "{}: backward without forward",
+            self.name
+        );
+    }
+
     /// The forward product of a batch of `n` as a Winograd convolution: VALID over the (padded)
     /// input, every input tile (4×4 pixels, or 3×3 blocks of s×s) of a 2×2 output tile, into the
     /// bordered output.
-    fn winograd_shape(&self, g: ConvGeom, n: usize, kind: WinogradKind) -> WinogradShape {
+    fn winograd_shape(s: &ConvSpec, n: usize, kind: WinogradKind) -> WinogradShape {
+        let g = s.geom;
         let (hp, wp) = g.padded();
-        let (hb, wb) = self.border.around(g.oh, g.ow);
+        let (hb, wb) = s.border.around(g.oh, g.ow);
         WinogradShape {
             n,
             h: hp,
@@ -102,6 +146,254 @@ impl<T: Float> Conv2d<T> {
         }
     }
 
+    /// `Z = b + x·W` by the gather GEMM ([`Kernel::Gather`]): row `m` gathers output pixel `m`'s
+    /// patch through the offset tables, starting from the bias, `max(·, 0)` stored straight into
+    /// the bordered output.
+    pub(super) fn forward_gather(
+        &mut self,
+        s: &ConvSpec,
+        x: &Tensor<T>,
+        w: &[T],
+        b: &[T],
+        y: &mut Tensor<T>,
+    ) {
+        let g = s.geom;
+        self.read_input(&g, x);
+        T::gather_gemm(GatherGemm {
+            a: input(&g, x, &self.fast.xpad),
+            p: &self.fast.pixels,
+            q: &self.fast.patch,
+            b: w,
+            ldb: g.cout,
+            n: g.cout,
+            c: y.data_mut(),
+            ldc: g.cout,
+            c_rows: bordered_rows(s, x.batch(), &mut self.out_rows),
+            init: Init::Bias(b),
+            relu: s.relu,
+        });
+    }
+
+    /// `Z = b + x·W` in bf16 ([`Kernel::GatherBf16`]): pairs of patch values (a pixel's
+    /// channels, next to each other) against pairs of filter rows.
+    pub(super) fn forward_bf16(
+        &mut self,
+        s: &ConvSpec,
+        x: &Tensor<T>,
+        w: &[T],
+        b: &[T],
+        y: &mut Tensor<T>,
+    ) {
+        let g = s.geom;
+        self.read_input(&g, x);
+        let f = &mut self.fast;
+        assert!(
+            pair_steps(&f.patch, &mut f.bf_q),
+            "{}: patch pairs",
+            self.name
+        );
+        to_bf16_vec(f32s(input(&g, x, &f.xpad)), &mut f.bf_x);
+        f.bf_x_of = Some((x.data().as_ptr() as usize, x.len()));
+        pack_pairs(f32s(w), g.patch_len(), g.cout, g.cout, &mut f.bf_w);
+        gather_gemm_bf16(GatherGemmBf16 {
+            a: &f.bf_x,
+            p: &f.pixels,
+            q: &f.bf_q,
+            b: &f.bf_w,
+            ldb: g.cout,
+            n: g.cout,
+            c: f32s_mut(y.data_mut()),
+            ldc: g.cout,
+            c_rows: bordered_rows(s, x.batch(), &mut self.out_rows),
+            init: Init::Bias(f32s(b)),
+            relu: s.relu,
+        });
+    }
+
+    /// `Z = b + x·W` by Winograd's minimal filtering ([`Kernel::Winograd`]): VALID over the
+    /// (padded) input, every input tile (4×4 pixels, or 3×3 blocks of s×s) of a 2×2 output
+    /// tile.
+    pub(super) fn forward_winograd(
+        &mut self,
+        s: &ConvSpec,
+        x: &Tensor<T>,
+        kind: WinogradKind,
+        w: &[T],
+        b: &[T],
+        y: &mut Tensor<T>,
+    ) {
+        let g = s.geom;
+        self.read_input(&g, x);
+        let f = &mut self.fast;
+        match kind {
+            WinogradKind::F2x3 => winograd_filters(w, g.cin, g.cout, false, &mut f.wino_u),
+            WinogradKind::S2d(k) => winograd_filters_s2d(w, k, g.cin, g.cout, &mut f.wino_u),
+        }
+        s.border
+            .interior_offsets(1, g.oh, g.ow, g.cout, &mut f.wino_pix);
+        let shape = Self::winograd_shape(s, x.batch(), kind);
+        let a = input(&g, x, &f.xpad);
+        let (u, pix) = (&f.wino_u, &f.wino_pix);
+        winograd_conv(shape, a, u, Some(b), s.relu, y.data_mut(), pix, &mut f.wino);
+    }
+
+    /// `dW[k, co] += Σ_m xpad[pixels[m] + patch[k]]·dZ[m, co]` by the gather GEMM.
+    pub(super) fn wgrad_gather(&mut self, s: &ConvSpec, x: &Tensor<T>, dz: &[T], dw: &mut [T]) {
+        self.check_forward(s, x.batch());
+        let g = s.geom;
+        T::gather_gemm(GatherGemm {
+            a: input(&g, x, &self.fast.xpad),
+            p: &self.fast.patch,
+            q: &self.fast.pixels,
+            b: dz,
+            ldb: g.cout,
+            n: g.cout,
+            c: dw,
+            ldc: g.cout,
+            c_rows: None,
+            init: Init::Accumulate,
+            relu: false,
+        });
+    }
+
+    /// `dW` in bf16: `dW[k, co] += Σ_m x[pixels[m] + patch[k]]·dZ[m, co]` over pairs of output
+    /// pixels (2u, 2u + 1), next to each other in a row (`OW` even, the plan's condition), so
+    /// `SW·Cin` apart in the input: the input paired with itself shifted by that, against pairs
+    /// of rows of dZ. `forward` is the kernel the forward pass ran.
+    pub(super) fn wgrad_bf16(
+        &mut self,
+        s: &ConvSpec,
+        x: &Tensor<T>,
+        dz: &[T],
+        dw: &mut [T],
+        forward: Kernel,
+    ) {
+        let (g, n) = (s.geom, x.batch());
+        self.check_forward(s, n);
+        let f = &mut self.fast;
+        let a = input(&g, x, &f.xpad);
+        let d = g.sw * g.cin;
+        f.bf_q.clear();
+        for pair in f.pixels.chunks_exact(2) {
+            assert_eq!(pair[1], pair[0] + d, "{}: pixel pairs", self.name);
+            f.bf_q.push(2 * pair[0]);
+        }
+        f.bf_p.clear();
+        f.bf_p.extend(f.patch.iter().map(|&k| 2 * k));
+        let rounded = Some((x.data().as_ptr() as usize, x.len()));
+        if forward == Kernel::GatherBf16 && f.bf_x_of == rounded {
+            // The forward pass rounded this input already: pair it as it is.
+            assert_eq!(f.bf_x.len(), a.len(), "{}: bf16 input", self.name);
+            pair_shifted(&f.bf_x, d, &mut f.bf_xs);
+        } else {
+            pack_shifted(f32s(a), d, &mut f.bf_xs);
+        }
+        pack_pairs(f32s(dz), s.rows(n), g.cout, g.cout, &mut f.bf_dz);
+        gather_gemm_bf16(GatherGemmBf16 {
+            a: &f.bf_xs,
+            p: &f.bf_p,
+            q: &f.bf_q,
+            b: &f.bf_dz,
+            ldb: g.cout,
+            n: g.cout,
+            c: f32s_mut(dw),
+            ldc: g.cout,
+            c_rows: None,
+            init: Init::Accumulate,
+            relu: false,
+        });
+    }
+
+    /// `dW` by Winograd: the products' adjoints over the (padded) input's tiles.
+    pub(super) fn wgrad_winograd(
+        &mut self,
+        s: &ConvSpec,
+        x: &Tensor<T>,
+        kind: WinogradKind,
+        dz: &[T],
+        dw: &mut [T],
+    ) {
+        self.check_forward(s, x.batch());
+        let shape = Self::winograd_shape(s, x.batch(), kind);
+        let a = input(&s.geom, x, &self.fast.xpad);
+        winograd_wgrad(shape, a, dz, dw, &mut self.fast.wino);
+    }
+
+    /// `dX` by Winograd, for an input read in place: the adjoint convolution of `dZ`, its
+    /// filters into `wino_u` and where each output goes into `wino_pix`.
+    pub(super) fn dx_winograd(
+        &mut self,
+        s: &ConvSpec,
+        n: usize,
+        kind: WinogradKind,
+        dz: &[T],
+        w: &[T],
+        dx: &mut Tensor<T>,
+    ) {
+        let (g, b) = (s.geom, s.in_border);
+        let f = &mut self.fast;
+        let shape = match kind {
+            WinogradKind::F2x3 => {
+                // The adjoint convolution of dZ (the rotated, transposed filter): interior input
+                // pixel (iy, ix) = (oy + top, ox + left) collects Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx],
+                // i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.
+                let (ih, iw) = (g.h - b.top - b.bottom, g.w - b.left - b.right);
+                winograd_filters(w, g.cin, g.cout, true, &mut f.wino_u);
+                b.interior_offsets(1, ih, iw, g.cin, &mut f.wino_pix);
+                WinogradShape {
+                    n,
+                    h: g.oh,
+                    w: g.ow,
+                    ci: g.cout,
+                    oh: ih,
+                    ow: iw,
+                    pad_top: 2 - b.top,
+                    pad_left: 2 - b.left,
+                    co: g.cin,
+                    out_image: g.in_len(),
+                    out_pieces: 1,
+                    kind: WinogradKind::F2x3,
+                }
+            }
+            WinogradKind::S2d(s) => {
+                // Over s × s blocks, the adjoint convolution of dZ is 2×2 over blocks, by F(2×2,
+                // 2×2) (see `winograd_filters_s2d_adjoint`): block (Y, X) collects dZ[Y − by,
+                // X − bx] for by, bx < 2, i.e. dZ read from one pixel above and to the left. Each
+                // block's s² pixels are stored as pieces, except the input border's.
+                winograd_filters_s2d_adjoint(w, s, g.cin, g.cout, &mut f.wino_w, &mut f.wino_u);
+                f.wino_pix.clear();
+                for by in 0..=g.oh {
+                    for bx in 0..=g.ow {
+                        for (dy, dx) in (0..s).flat_map(|dy| (0..s).map(move |dx| (dy, dx))) {
+                            let (iy, ix) = (s * by + dy, s * bx + dx);
+                            f.wino_pix.push(if b.contains(g.h, g.w, iy, ix) {
+                                SKIP_OUTPUT
+                            } else {
+                                (iy * g.w + ix) * g.cin
+                            });
+                        }
+                    }
+                }
+                WinogradShape {
+                    n,
+                    h: g.oh,
+                    w: g.ow,
+                    ci: g.cout,
+                    oh: g.oh + 1,
+                    ow: g.ow + 1,
+                    pad_top: 1,
+                    pad_left: 1,
+                    co: s * s * g.cin,
+                    out_image: g.in_len(),
+                    out_pieces: s * s,
+                    kind: WinogradKind::S2d(1),
+                }
+            }
+        };
+        let (u, pix) = (&f.wino_u, &f.wino_pix);
+        winograd_conv(shape, dz, u, None, false, dx.data_mut(), pix, &mut f.wino);
+    }
+
     /// `dX` for an input read directly, by phases: a gather GEMM per `(iy mod SH, ix mod SW)`.
     ///
     /// Input row `iy = a·SH + py` meets the filter rows `ky = py + SH·j` (`j < J`, the phase's
@@ -111,7 +403,16 @@ impl<T: Float> Conv2d<T> {
     /// GEMM that reduces over the phase's `J·L·Cout` taps, gathered from `dZ` inside a zero
     /// border (taps in reverse order, so the offsets are non-negative). Each `dX` value is
     /// written once (no scatter, no overlapping adds), `Cin` columns wide.
-    fn dx_by_phases(&mut self, g: ConvGeom, dz: &[T], n: usize, bf16: bool) {
+    pub(super) fn dx_by_phases(
+        &mut self,
+        s: &ConvSpec,
+        n: usize,
+        dz: &[T],
+        w: &[T],
+        dx: &mut Tensor<T>,
+        bf16: bool,
+    ) {
+        let g = s.geom;
         let (sh, sw, co, ci) = (g.sh, g.sw, g.cout, g.cin);
         // dZ inside a border of (max taps − 1) above/left and enough below/right.
         let (tj, tl) = (g.kh.div_ceil(sh) - 1, g.kw.div_ceil(sw) - 1);
@@ -136,8 +437,7 @@ impl<T: Float> Conv2d<T> {
                 d.copy_from_slice(s)
             });
         }
-        let w = self.params[0].value.data();
-        let b = self.in_border;
+        let b = s.in_border;
         for py in 0..sh.min(g.h) {
             for px in 0..sw.min(g.w) {
                 // Taps of this phase (none if the filter is smaller than the stride).
@@ -189,7 +489,7 @@ impl<T: Float> Conv2d<T> {
                         b: &f.bf_taps,
                         ldb: ci,
                         n: ci,
-                        c: f32s_mut(self.dx.data_mut()),
+                        c: f32s_mut(dx.data_mut()),
                         ldc: ci,
                         c_rows: Some(&f.ph_rows),
                         init: Init::Zero,
@@ -204,7 +504,7 @@ impl<T: Float> Conv2d<T> {
                     b: &self.fast.ph_w,
                     ldb: ci,
                     n: ci,
-                    c: self.dx.data_mut(),
+                    c: dx.data_mut(),
                     ldc: ci,
                     c_rows: Some(&self.fast.ph_rows),
                     init: Init::Zero,
@@ -212,271 +512,20 @@ impl<T: Float> Conv2d<T> {
                 });
             }
         }
-        self.zero_input_border(g, n, false);
-    }
-
-    /// The forward pass by [`Kernel::Gather`], [`Kernel::GatherBf16`] or [`Kernel::Winograd`],
-    /// with `g` the input's geometry.
-    pub(super) fn forward_fast(&mut self, g: ConvGeom, x: &Tensor<T>, kernel: Kernel) {
-        let n = x.batch();
-        let a: &[T] = if g.reads_input_directly() {
-            x.data()
-        } else {
-            pad_input(&g, n, x.data(), &mut self.fast.xpad);
-            &self.fast.xpad
-        };
-        g.gather_offsets(n, &mut self.fast.pixels, &mut self.fast.patch);
-        self.fast.bf_x_of = None;
-        let c_rows = if self.border.is_none() {
-            None
-        } else {
-            self.border
-                .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
-            Some(&self.out_rows[..])
-        };
-        if kernel == Kernel::GatherBf16 {
-            // Z = b + x·W with pairs of patch values (a pixel's channels, next to each other)
-            // against pairs of filter rows.
-            let q = &mut self.fast.bf_q;
-            assert!(
-                pair_steps(&self.fast.patch, q),
-                "{}: patch pairs",
-                self.name
-            );
-            to_bf16_vec(f32s(a), &mut self.fast.bf_x);
-            self.fast.bf_x_of = Some((x.data().as_ptr() as usize, x.len()));
-            let w = f32s(self.params[0].value.data());
-            pack_pairs(w, g.patch_len(), g.cout, g.cout, &mut self.fast.bf_w);
-            gather_gemm_bf16(GatherGemmBf16 {
-                a: &self.fast.bf_x,
-                p: &self.fast.pixels,
-                q: &self.fast.bf_q,
-                b: &self.fast.bf_w,
-                ldb: g.cout,
-                n: g.cout,
-                c: f32s_mut(self.y.data_mut()),
-                ldc: g.cout,
-                c_rows,
-                init: Init::Bias(f32s(self.params[1].value.data())),
-                relu: self.relu,
-            });
-            return;
-        }
-        if let Kernel::Winograd(kind) = kernel {
-            // VALID over the (padded) input: every input tile (4×4 pixels, or 3×3 blocks of
-            // s×s) of a 2×2 output tile.
-            let w = self.params[0].value.data();
-            match kind {
-                WinogradKind::F2x3 => {
-                    winograd_filters(w, g.cin, g.cout, false, &mut self.fast.wino_u)
-                }
-                WinogradKind::S2d(s) => {
-                    winograd_filters_s2d(w, s, g.cin, g.cout, &mut self.fast.wino_u)
-                }
-            }
-            self.border
-                .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.fast.wino_pix);
-            let shape = self.winograd_shape(g, n, kind);
-            let bias = Some(self.params[1].value.data());
-            let y = self.y.data_mut();
-            winograd_conv(
-                shape,
-                a,
-                &self.fast.wino_u,
-                bias,
-                self.relu,
-                y,
-                &self.fast.wino_pix,
-                &mut self.fast.wino,
-            );
-            return;
-        }
-        T::gather_gemm(GatherGemm {
-            a,
-            p: &self.fast.pixels,
-            q: &self.fast.patch,
-            b: self.params[0].value.data(),
-            ldb: g.cout,
-            n: g.cout,
-            c: self.y.data_mut(),
-            ldc: g.cout,
-            c_rows,
-            init: Init::Bias(self.params[1].value.data()),
-            relu: self.relu,
-        });
-    }
-
-    /// The weight and input gradients by the plan's fast kernels, with `g` the input's geometry:
-    /// the same products as [`Conv2d::backward_im2col`]. `dz` is `[N·OH·OW, Cout]`.
-    pub(super) fn backward_fast(
-        &mut self,
-        g: ConvGeom,
-        x: &Tensor<T>,
-        dz: &[T],
-        plan: ConvPlan,
-        need_dx: bool,
-    ) {
-        let n = x.batch();
-        let m = self.rows(n);
-        assert_eq!(
-            self.fast.pixels.len(),
-            m,
-            "{}: backward without forward",
-            self.name
-        );
-        let direct = g.reads_input_directly();
-        let a = if direct { x.data() } else { &self.fast.xpad };
-        match plan.weight_grad() {
-            Kernel::Winograd(kind) => {
-                // dW by Winograd: the products' adjoints over the (padded) input's tiles.
-                let shape = self.winograd_shape(g, n, kind);
-                let dw = self.params[0].grad.data_mut();
-                winograd_wgrad(shape, a, dz, dw, &mut self.fast.wino);
-            }
-            Kernel::GatherBf16 => {
-                // dW[k, co] += Σ_m x[pixels[m] + patch[k]]·dZ[m, co] over pairs of output
-                // pixels (2u, 2u + 1), next to each other in a row (`OW` even, the plan's
-                // condition), so `SW·Cin` apart in the input: the input paired with itself
-                // shifted by that, against pairs of rows of dZ.
-                let d = g.sw * g.cin;
-                self.fast.bf_q.clear();
-                for pair in self.fast.pixels.chunks_exact(2) {
-                    assert_eq!(pair[1], pair[0] + d, "{}: pixel pairs", self.name);
-                    self.fast.bf_q.push(2 * pair[0]);
-                }
-                self.fast.bf_p.clear();
-                self.fast
-                    .bf_p
-                    .extend(self.fast.patch.iter().map(|&k| 2 * k));
-                let rounded = Some((x.data().as_ptr() as usize, x.len()));
-                if plan.planned_forward() == Kernel::GatherBf16 && self.fast.bf_x_of == rounded {
-                    // The forward pass rounded this input already: pair it as it is.
-                    assert_eq!(self.fast.bf_x.len(), a.len(), "{}: bf16 input", self.name);
-                    pair_shifted(&self.fast.bf_x, d, &mut self.fast.bf_xs);
-                } else {
-                    pack_shifted(f32s(a), d, &mut self.fast.bf_xs);
-                }
-                pack_pairs(f32s(dz), m, g.cout, g.cout, &mut self.fast.bf_dz);
-                gather_gemm_bf16(GatherGemmBf16 {
-                    a: &self.fast.bf_xs,
-                    p: &self.fast.bf_p,
-                    q: &self.fast.bf_q,
-                    b: &self.fast.bf_dz,
-                    ldb: g.cout,
-                    n: g.cout,
-                    c: f32s_mut(self.params[0].grad.data_mut()),
-                    ldc: g.cout,
-                    c_rows: None,
-                    init: Init::Accumulate,
-                    relu: false,
-                });
-            }
-            _ => {
-                // dW[k, co] += Σ_m xpad[pixels[m] + patch[k]] · dZ[m, co]
-                T::gather_gemm(GatherGemm {
-                    a,
-                    p: &self.fast.patch,
-                    q: &self.fast.pixels,
-                    b: dz,
-                    ldb: g.cout,
-                    n: g.cout,
-                    c: self.params[0].grad.data_mut(),
-                    ldc: g.cout,
-                    c_rows: None,
-                    init: Init::Accumulate,
-                    relu: false,
-                });
-            }
-        }
-        if !need_dx {
-            return;
-        }
-        // dX by Winograd where the input is read in place: the filters of the adjoint
-        // convolution into `wino_u`, where each output goes into `wino_pix`, and its shape.
-        let b = self.in_border;
-        let w = self.params[0].value.data();
-        self.dx.set_shape(&[n, g.h, g.w, g.cin]);
-        let shape = match plan.input_grad() {
-            Kernel::Winograd(WinogradKind::F2x3) => {
-                // The adjoint convolution of dZ (the rotated, transposed filter): interior input
-                // pixel (iy, ix) = (oy + top, ox + left) collects Σ dZ[iy − ky, ix − kx]·Wᵀ[ky, kx],
-                // i.e. dZ read at oy + ky' − (2 − top), ky' = 2 − ky.
-                let (ih, iw) = (g.h - b.top - b.bottom, g.w - b.left - b.right);
-                winograd_filters(w, g.cin, g.cout, true, &mut self.fast.wino_u);
-                b.interior_offsets(1, ih, iw, g.cin, &mut self.fast.wino_pix);
-                WinogradShape {
-                    n,
-                    h: g.oh,
-                    w: g.ow,
-                    ci: g.cout,
-                    oh: ih,
-                    ow: iw,
-                    pad_top: 2 - b.top,
-                    pad_left: 2 - b.left,
-                    co: g.cin,
-                    out_image: g.in_len(),
-                    out_pieces: 1,
-                    kind: WinogradKind::F2x3,
-                }
-            }
-            Kernel::Winograd(WinogradKind::S2d(s)) => {
-                // Over s × s blocks, the adjoint convolution of dZ is 2×2 over blocks, by F(2×2,
-                // 2×2) (see `winograd_filters_s2d_adjoint`): block (Y, X) collects dZ[Y − by,
-                // X − bx] for by, bx < 2, i.e. dZ read from one pixel above and to the left. Each
-                // block's s² pixels are stored as pieces, except the input border's.
-                winograd_filters_s2d_adjoint(
-                    w,
-                    s,
-                    g.cin,
-                    g.cout,
-                    &mut self.fast.wino_w,
-                    &mut self.fast.wino_u,
-                );
-                self.fast.wino_pix.clear();
-                for by in 0..=g.oh {
-                    for bx in 0..=g.ow {
-                        for (dy, dx) in (0..s).flat_map(|dy| (0..s).map(move |dx| (dy, dx))) {
-                            let (iy, ix) = (s * by + dy, s * bx + dx);
-                            self.fast.wino_pix.push(if b.contains(g.h, g.w, iy, ix) {
-                                SKIP_OUTPUT
-                            } else {
-                                (iy * g.w + ix) * g.cin
-                            });
-                        }
-                    }
-                }
-                WinogradShape {
-                    n,
-                    h: g.oh,
-                    w: g.ow,
-                    ci: g.cout,
-                    oh: g.oh + 1,
-                    ow: g.ow + 1,
-                    pad_top: 1,
-                    pad_left: 1,
-                    co: s * s * g.cin,
-                    out_image: g.in_len(),
-                    out_pieces: s * s,
-                    kind: WinogradKind::S2d(1),
-                }
-            }
-            Kernel::Phases => return self.dx_by_phases(g, dz, n, false),
-            Kernel::PhasesBf16 => return self.dx_by_phases(g, dz, n, true),
-            _ => return self.dx_by_scatter(g, dz, n),
-        };
-        {
-            let (u, pix) = (&self.fast.wino_u, &self.fast.wino_pix);
-            let dx = self.dx.data_mut();
-            winograd_conv(shape, dz, u, None, false, dx, pix, &mut self.fast.wino);
-            self.zero_input_border(g, n, false);
-        }
     }
 
     /// `dX` for a padded copy of the input: `dZ·Wᵀ` (with `Wᵀ` packed) added tile by tile onto
     /// the padded input gradient (col2im fused), whose interior is then `dX`.
-    fn dx_by_scatter(&mut self, g: ConvGeom, dz: &[T], n: usize) {
-        let (m, k) = (self.rows(n), g.patch_len());
-        let w = self.params[0].value.data();
+    pub(super) fn dx_by_scatter(
+        &mut self,
+        s: &ConvSpec,
+        n: usize,
+        dz: &[T],
+        w: &[T],
+        dx: &mut Tensor<T>,
+    ) {
+        let g = s.geom;
+        let (m, k) = (s.rows(n), g.patch_len());
         // dcols[m, k] = Σ_co dZ[m, co] · Wᵀ[co, k]
         self.fast.wt.resize(k * g.cout, T::zero());
         for (kk, wrow) in w.chunks_exact(g.cout).enumerate() {
@@ -501,15 +550,22 @@ impl<T: Float> Conv2d<T> {
             out_cols: &self.fast.patch,
             groups: n,
         });
-        unpad_input(&g, n, &self.fast.dxpad, self.dx.data_mut());
-        self.zero_input_border(g, n, true);
+        unpad_input(&g, n, &self.fast.dxpad, dx.data_mut());
     }
 
-    /// [`Layer::infer`] by [`SparseConv`], with `g` the input's geometry; `false` (nothing
+    /// Acting by [`SparseConv`], with `s` for the input; `false` (nothing
     /// written) if the input is not sparse enough ([`plan::sparse_share`]): output pixel
     /// `(i, oy, ox)`'s window starts at padded pixel `(i, oy·SH, ox·SW)` and tap `(ky, kx)` is
     /// `ky·WP + kx` pixels further on.
-    pub(super) fn infer_sparse(&mut self, g: ConvGeom, x: &Tensor<T>) -> bool {
+    pub(super) fn infer_sparse(
+        &mut self,
+        s: &ConvSpec,
+        x: &Tensor<T>,
+        w: &[T],
+        b: &[T],
+        y: &mut Tensor<T>,
+    ) -> bool {
+        let g = s.geom;
         let n = x.batch();
         assert_eq!(
             x.shape()[1..],
@@ -517,7 +573,7 @@ impl<T: Float> Conv2d<T> {
             "{}: input shape",
             self.name
         );
-        self.y.set_shape(&self.out_shape(n));
+        y.set_shape(&s.out_shape(n));
         let a: &[T] = if g.reads_input_directly() {
             x.data()
         } else {
@@ -553,20 +609,20 @@ impl<T: Float> Conv2d<T> {
         for ky in 0..g.kh {
             self.fast.sp_taps.extend((0..g.kw).map(|kx| ky * wp + kx));
         }
-        self.border
+        s.border
             .interior_offsets(n, g.oh, g.ow, g.cout, &mut self.out_rows);
         SparseConv {
             x: &self.fast.nz,
             windows: &self.fast.sp_windows,
             taps: &self.fast.sp_taps,
-            w: self.params[0].value.data(),
-            bias: self.params[1].value.data(),
-            relu: self.relu,
-            y: self.y.data_mut(),
+            w,
+            bias: b,
+            relu: s.relu,
+            y: y.data_mut(),
             rows: &self.out_rows,
         }
         .run();
-        self.zero_border(n);
+        self.zero_border(s, n, y);
         // What the last forward pass left for backward no longer matches `y`: a backward pass
         // now fails its "backward without forward" check instead of mixing the two.
         self.fast.pixels.clear();
@@ -574,11 +630,18 @@ impl<T: Float> Conv2d<T> {
         true
     }
 
-    /// [`Layer::infer`] of one image by [`Background`], with `self.geom` the layer's own
+    /// Acting on one image by [`Background`], with `s` the layer's own
     /// geometry. `false` (nothing written) if more than an eighth of the pixels differ from the
     /// background.
-    pub(super) fn infer_background(&mut self, x: &Tensor<T>) -> bool {
-        let g = self.geom;
+    pub(super) fn infer_background(
+        &mut self,
+        s: &ConvSpec,
+        x: &Tensor<T>,
+        w: &[T],
+        b: &[T],
+        y: &mut Tensor<T>,
+    ) -> bool {
+        let g = s.geom;
         let (hp, wp) = g.padded();
         let padded = !g.reads_input_directly() && x.shape()[1..] == [hp, wp, g.cin];
         assert!(
@@ -599,19 +662,13 @@ impl<T: Float> Conv2d<T> {
         ) {
             return false;
         }
-        self.y.set_shape(&self.out_shape(1));
-        self.border
+        y.set_shape(&s.out_shape(1));
+        s.border
             .interior_offsets(1, g.oh, g.ow, g.cout, &mut self.out_rows);
-        let [w, b] = &self.params;
-        self.fast.bg.conv(
-            &g,
-            w.value.data(),
-            b.value.data(),
-            self.relu,
-            self.y.data_mut(),
-            &self.out_rows,
-        );
-        self.zero_border(1);
+        self.fast
+            .bg
+            .conv(&g, w, b, s.relu, y.data_mut(), &self.out_rows);
+        self.zero_border(s, 1, y);
         // As in `infer_sparse`: a backward pass now fails its check.
         self.fast.pixels.clear();
         self.cols.clear();

@@ -4,7 +4,7 @@
 //! implementation runs each product for their shape, batch, precision and this CPU, and then
 //! call it. Every threshold is a named constant here, with the measurement behind it. Nothing
 //! else in the library branches on the CPU: the kernels themselves only pick between their
-//! AVX-512 and portable loops by the one check in [`super::cpu`].
+//! AVX-512 and portable loops by the one check in [`crate::tensor::cpu`].
 //!
 //! | product | portable (f64, or no AVX-512) | f32 on AVX-512 |
 //! |---|---|---|
@@ -25,8 +25,8 @@
 //! Tests can ask which implementation ran: every choice a layer acts on is recorded per thread
 //! ([`last`]), on the thread that called the layer.
 
-use super::{ConvGeom, Float, WinogradKind, MAX_PIECES};
 use crate::tensor::Border;
+use crate::tensor::{ConvGeom, Float, WinogradKind, MAX_PIECES};
 use serde::{Deserialize, Serialize};
 use std::cell::Cell;
 
@@ -52,7 +52,7 @@ pub enum Precision {
 /// Whether products asked for in `precision` run in bf16 on this CPU: [`Precision::Bf16`] and
 /// AVX512-BF16 ([`crate::tensor::cpu::avx512_bf16`]).
 pub fn bf16_runs(precision: Precision) -> bool {
-    precision == Precision::Bf16 && super::cpu::avx512_bf16()
+    precision == Precision::Bf16 && crate::tensor::cpu::avx512_bf16()
 }
 
 /// A product a layer computes.

@@ -1,0 +1,271 @@
+//! A dense layer's products, each by the kernel the [`plan`](crate::ops::plan::dense) picks:
+//! the plain GEMM (faer; the portable path), the gather GEMM with rows `i·In` and steps `0..In`
+//! (a plain `x·W` by the vectorised kernel), or the bf16 gather GEMM over pairs of reduction
+//! steps; for acting, the sum over the input's nonzero values only.
+//!
+//! Shapes: `x [N, In]`, `W [In, Out]`, `b [Out]`, `y` and `dY [N, Out]`; `In` and `Out` are read
+//! off `W` and `b`.
+
+use crate::ops::plan::{self, Kernel, Precision, Product};
+use crate::tensor::gather_bf16::{f32s, f32s_mut, pack_pairs, to_bf16_vec};
+use crate::tensor::{
+    fill_iota, gather_gemm_bf16, gemm, transpose, Float, GatherGemm, GatherGemmBf16, Init,
+    Nonzeros, Op, SparseConv, Tensor,
+};
+
+/// The buffers of a dense layer's kernels, reused from call to call.
+#[derive(Default)]
+pub struct DenseOps<T> {
+    /// Gather GEMM offset tables: `i·In` per sample, `0..In`, `0..Out` (each product fills what
+    /// it uses; acting borrows two for its sample and row tables).
+    x_rows: Vec<usize>,
+    iota_in: Vec<usize>,
+    iota_out: Vec<usize>,
+    /// Input gradient: `dYᵀ` `[Out, N]` and `dXᵀ` `[In, N]`.
+    dyt: Vec<T>,
+    dxt: Vec<T>,
+    /// Acting: the input's nonzeros.
+    nz: Nonzeros<T>,
+    /// The bf16 operands ([`Kernel::GatherBf16`]) and their pair and row tables.
+    bf: Bf16Operands,
+    bf_q: Vec<usize>,
+    bf_p: Vec<usize>,
+}
+
+/// The bf16 operands of a dense layer's three products, a buffer each so that none is regrown
+/// (and zero-filled) from one product to the next: dense1's weights are 0.9 M values.
+#[derive(Default)]
+struct Bf16Operands {
+    /// Forward: `x`, and `W` in pairs of rows.
+    x: Vec<u16>,
+    w_pairs: Vec<u16>,
+    /// Weight gradient: `x` and `dY` in pairs of samples.
+    x_pairs: Vec<u16>,
+    dy_pairs: Vec<u16>,
+    /// Input gradient: `W`, and `dYᵀ` in pairs of rows.
+    w: Vec<u16>,
+    dyt_pairs: Vec<u16>,
+}
+
+/// `(In, Out)` of the weights `w` `[In, Out]` with bias `b` `[Out]`.
+fn sizes<T>(w: &[T], b: &[T]) -> (usize, usize) {
+    (w.len() / b.len(), b.len())
+}
+
+impl<T: Float> DenseOps<T> {
+    /// `y = b + x·W` into `y` (`[N, Out]`, sized by the caller).
+    pub fn forward(&mut self, precision: Precision, x: &Tensor<T>, w: &[T], b: &[T], y: &mut [T]) {
+        let ((ni, no), n) = (sizes(w, b), x.batch());
+        match plan::ran(Product::DenseForward, plan::dense::<T>(precision, ni, no)) {
+            Kernel::Gemm => {
+                for row in y.chunks_exact_mut(no) {
+                    row.copy_from_slice(b);
+                }
+                gemm(Op::N, Op::N, n, no, ni, T::one(), x.data(), w, T::one(), y);
+            }
+            Kernel::Gather => {
+                // Rows i·In, steps 0..In, starting from the bias.
+                fill_iota(&mut self.x_rows, n, ni);
+                fill_iota(&mut self.iota_in, ni, 1);
+                T::gather_gemm(GatherGemm {
+                    a: x.data(),
+                    p: &self.x_rows,
+                    q: &self.iota_in,
+                    b: w,
+                    ldb: no,
+                    n: no,
+                    c: y,
+                    ldc: no,
+                    c_rows: None,
+                    init: Init::Bias(b),
+                    relu: false,
+                });
+            }
+            Kernel::GatherBf16 => {
+                // Pairs of inputs x[n, 2u..2u + 2] against pairs of weight rows.
+                fill_iota(&mut self.x_rows, n, ni);
+                fill_iota(&mut self.bf_q, ni / 2, 2);
+                to_bf16_vec(f32s(x.data()), &mut self.bf.x);
+                pack_pairs(f32s(w), ni, no, no, &mut self.bf.w_pairs);
+                gather_gemm_bf16(GatherGemmBf16 {
+                    a: &self.bf.x,
+                    p: &self.x_rows,
+                    q: &self.bf_q,
+                    b: &self.bf.w_pairs,
+                    ldb: no,
+                    n: no,
+                    c: f32s_mut(y),
+                    ldc: no,
+                    c_rows: None,
+                    init: Init::Bias(f32s(b)),
+                    relu: false,
+                });
+            }
+            k => unreachable!("{k:?} computes no dense product"),
+        }
+    }
+
+    /// The same `y` for acting. With `sparse`: `y = b + Σ_{i : x_i ≠ 0} x_i·W[i, :]`, reading
+    /// only the weight rows of nonzero inputs, at batch 1 always, for a batch if at most a tenth
+    /// of the inputs are nonzero ([`plan::dense_sparse_share`]); otherwise
+    /// [`DenseOps::forward`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn infer(
+        &mut self,
+        precision: Precision,
+        sparse: bool,
+        x: &Tensor<T>,
+        w: &[T],
+        b: &[T],
+        y: &mut [T],
+    ) {
+        let ((ni, no), n) = (sizes(w, b), x.batch());
+        let share = plan::dense_sparse_share(n);
+        if !sparse || !self.nz.collect_sparse(x.data(), ni, ni, share) {
+            self.forward(precision, x, w, b, y);
+            plan::ran(Product::DenseInfer, plan::dense::<T>(precision, ni, no));
+            return;
+        }
+        plan::ran(Product::DenseInfer, Kernel::Sparse);
+        // Sample i is "pixel" i with one tap; its row of y starts at i·Out.
+        fill_iota(&mut self.x_rows, n, 1);
+        fill_iota(&mut self.iota_out, n, no);
+        SparseConv {
+            x: &self.nz,
+            windows: &self.x_rows,
+            taps: &[0],
+            w,
+            bias: b,
+            relu: false,
+            y,
+            rows: &self.iota_out,
+        }
+        .run();
+    }
+
+    /// `dW += xᵀ·dY` (`[In, N]·[N, Out]`) into `dw`.
+    pub fn weight_grad(&mut self, precision: Precision, x: &Tensor<T>, dy: &[T], dw: &mut [T]) {
+        let (n, no) = (x.batch(), dy.len() / x.batch());
+        let ni = dw.len() / no;
+        match plan::ran(Product::DenseBackward, plan::dense::<T>(precision, ni, no)) {
+            Kernel::Gemm => gemm(
+                Op::T,
+                Op::N,
+                ni,
+                no,
+                n,
+                T::one(),
+                x.data(),
+                dy,
+                T::one(),
+                dw,
+            ),
+            Kernel::Gather => {
+                // dW[i, j] += Σ_n x[n, i]·dY[n, j]: rows i (offsets 0..In), steps n (n·In).
+                fill_iota(&mut self.x_rows, n, ni);
+                fill_iota(&mut self.iota_in, ni, 1);
+                T::gather_gemm(GatherGemm {
+                    a: x.data(),
+                    p: &self.iota_in,
+                    q: &self.x_rows,
+                    b: dy,
+                    ldb: no,
+                    n: no,
+                    c: dw,
+                    ldc: no,
+                    c_rows: None,
+                    init: Init::Accumulate,
+                    relu: false,
+                });
+            }
+            Kernel::GatherBf16 => {
+                // Over pairs of samples, both packed in pairs of rows (an odd batch padded with
+                // a zero sample): dW[i, j] += Σ_u x2[u, i]·dY2[u, j], rows i (pair offsets 2i),
+                // steps u (2u·In).
+                let pairs = pack_pairs(f32s(x.data()), n, ni, ni, &mut self.bf.x_pairs);
+                pack_pairs(f32s(dy), n, no, no, &mut self.bf.dy_pairs);
+                fill_iota(&mut self.bf_p, ni, 2);
+                fill_iota(&mut self.bf_q, pairs, 2 * ni);
+                gather_gemm_bf16(GatherGemmBf16 {
+                    a: &self.bf.x_pairs,
+                    p: &self.bf_p,
+                    q: &self.bf_q,
+                    b: &self.bf.dy_pairs,
+                    ldb: no,
+                    n: no,
+                    c: f32s_mut(dw),
+                    ldc: no,
+                    c_rows: None,
+                    init: Init::Accumulate,
+                    relu: false,
+                });
+            }
+            k => unreachable!("{k:?} computes no dense product"),
+        }
+    }
+
+    /// `dX = dY·Wᵀ` (`[N, Out]·[Out, In]`) into `dx` (sized by the caller). The vectorised
+    /// kernels compute `dXᵀ = W·dYᵀ`, reading `W`'s rows in place (no 3.6 MB transpose of
+    /// dense1's weights); only `dY` (tiny) and the result are transposed.
+    pub fn input_grad(
+        &mut self,
+        precision: Precision,
+        x: &Tensor<T>,
+        dy: &[T],
+        w: &[T],
+        dx: &mut [T],
+    ) {
+        let n = x.batch();
+        let (ni, no) = (x.len() / n, dy.len() / n);
+        let kernel = plan::dense::<T>(precision, ni, no);
+        if kernel == Kernel::Gemm {
+            let (one, zero) = (T::one(), T::zero());
+            return gemm(Op::N, Op::T, n, ni, no, one, dy, w, zero, dx);
+        }
+        self.dyt.resize(no * n, T::zero());
+        transpose(dy, n, no, &mut self.dyt);
+        fill_iota(&mut self.x_rows, ni, no);
+        self.dxt.resize(ni * n, T::zero());
+        match kernel {
+            Kernel::Gather => {
+                // dXᵀ[i, n] = Σ_j W[i, j]·dYᵀ[j, n].
+                fill_iota(&mut self.iota_out, no, 1);
+                T::gather_gemm(GatherGemm {
+                    a: w,
+                    p: &self.x_rows,
+                    q: &self.iota_out,
+                    b: &self.dyt,
+                    ldb: n,
+                    n,
+                    c: &mut self.dxt,
+                    ldc: n,
+                    c_rows: None,
+                    init: Init::Zero,
+                    relu: false,
+                });
+            }
+            Kernel::GatherBf16 => {
+                // dXᵀ[i, n] = Σ_u W[i, 2u..2u + 2]·dYᵀ2[u, n], over pairs of outputs.
+                to_bf16_vec(f32s(w), &mut self.bf.w);
+                pack_pairs(f32s(&self.dyt), no, n, n, &mut self.bf.dyt_pairs);
+                fill_iota(&mut self.bf_q, no / 2, 2);
+                gather_gemm_bf16(GatherGemmBf16 {
+                    a: &self.bf.w,
+                    p: &self.x_rows,
+                    q: &self.bf_q,
+                    b: &self.bf.dyt_pairs,
+                    ldb: n,
+                    n,
+                    c: f32s_mut(&mut self.dxt),
+                    ldc: n,
+                    c_rows: None,
+                    init: Init::Zero,
+                    relu: false,
+                });
+            }
+            k => unreachable!("{k:?} computes no dense product"),
+        }
+        // dX = (dXᵀ)ᵀ.
+        transpose(&self.dxt, ni, n, dx);
+    }
+}

@@ -1,0 +1,34 @@
+//! The one door between the layers and the kernels.
+//!
+//! A layer holds the maths of its products (`Z = x·W + b`, `dW += xᵀ·dZ`, `dX = dZ·Wᵀ`) and
+//! calls one function here per product; this module asks the [`plan`] which kernel computes it
+//! for the shape, batch, precision and CPU, runs that kernel on the layer's slices and keeps the
+//! kernel's buffers (offset tables, padded copies, packed bf16 operands) from call to call. The
+//! [`plan`] is the only place that chooses a kernel; the kernels themselves live in
+//! [`crate::tensor`] (portable loops, and each architecture's code under `tensor/x86_64/`), with
+//! the plain reference kernels ([`crate::tensor::conv2d_reference`],
+//! [`crate::tensor::gemm_reference`], [`crate::tensor::im2col`]) they are tested against.
+//!
+//! | layer product | here |
+//! |---|---|
+//! | convolution forward, acting | [`ConvOps::forward`], [`ConvOps::infer`] |
+//! | convolution `dZ`, `dW`, `dX` | [`ConvOps::relu_grad`], [`ConvOps::weight_grad`], [`ConvOps::input_grad`] |
+//! | dense forward, acting, `dW`, `dX` | [`DenseOps::forward`], [`DenseOps::infer`], [`DenseOps::weight_grad`], [`DenseOps::input_grad`] |
+//! | small plain products (quantile embedding) | [`gemm`] |
+//! | element-wise loops (ReLU) | [`vectorized`] |
+
+mod conv;
+mod dense;
+pub mod plan;
+
+pub use conv::{ConvOps, ConvSpec};
+pub use dense::DenseOps;
+pub use plan::Precision;
+
+/// The plain GEMM (faer): `C = α·op(A)·op(B) + β·C`, for products too small or too irregular for
+/// a planned kernel (the quantile embedding's).
+pub use crate::tensor::{gemm, Op};
+
+/// Runs an element-wise loop compiled for the widest vectors this CPU has (a layer's loop over
+/// its values, e.g. the ReLU's).
+pub use crate::tensor::vectorized;
