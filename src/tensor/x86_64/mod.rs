@@ -2,7 +2,7 @@
 //! (`*_avx512.rs`; AVX512-BF16 in `bf16_avx512.rs` and `gather_bf16_avx512.rs`) and the AVX2
 //! and FMA family (`*_avx2.rs`) for CPUs without AVX-512 (or with it switched off by
 //! `INVADERS_NO_AVX512`). `crate::tensor::cpu` says which runs; each kernel's portable twin is
-//! in its family's module one level up (`gather.rs`, `winograd.rs`, …), and the tests check
+//! in its family's module one level up (`gather.rs`, `winograd/`, …), and the tests check
 //! each kernel against it (`tests/kernels.rs`, `tests/sparse.rs`, `tests/bf16.rs`, the Winograd
 //! module's tests).
 
