@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{avx512_expected, on_path, rng, set_params, uniform};
+use common::{avx512_expected, on_path, rng, set_params, uniform, Square};
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::bf16::to_bf16;
@@ -342,17 +342,11 @@ fn abs64(v: &[f32]) -> Vec<f64> {
 /// unrounded operands (f64), each element to `dot_error_bound` of its own `Σ|terms|` (the same
 /// products of absolute values), with the kernels asserted.
 #[allow(clippy::too_many_arguments)]
-fn conv_case(
-    k: usize,
-    s: usize,
-    h: usize,
-    w: usize,
-    cin: usize,
-    cout: usize,
-    n: usize,
-    seed: u64,
-) -> Result<(), TestCaseError> {
-    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+fn conv_case(c: Square, n: usize, seed: u64) -> Result<(), TestCaseError> {
+    let g = c.geom(true);
+    let Square {
+        k, h, w, cin, cout, ..
+    } = c;
     let mut r = rng(seed);
     let mut layer = Conv2d::<f32>::new("c", g);
     layer.set_precision(Precision::Bf16);
@@ -451,7 +445,7 @@ proptest! {
         k in 1usize..5, s in 1usize..3, h in 3usize..12, w in 3usize..12,
         cin in 1usize..9, cout in 1usize..40, n in 1usize..4, seed in any::<u64>()
     ) {
-        conv_case(k, s, h, w, cin, cout, n, seed)?;
+        conv_case(Square { k, s, h, w, cin, cout }, n, seed)?;
     }
 }
 
@@ -466,7 +460,19 @@ fn article_convolutions_in_bf16_match_the_exact_products() {
     .into_iter()
     .enumerate()
     {
-        conv_case(k, s, h, w, cin, cout, 3, i as u64).unwrap();
+        conv_case(
+            Square {
+                k,
+                s,
+                h,
+                w,
+                cin,
+                cout,
+            },
+            3,
+            i as u64,
+        )
+        .unwrap();
     }
 }
 

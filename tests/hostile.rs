@@ -10,7 +10,7 @@ use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
-use common::cli::{bin, fails_with, invaders, ok, tmp_dir};
+use common::cli::{bin, fails_with, invaders, ok, tmp_dir, train};
 
 fn tmp(name: &str) -> PathBuf {
     tmp_dir("invaders-hostile", name)
@@ -23,22 +23,6 @@ fn config(root: &Path, text: &str) -> String {
     let p = root.join("fast.toml");
     std::fs::write(&p, text).unwrap();
     p.to_str().unwrap().to_string()
-}
-
-fn train(cfg: &str, seed: u64, episodes: u64, out: &Path) -> Output {
-    invaders(&[
-        "train",
-        "--config",
-        cfg,
-        "--seed",
-        &seed.to_string(),
-        "--threads",
-        "1",
-        "--episodes",
-        &episodes.to_string(),
-        "--out",
-        out.to_str().unwrap(),
-    ])
 }
 
 fn s(p: &Path) -> &str {

@@ -7,7 +7,10 @@
 
 mod common;
 
-use common::{assert_close, avx2_expected, avx512_expected, on_path, rng, set_params, uniform};
+use common::{
+    assert_close, avx2_expected, avx512_expected, on_path, reference_dz, reference_output, rng,
+    set_params, uniform, Square,
+};
 use invaders::layers::{Conv2d, Layer};
 use invaders::ops::plan::{self, Kernel, Product};
 use invaders::tensor::cpu::Family;
@@ -193,28 +196,11 @@ proptest! {
         }
         let x = uniform::<f32>(&[n, h, w, cin], &mut r);
         layer.forward(&x);
-        let mut z = vec![0.0; n * g.oh * g.ow * cout];
-        conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut z);
+        let (y, at) = reference_output(&g, n, x.data(), wt.data(), bt.data(), border, relu);
         prop_assert_eq!(layer.output().shape(), &[n, hb, wb, cout][..]);
-        let mut at = Vec::new();
-        border.interior_offsets(n, g.oh, g.ow, cout, &mut at);
-        let mut y = vec![0.0; n * hb * wb * cout];
-        for (zrow, &o) in z.chunks_exact(cout).zip(&at) {
-            for (yv, &zv) in y[o..o + cout].iter_mut().zip(zrow) {
-                *yv = if relu { zv.max(0.0) } else { zv };
-            }
-        }
         assert_close("y", layer.output().data(), &y, 1e-5)?;
         let dy = uniform::<f32>(&[n, hb, wb, cout], &mut r);
-        // The ReLU's mask from the layer's own output ([y > 0]): Winograd rounds differently
-        // from the reference, and a sum within rounding of zero may fall on either side.
-        let mut dz = vec![0.0; z.len()];
-        for (dzrow, &o) in dz.chunks_exact_mut(cout).zip(&at) {
-            let (d, yv) = (&dy.data()[o..o + cout], &layer.output().data()[o..o + cout]);
-            for ((dz, &g), &yv) in dzrow.iter_mut().zip(d).zip(yv) {
-                *dz = if !relu || yv > 0.0 { g } else { 0.0 };
-            }
-        }
+        let dz = reference_dz(dy.data(), layer.output().data(), &at, cout, relu);
         layer.backward(&x, &dy, true);
         let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
         conv2d_reference_backward(&g, n, x.data(), wt.data(), &dz, &mut dx, &mut dw, &mut db);
@@ -549,27 +535,12 @@ proptest! {
             x.clone()
         };
         layer.forward(&xin);
-        let mut z = vec![0.0; n * g.oh * g.ow * cout];
-        conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut z);
+        let (y, at) = reference_output(&g, n, x.data(), wt.data(), bt.data(), border, true);
         let (hb, wb) = border.around(g.oh, g.ow);
-        let mut at = Vec::new();
-        border.interior_offsets(n, g.oh, g.ow, cout, &mut at);
-        let mut y = vec![0.0; n * hb * wb * cout];
-        for (zrow, &o) in z.chunks_exact(cout).zip(&at) {
-            for (yv, &zv) in y[o..o + cout].iter_mut().zip(zrow) {
-                *yv = zv.max(0.0);
-            }
-        }
         assert_close("y", layer.output().data(), &y, 1e-5)?;
         let dy = uniform::<f32>(&[n, hb, wb, cout], &mut r);
         // The ReLU's mask from the layer's own output, as above.
-        let mut dz = vec![0.0; z.len()];
-        for (dzrow, &o) in dz.chunks_exact_mut(cout).zip(&at) {
-            let (d, yv) = (&dy.data()[o..o + cout], &layer.output().data()[o..o + cout]);
-            for ((dz, &g), &yv) in dzrow.iter_mut().zip(d).zip(yv) {
-                *dz = if yv > 0.0 { g } else { 0.0 };
-            }
-        }
+        let dz = reference_dz(dy.data(), layer.output().data(), &at, cout, true);
         layer.backward(&xin, &dy, true);
         let (mut dx, mut dw, mut db) = (vec![0.0; x.len()], vec![0.0; wt.len()], vec![0.0; cout]);
         conv2d_reference_backward(&g, n, x.data(), wt.data(), &dz, &mut dx, &mut dw, &mut db);
@@ -591,18 +562,16 @@ proptest! {
 /// (its interior the plain input's gradient, its border the padding places' own gradient).
 #[allow(clippy::too_many_arguments)]
 fn prepadded_case<T: Float>(
-    k: usize,
-    s: usize,
-    h: usize,
-    w: usize,
-    cin: usize,
-    cout: usize,
+    c: Square,
     n: usize,
     relu: bool,
     seed: u64,
     tol: f64,
 ) -> Result<(), TestCaseError> {
-    let g = ConvGeom::new(h, w, cin, cout, k, k, (s, s), Padding::Same).unwrap();
+    let g = c.geom(true);
+    let Square {
+        k, h, w, cin, cout, ..
+    } = c;
     let mut r = rng(seed);
     let make = || {
         let l = Conv2d::<T>::new("c", g);
@@ -692,8 +661,8 @@ proptest! {
         k in 1usize..=8, s in 1usize..=4, h in 3usize..14, w in 3usize..14, cin in 1usize..6,
         cout in 1usize..40, n in 1usize..3, relu in any::<bool>(), seed in any::<u64>(),
     ) {
-        prepadded_case::<f32>(k, s, h, w, cin, cout, n, relu, seed, 1e-5)?;
-        prepadded_case::<f64>(k, s, h, w, cin, cout, n, relu, seed, 1e-12)?;
+        prepadded_case::<f32>(Square { k, s, h, w, cin, cout }, n, relu, seed, 1e-5)?;
+        prepadded_case::<f64>(Square { k, s, h, w, cin, cout }, n, relu, seed, 1e-12)?;
     }
 }
 

@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::cli::{bin, fails_with, invaders, ok, tmp_dir};
+use common::cli::{bin, fails_with, invaders, ok, tmp_dir, train};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -27,20 +27,9 @@ fn write_config(root: &Path, extra: &str) -> String {
     p.to_str().unwrap().to_string()
 }
 
+/// A new run of `cfg` with seed 11 on one thread.
 fn new_run(cfg: &str, out: &Path, episodes: u64) -> Output {
-    invaders(&[
-        "train",
-        "--config",
-        cfg,
-        "--seed",
-        "11",
-        "--threads",
-        "1",
-        "--episodes",
-        &episodes.to_string(),
-        "--out",
-        out.to_str().unwrap(),
-    ])
+    train(cfg, 11, episodes, out)
 }
 
 fn resume_args(dir: &Path, episodes: u64) -> Vec<String> {

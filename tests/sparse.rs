@@ -5,7 +5,8 @@
 mod common;
 
 use common::{
-    assert_close, avx2_expected, avx512_expected, on_exactly, on_path, rng, set_params, uniform,
+    assert_close, avx2_expected, avx512_expected, on_exactly, on_path, reference_output, rng,
+    set_params, uniform, Square,
 };
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
@@ -52,25 +53,6 @@ fn frame<T: Float>(shape: &[usize], share: f64, r: &mut impl Rng) -> Tensor<T> {
     t
 }
 
-/// A `k × k` convolution of stride `s`, SAME or VALID. SAME takes any size, kernels larger than
-/// the input included; VALID gets the input grown to fit the kernel.
-fn square_geom(
-    k: usize,
-    s: usize,
-    h: usize,
-    w: usize,
-    cin: usize,
-    cout: usize,
-    same: bool,
-) -> ConvGeom {
-    let (pad, h, w) = if same {
-        (Padding::Same, h, w)
-    } else {
-        (Padding::Valid, h.max(k), w.max(k))
-    };
-    ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap()
-}
-
 /// A convolution with sparse inference: `infer` at batch 1 gives the reference convolution's
 /// output (ReLU, border) whether the input is sparse enough for the sparse product (up to a
 /// fifth nonzero) or not, after a larger batch left values where the border now is. With
@@ -78,12 +60,7 @@ fn square_geom(
 /// by [`Conv2d::with_background_inference`] (up to an eighth of the pixels differing).
 #[allow(clippy::too_many_arguments)]
 fn conv_case<T: Float>(
-    k: usize,
-    s: usize,
-    h: usize,
-    w: usize,
-    cin: usize,
-    cout: usize,
+    c: Square,
     same: bool,
     relu: bool,
     border: usize,
@@ -93,7 +70,8 @@ fn conv_case<T: Float>(
     seed: u64,
     tol: f64,
 ) -> Result<(), TestCaseError> {
-    let g = square_geom(k, s, h, w, cin, cout, same);
+    let g = c.geom(same);
+    let Square { k, cin, cout, .. } = c;
     let (h, w) = (g.h, g.w);
     let b = Border {
         top: border,
@@ -125,17 +103,8 @@ fn conv_case<T: Float>(
     pad_input(&g, n, x.data(), &mut xpad);
     let (hp, wp) = g.padded();
     let xpad = Tensor::from_vec(&[n, hp, wp, cin], xpad);
-    let mut z = vec![T::zero(); n * g.oh * g.ow * cout];
-    conv2d_reference(&g, n, x.data(), wt.data(), bt.data(), &mut z);
+    let (y, _) = reference_output(&g, n, x.data(), wt.data(), bt.data(), b, relu);
     let (hb, wb) = b.around(g.oh, g.ow);
-    let mut at = Vec::new();
-    b.interior_offsets(n, g.oh, g.ow, cout, &mut at);
-    let mut y = vec![T::zero(); n * hb * wb * cout];
-    for (zrow, &o) in z.chunks_exact(cout).zip(&at) {
-        for (yv, &zv) in y[o..o + cout].iter_mut().zip(zrow) {
-            *yv = if relu { zv.max(T::zero()) } else { zv };
-        }
-    }
     layer.infer(&x);
     prop_assert_eq!(layer.output().shape(), &[n, hb, wb, cout][..]);
     assert_close("infer", layer.output().data(), &y, tol)?;
@@ -228,8 +197,8 @@ proptest! {
         zeros in prop_oneof![Just(1.0), Just(0.95), Just(0.9), Just(0.8), Just(0.3)],
         seed in any::<u64>(),
     ) {
-        conv_case::<f32>(k, s, h, w, cin, cout, same, relu, border, n, zeros, false, seed, 1e-5)?;
-        conv_case::<f64>(k, s, h, w, cin, cout, same, relu, border, n, zeros, false, seed, 1e-12)?;
+        conv_case::<f32>(Square { k, s, h, w, cin, cout }, same, relu, border, n, zeros, false, seed, 1e-5)?;
+        conv_case::<f64>(Square { k, s, h, w, cin, cout }, same, relu, border, n, zeros, false, seed, 1e-12)?;
     }
 
     #[test]
@@ -240,8 +209,8 @@ proptest! {
         same in any::<bool>(), share in prop_oneof![Just(1.0), Just(0.9), Just(0.5), Just(0.0)],
         seed in any::<u64>(),
     ) {
-        background_case::<f32>(k, s, h, w, cin, cout, same, share, seed, 1e-5)?;
-        background_case::<f64>(k, s, h, w, cin, cout, same, share, seed, 1e-12)?;
+        background_case::<f32>(Square { k, s, h, w, cin, cout }, same, share, seed, 1e-5)?;
+        background_case::<f64>(Square { k, s, h, w, cin, cout }, same, share, seed, 1e-12)?;
     }
 
     #[test]
@@ -253,8 +222,8 @@ proptest! {
         share in prop_oneof![Just(1.0), Just(0.95), Just(0.9), Just(0.5)],
         seed in any::<u64>(),
     ) {
-        conv_case::<f32>(k, s, h, w, cin, cout, same, relu, border, n, share, true, seed, 1e-5)?;
-        conv_case::<f64>(k, s, h, w, cin, cout, same, relu, border, n, share, true, seed, 1e-12)?;
+        conv_case::<f32>(Square { k, s, h, w, cin, cout }, same, relu, border, n, share, true, seed, 1e-5)?;
+        conv_case::<f64>(Square { k, s, h, w, cin, cout }, same, relu, border, n, share, true, seed, 1e-12)?;
     }
 
     #[test]
@@ -273,18 +242,14 @@ proptest! {
 /// convolution, for either input layout; a limit under the count gives up.
 #[allow(clippy::too_many_arguments)]
 fn background_case<T: Float>(
-    k: usize,
-    s: usize,
-    h: usize,
-    w: usize,
-    cin: usize,
-    cout: usize,
+    c: Square,
     same: bool,
     share: f64,
     seed: u64,
     tol: f64,
 ) -> Result<(), TestCaseError> {
-    let g = square_geom(k, s, h, w, cin, cout, same);
+    let g = c.geom(same);
+    let Square { k, cin, cout, .. } = c;
     let (h, w) = (g.h, g.w);
     let mut r = rng(seed);
     let (wt, bt) = (

@@ -52,6 +52,24 @@ pub fn tmp_dir(prefix: &str, name: &str) -> PathBuf {
     d
 }
 
+/// `invaders train --config cfg --seed seed --threads 1 --episodes episodes --out out`.
+#[allow(dead_code)]
+pub fn train(cfg: &str, seed: u64, episodes: u64, out: &std::path::Path) -> Output {
+    invaders(&[
+        "train",
+        "--config",
+        cfg,
+        "--seed",
+        &seed.to_string(),
+        "--threads",
+        "1",
+        "--episodes",
+        &episodes.to_string(),
+        "--out",
+        out.to_str().unwrap(),
+    ])
+}
+
 /// Trains `config` (a TOML file) with `seed` on one thread twice in `root`: `straight` to
 /// `total` episodes, and `split` to `stop` episodes then resumed to `total`. Returns both
 /// directories, for a test that the two end alike.
@@ -63,21 +81,8 @@ pub fn straight_and_resumed(
     stop: u64,
     total: u64,
 ) -> (PathBuf, PathBuf) {
-    let run = |out: &std::path::Path, episodes: u64| {
-        ok(&invaders(&[
-            "train",
-            "--config",
-            config.to_str().unwrap(),
-            "--seed",
-            &seed.to_string(),
-            "--threads",
-            "1",
-            "--episodes",
-            &episodes.to_string(),
-            "--out",
-            out.to_str().unwrap(),
-        ]))
-    };
+    let config = config.to_str().unwrap();
+    let run = |out: &std::path::Path, episodes: u64| ok(&train(config, seed, episodes, out));
     let (straight, split) = (root.join("straight"), root.join("split"));
     run(&straight, total);
     run(&split, stop);

@@ -5,7 +5,7 @@ pub mod cli;
 
 use invaders::layers::Layer;
 use invaders::tensor::cpu::{self, Family};
-use invaders::tensor::{Float, Tensor};
+use invaders::tensor::{conv2d_reference, Border, ConvGeom, Float, Padding, Tensor};
 use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -297,4 +297,77 @@ pub fn on_exactly<R>(family: Family, expected: cpu::Path, what: &str, f: impl Fn
         "{what}: the {family:?} kernels ran {p:?}, expected only the {expected:?} loop"
     );
     out
+}
+
+/// A square convolution for the property tests: a `k × k` filter of stride `s` over
+/// `h × w × cin` images, to `cout` channels.
+#[derive(Clone, Copy, Debug)]
+pub struct Square {
+    pub k: usize,
+    pub s: usize,
+    pub h: usize,
+    pub w: usize,
+    pub cin: usize,
+    pub cout: usize,
+}
+
+impl Square {
+    /// Its geometry, SAME or VALID. SAME takes any size, kernels larger than the input
+    /// included; VALID gets the input grown to fit the kernel.
+    pub fn geom(&self, same: bool) -> ConvGeom {
+        let (pad, h, w) = if same {
+            (Padding::Same, self.h, self.w)
+        } else {
+            (Padding::Valid, self.h.max(self.k), self.w.max(self.k))
+        };
+        let Square {
+            k, s, cin, cout, ..
+        } = *self;
+        ConvGeom::new(h, w, cin, cout, k, k, (s, s), pad).unwrap()
+    }
+}
+
+/// The reference convolution's bordered output `border(act(conv(x, W) + b))` (`act` the ReLU
+/// if `relu`) for a batch of `n`, and where each output pixel starts in it.
+#[allow(clippy::too_many_arguments)]
+pub fn reference_output<T: Float>(
+    g: &ConvGeom,
+    n: usize,
+    x: &[T],
+    w: &[T],
+    b: &[T],
+    border: Border,
+    relu: bool,
+) -> (Vec<T>, Vec<usize>) {
+    let c = g.cout;
+    let mut z = vec![T::zero(); n * g.oh * g.ow * c];
+    conv2d_reference(g, n, x, w, b, &mut z);
+    let (hb, wb) = border.around(g.oh, g.ow);
+    let mut at = Vec::new();
+    border.interior_offsets(n, g.oh, g.ow, c, &mut at);
+    let mut y = vec![T::zero(); n * hb * wb * c];
+    for (zrow, &o) in z.chunks_exact(c).zip(&at) {
+        for (yv, &zv) in y[o..o + c].iter_mut().zip(zrow) {
+            *yv = if relu { zv.max(T::zero()) } else { zv };
+        }
+    }
+    (y, at)
+}
+
+/// `dZ = dY ⊙ [y > 0]` (just `dY` without `relu`) at the output pixels starting at `at`, `c`
+/// channels each, with the ReLU's mask from the layer's own output `y`: a fast kernel rounds
+/// differently from the reference, and a sum within rounding of zero may fall on either side.
+pub fn reference_dz<T: Float>(dy: &[T], y: &[T], at: &[usize], c: usize, relu: bool) -> Vec<T> {
+    let mut dz = vec![T::zero(); at.len() * c];
+    for (dzrow, &o) in dz.chunks_exact_mut(c).zip(at) {
+        let (d, yv) = (&dy[o..o + c], &y[o..o + c]);
+        for ((dz, &g), &yv) in dzrow.iter_mut().zip(d).zip(yv) {
+            *dz = if !relu || yv > T::zero() {
+                g
+            } else {
+                T::zero()
+            };
+        }
+    }
+    dz
 }
