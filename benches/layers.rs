@@ -38,10 +38,7 @@ fn randomise(layer: &mut dyn Layer<f32>, rng: &mut impl Rng) {
 
 /// Forward, input gradient and weight gradient of one layer at batch 1 and 48.
 fn bench_layer(
-    c: &mut Criterion,
-    name: &str,
-    make: &dyn Fn() -> Box<dyn Layer<f32>>,
-    in_shape: &[usize],
+    c: &mut Criterion, name: &str, make: &dyn Fn() -> Box<dyn Layer<f32>>, in_shape: &[usize],
 ) {
     let mut group = c.benchmark_group(name);
     group

@@ -309,10 +309,7 @@ fn gather_gemm_bf16_is_the_same_on_any_thread_count() {
 
 /// `|got − want| ≤ bound` element by element, naming the first that fails.
 fn within_bounds(
-    what: &str,
-    got: &[f32],
-    want: &[f64],
-    bound: &[f64],
+    what: &str, got: &[f32], want: &[f64], bound: &[f64],
 ) -> Result<(), TestCaseError> {
     prop_assert_eq!(got.len(), want.len(), "{}: lengths", what);
     for (i, ((&g, &w), &b)) in got.iter().zip(want).zip(bound).enumerate() {

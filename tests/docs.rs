@@ -256,11 +256,7 @@ fn has_impl_of(text: &str, ty: &str) -> bool {
 }
 
 fn check_function(
-    doc: &Path,
-    span: &str,
-    segments: &[String],
-    name: &str,
-    sources: &[(PathBuf, String)],
+    doc: &Path, span: &str, segments: &[String], name: &str, sources: &[(PathBuf, String)],
     errors: &mut Vec<String>,
 ) {
     if let Some(first) = segments.first() {

@@ -554,10 +554,7 @@ fn an_interrupted_run_keeps_its_work() {
 
 /// `train` of `cfg` on one thread with its standard error piped, and the lines it prints there.
 fn spawn_train(
-    cfg: &str,
-    seed: u64,
-    episodes: u64,
-    out: &Path,
+    cfg: &str, seed: u64, episodes: u64, out: &Path,
 ) -> (
     std::process::Child,
     std::io::Lines<BufReader<std::process::ChildStderr>>,
@@ -617,9 +614,7 @@ fn run_within(args: &[&str], close_stdout: bool, secs: u64) -> (std::process::Ex
 
 /// Waits for `child` at most `secs` seconds; kills it and fails the test if it is still running.
 fn wait_at_most(
-    child: &mut std::process::Child,
-    secs: u64,
-    what: &str,
+    child: &mut std::process::Child, secs: u64, what: &str,
 ) -> std::process::ExitStatus {
     let started = std::time::Instant::now();
     loop {

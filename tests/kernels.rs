@@ -220,15 +220,7 @@ proptest! {
 /// otherwise the portable ones.
 #[allow(clippy::too_many_arguments)]
 fn winograd_case<T: Float>(
-    h: usize,
-    w: usize,
-    ci: usize,
-    co: usize,
-    n: usize,
-    same: bool,
-    relu: bool,
-    seed: u64,
-    tol: f64,
+    h: usize, w: usize, ci: usize, co: usize, n: usize, same: bool, relu: bool, seed: u64, tol: f64,
 ) -> Result<(), TestCaseError> {
     let pad = if same { Padding::Same } else { Padding::Valid };
     let g = ConvGeom::new(h, w, ci, co, 3, 3, (1, 1), pad).unwrap();
@@ -334,15 +326,7 @@ fn winograd_case<T: Float>(
 /// AVX-512 transforms.
 #[allow(clippy::too_many_arguments)]
 fn winograd_s2d_case<T: Float>(
-    s: usize,
-    h: usize,
-    w: usize,
-    ci: usize,
-    co: usize,
-    n: usize,
-    relu: bool,
-    seed: u64,
-    tol: f64,
+    s: usize, h: usize, w: usize, ci: usize, co: usize, n: usize, relu: bool, seed: u64, tol: f64,
 ) -> Result<(), TestCaseError> {
     let g = ConvGeom::new(h, w, ci, co, 2 * s, 2 * s, (s, s), Padding::Valid).unwrap();
     let mut r = rng(seed);
@@ -562,11 +546,7 @@ proptest! {
 /// (its interior the plain input's gradient, its border the padding places' own gradient).
 #[allow(clippy::too_many_arguments)]
 fn prepadded_case<T: Float>(
-    c: Square,
-    n: usize,
-    relu: bool,
-    seed: u64,
-    tol: f64,
+    c: Square, n: usize, relu: bool, seed: u64, tol: f64,
 ) -> Result<(), TestCaseError> {
     let g = c.geom(true);
     let Square {

@@ -178,9 +178,7 @@ const STUCK: Duration = Duration::from_secs(600);
 /// Waits until the run in `dir` saves a checkpoint other than `since`, and returns when it saw
 /// it; `None` if `child` exited first (its status is then checked by the caller).
 fn next_checkpoint(
-    child: &mut std::process::Child,
-    dir: &Path,
-    since: Option<(u64, u64, std::time::SystemTime)>,
+    child: &mut std::process::Child, dir: &Path, since: Option<(u64, u64, std::time::SystemTime)>,
     what: &str,
 ) -> Option<Instant> {
     let t = Instant::now();

@@ -60,15 +60,8 @@ fn frame<T: Float>(shape: &[usize], share: f64, r: &mut impl Rng) -> Tensor<T> {
 /// by [`Conv2d::with_background_inference`] (up to an eighth of the pixels differing).
 #[allow(clippy::too_many_arguments)]
 fn conv_case<T: Float>(
-    c: Square,
-    same: bool,
-    relu: bool,
-    border: usize,
-    n: usize,
-    zeros: f64,
-    background: bool,
-    seed: u64,
-    tol: f64,
+    c: Square, same: bool, relu: bool, border: usize, n: usize, zeros: f64, background: bool,
+    seed: u64, tol: f64,
 ) -> Result<(), TestCaseError> {
     let g = c.geom(same);
     let Square { k, cin, cout, .. } = c;
@@ -118,12 +111,7 @@ fn conv_case<T: Float>(
 
 /// A dense layer with sparse inference: `infer` at batch 1 gives `b + x·W`.
 fn dense_case<T: Float>(
-    n_in: usize,
-    n_out: usize,
-    n: usize,
-    zeros: f64,
-    seed: u64,
-    tol: f64,
+    n_in: usize, n_out: usize, n: usize, zeros: f64, seed: u64, tol: f64,
 ) -> Result<(), TestCaseError> {
     let mut layer = Dense::<T>::new("d", n_in, n_out).with_sparse_inference(true);
     let mut r = rng(seed);
@@ -242,11 +230,7 @@ proptest! {
 /// convolution, for either input layout; a limit under the count gives up.
 #[allow(clippy::too_many_arguments)]
 fn background_case<T: Float>(
-    c: Square,
-    same: bool,
-    share: f64,
-    seed: u64,
-    tol: f64,
+    c: Square, same: bool, share: f64, seed: u64, tol: f64,
 ) -> Result<(), TestCaseError> {
     let g = c.geom(same);
     let Square { k, cin, cout, .. } = c;

@@ -69,11 +69,7 @@ fn set<T: Float>(p: &mut Param<T>, t: &Tensor<T>) {
 
 /// Runs one layer forward and backward on the stored case and compares y, dx, dw, db.
 fn check_case<T: Float>(
-    st: &SafeTensors,
-    case: &str,
-    suffix: &str,
-    layer: &mut dyn Layer<T>,
-    tol: f64,
+    st: &SafeTensors, case: &str, suffix: &str, layer: &mut dyn Layer<T>, tol: f64,
 ) {
     let get = |k: &str| load::<T>(st, &format!("{case}.{k}{suffix}"));
     let x = get("x");

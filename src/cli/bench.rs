@@ -262,9 +262,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
 /// 64 observations from a game played with random actions through `config`'s pipeline, each
 /// timed 5 times (after one pass to warm up).
 fn time_acting(
-    net: &mut Sequential<f32>,
-    config: &Config,
-    rng: &mut ChaCha8Rng,
+    net: &mut Sequential<f32>, config: &Config, rng: &mut ChaCha8Rng,
 ) -> anyhow::Result<f64> {
     let frames = random_play_inputs(config, 64, 10, rng)?;
     // As the agent acts: argmax of the head's Q-values (an implicit quantile head's at its

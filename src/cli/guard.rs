@@ -39,10 +39,7 @@ pub struct OutputFile {
 impl OutputFile {
     /// Checks that `out` may be written (see [`OutputFile`]); writes nothing.
     pub fn check(
-        out: &Path,
-        force: bool,
-        inputs: &[&Path],
-        flag: &str,
+        out: &Path, force: bool, inputs: &[&Path], flag: &str,
     ) -> anyhow::Result<OutputFile> {
         let shown = out.display();
         let target = match std::fs::symlink_metadata(out) {
@@ -150,8 +147,7 @@ impl OutputFile {
     /// Writes the file in one piece: `write` fills the temporary path it is given, which then
     /// takes the file's place ([`Pending::commit`]).
     pub fn write_with(
-        &self,
-        write: impl FnOnce(&Path) -> anyhow::Result<()>,
+        &self, write: impl FnOnce(&Path) -> anyhow::Result<()>,
     ) -> anyhow::Result<()> {
         let pending = self.pending()?;
         write(pending.path())?;

@@ -68,8 +68,7 @@ pub enum Command {
 /// hand its work over and sleep until it is done (two futex round trips per call, a tenth of a
 /// batch-1 forward pass); from a worker it runs in place, helped by the others.
 pub fn in_pool<R: Send>(
-    threads: Option<usize>,
-    body: impl FnOnce() -> anyhow::Result<R> + Send,
+    threads: Option<usize>, body: impl FnOnce() -> anyhow::Result<R> + Send,
 ) -> anyhow::Result<R> {
     let mut builder = rayon::ThreadPoolBuilder::new().stack_size(8 << 20);
     if let Some(t) = threads {

@@ -141,11 +141,7 @@ fn draw(path: &Path, env: &SpaceInvaders, observers: &[Observer]) -> anyhow::Res
 }
 
 fn grey<DB: DrawingBackend>(
-    area: &DrawingArea<DB, plotters::coord::Shift>,
-    frame: &[u8],
-    x0: i32,
-    y0: i32,
-    scale: i32,
+    area: &DrawingArea<DB, plotters::coord::Shift>, frame: &[u8], x0: i32, y0: i32, scale: i32,
 ) -> anyhow::Result<()> {
     for y in 0..FRAME_HEIGHT as i32 {
         for x in 0..FRAME_WIDTH as i32 {

@@ -573,9 +573,7 @@ fn catch_signals() {
 }
 
 fn train_loop(
-    agent: &mut Agent<SpaceInvaders>,
-    dir: &Path,
-    log_rss: Option<u64>,
+    agent: &mut Agent<SpaceInvaders>, dir: &Path, log_rss: Option<u64>,
 ) -> anyhow::Result<()> {
     let config = agent.config.clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);

@@ -107,12 +107,8 @@ impl EpisodeRow {
 /// batch-1 forward pass ([`Sequential::infer`]). A quantile head's `Q` is the mean of its
 /// quantiles, an implicit quantile head's the mean over its policy fractions ([`Head::greedy`]).
 pub fn greedy(
-    net: &mut Sequential<f32>,
-    head: &Head,
-    observer: &Observer,
-    table: &[f32; 256],
-    input: &mut Tensor<f32>,
-    n_actions: usize,
+    net: &mut Sequential<f32>, head: &Head, observer: &Observer, table: &[f32; 256],
+    input: &mut Tensor<f32>, n_actions: usize,
 ) -> usize {
     observer.write_input(table, input.data_mut());
     head.greedy(net, input, n_actions)
@@ -122,10 +118,7 @@ pub fn greedy(
 /// step of Space Invaders played with random actions drawn from `rng` (emulator seed 1), the
 /// game reset when it ends: the acting benchmarks' workload.
 pub fn random_play_inputs(
-    config: &Config,
-    n: usize,
-    every: usize,
-    rng: &mut impl Rng,
+    config: &Config, n: usize, every: usize, rng: &mut impl Rng,
 ) -> anyhow::Result<Vec<Tensor<f32>>> {
     let mut env =
         crate::env::SpaceInvaders::new(&config.env, 1).context("cannot start Space Invaders")?;
@@ -155,14 +148,8 @@ pub fn random_play_inputs(
 /// game after every step (to record it). Returns the score and the number of steps.
 #[allow(clippy::too_many_arguments)]
 pub fn play_evaluation_episode<G: Game>(
-    game: &mut G,
-    net: &mut Sequential<f32>,
-    head: &Head,
-    observer: &mut Observer,
-    table: &[f32; 256],
-    input: &mut Tensor<f32>,
-    epsilon: f32,
-    rng: &mut impl Rng,
+    game: &mut G, net: &mut Sequential<f32>, head: &Head, observer: &mut Observer,
+    table: &[f32; 256], input: &mut Tensor<f32>, epsilon: f32, rng: &mut impl Rng,
     mut on_step: impl FnMut(&G),
 ) -> (f64, u64) {
     game.reset();
@@ -248,11 +235,7 @@ impl<G: Game> Agent<G> {
     /// observer, the game's state (if saved) and `replay` (if saved; else an empty memory).
     /// `game` must be built with the checkpoint's environment settings.
     pub fn resume(
-        game: G,
-        config: Config,
-        counters: Counters,
-        learner: Learner,
-        state: AgentState,
+        game: G, config: Config, counters: Counters, learner: Learner, state: AgentState,
         replay: Option<Replay>,
     ) -> anyhow::Result<Self> {
         if learner.n_actions() != game.n_actions() {

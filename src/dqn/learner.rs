@@ -61,11 +61,7 @@ impl Learner {
     /// A learner of the article's network for inputs of shape `[H, W, C]`; the target starts as a
     /// copy of the online net.
     pub fn new(
-        input: [usize; 3],
-        n_actions: usize,
-        lr: f32,
-        gamma: f32,
-        rng: &mut impl Rng,
+        input: [usize; 3], n_actions: usize, lr: f32, gamma: f32, rng: &mut impl Rng,
     ) -> Self {
         Learner::with_head(input, n_actions, Head::ARTICLE, lr, gamma, rng)
     }
@@ -73,12 +69,7 @@ impl Learner {
     /// [`Learner::new`] with another head ([`qnet`]): dense1's width, a dueling combine, and a
     /// quantile head's `N` values per action (QR-DQN: the loss is then the quantile Huber loss).
     pub fn with_head(
-        input: [usize; 3],
-        n_actions: usize,
-        head: Head,
-        lr: f32,
-        gamma: f32,
-        rng: &mut impl Rng,
+        input: [usize; 3], n_actions: usize, head: Head, lr: f32, gamma: f32, rng: &mut impl Rng,
     ) -> Self {
         let online = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
         let mut target = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
@@ -438,12 +429,7 @@ impl Learner {
 /// `q_next`, or `picked` (Double DQN: the online network's). With a quantile head, one target
 /// sample per quantile of `a'`: `T_j = R + γ^m·(1 − done)·θ_j(s', a')`.
 fn td_targets(
-    batch: &Batch,
-    q_next: &[f32],
-    picked: Option<&[usize]>,
-    gamma: f32,
-    k: usize,
-    y: &mut [f32],
+    batch: &Batch, q_next: &[f32], picked: Option<&[usize]>, gamma: f32, k: usize, y: &mut [f32],
 ) {
     let per = q_next.len() / batch.len();
     for (i, row) in q_next.chunks_exact(per).enumerate() {

@@ -35,10 +35,7 @@ const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 /// conv2 and conv3 run by Winograd's minimal filtering at batches of 8 or more
 /// ([`Conv2d::with_winograd`], [`plan::winograd_pays`]): the same sums, rounded differently.
 pub fn article_qnet<T: Float>(
-    input: [usize; 3],
-    n_actions: usize,
-    init: &VarianceScaling,
-    rng: &mut impl Rng,
+    input: [usize; 3], n_actions: usize, init: &VarianceScaling, rng: &mut impl Rng,
 ) -> Sequential<T> {
     qnet(input, n_actions, Head::ARTICLE, init, rng)
 }
@@ -142,11 +139,7 @@ pub fn midpoints(k: usize, batch: usize) -> Vec<f64> {
 /// advantage per action, which [`Dueling`] combines into `n_actions·atoms` outputs
 /// (`Q = V + A − mean A`, atom by atom).
 pub fn qnet<T: Float>(
-    input: [usize; 3],
-    n_actions: usize,
-    head: Head,
-    init: &VarianceScaling,
-    rng: &mut impl Rng,
+    input: [usize; 3], n_actions: usize, head: Head, init: &VarianceScaling, rng: &mut impl Rng,
 ) -> Sequential<T> {
     let [h, w, c] = input;
     let mut net = Sequential::new();

@@ -255,12 +255,7 @@ impl Replay {
     /// same capacity that had written `written` entries. Every length and flag is checked first;
     /// on error nothing is changed.
     pub fn restore(
-        &mut self,
-        written: u64,
-        frames: &[u8],
-        actions: &[u8],
-        rewards: &[f32],
-        flags: &[u8],
+        &mut self, written: u64, frames: &[u8], actions: &[u8], rewards: &[f32], flags: &[u8],
     ) -> Result<(), String> {
         let len = written.min(self.capacity as u64) as usize;
         if frames.len() != len * FRAME_LEN

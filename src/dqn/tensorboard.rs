@@ -276,10 +276,7 @@ impl EventWriter {
 
     /// One event holding the scalars `values` at `step`, written through to the file.
     pub fn scalars(
-        &mut self,
-        step: i64,
-        wall_time: f64,
-        values: &[(&str, f64)],
+        &mut self, step: i64, wall_time: f64, values: &[(&str, f64)],
     ) -> anyhow::Result<()> {
         self.write(&Event {
             wall_time,

@@ -146,8 +146,7 @@ impl Ale {
     }
 
     fn action_set(
-        &mut self,
-        size: unsafe extern "C" fn(*mut ale_sys::ALEInterface) -> c_int,
+        &mut self, size: unsafe extern "C" fn(*mut ale_sys::ALEInterface) -> c_int,
         fill: unsafe extern "C" fn(*mut ale_sys::ALEInterface, *mut c_int),
     ) -> Vec<i32> {
         // SAFETY: `self.ptr` is the live emulator this `Ale` owns (see the type's invariant), and

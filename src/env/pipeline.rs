@@ -192,10 +192,7 @@ pub fn write_stacked_input(frames: &[&[u8]], table: &[f32; 256], out: &mut [f32]
 /// # Panics
 /// If a frame is not 88 x 80 or `out` has the wrong length.
 pub fn write_stacked_input_bordered(
-    frames: &[&[u8]],
-    table: &[f32; 256],
-    border: Border,
-    out: &mut [f32],
+    frames: &[&[u8]], table: &[f32; 256], border: Border, out: &mut [f32],
 ) {
     let k = frames.len();
     assert!(

@@ -80,11 +80,7 @@ pub fn huber<T: Float>(pred: &[T], target: &[T], delta: T, grad: &mut [T]) -> T 
 /// `τ_i = (2i + 1)/(2N)`, `i = 0..N`, the probability levels the head's outputs estimate. Writes
 /// `∂L/∂θ` into `grad` and each sample's share of `L` (before the `1/B`) into `per_sample`.
 pub fn quantile_huber<T: Float>(
-    pred: &[T],
-    target: &[T],
-    n: usize,
-    grad: &mut [T],
-    per_sample: &mut [T],
+    pred: &[T], target: &[T], n: usize, grad: &mut [T], per_sample: &mut [T],
 ) -> T {
     assert!(
         n > 0 && pred.len() == target.len() && pred.len() == grad.len(),
@@ -108,12 +104,7 @@ pub fn quantile_huber<T: Float>(
 /// L = (1/B) Σ_b Σ_i (1/N') Σ_j |τ_i − 1{u_ij < 0}| · h(u_ij),   u_ij = T_j − θ_i
 /// ```
 pub fn quantile_huber_at<T: Float>(
-    pred: &[T],
-    taus: &[T],
-    target: &[T],
-    n: usize,
-    grad: &mut [T],
-    per_sample: &mut [T],
+    pred: &[T], taus: &[T], target: &[T], n: usize, grad: &mut [T], per_sample: &mut [T],
 ) -> T {
     assert!(
         n > 0 && pred.len() == taus.len() && pred.len() == grad.len(),

@@ -83,10 +83,7 @@ impl<T: Float> Sequential<T> {
     /// forward pass, which must have been on this same `x`), adding every parameter's gradient.
     /// Returns `dX` if `need_input_grad`.
     pub fn backward(
-        &mut self,
-        x: &Tensor<T>,
-        dy: &Tensor<T>,
-        need_input_grad: bool,
+        &mut self, x: &Tensor<T>, dy: &Tensor<T>, need_input_grad: bool,
     ) -> Option<&Tensor<T>> {
         for i in (0..self.layers.len()).rev() {
             let (before, rest) = self.layers.split_at_mut(i);

@@ -111,13 +111,7 @@ impl<T: Float> DenseOps<T> {
     /// [`DenseOps::forward`].
     #[allow(clippy::too_many_arguments)]
     pub fn infer(
-        &mut self,
-        precision: Precision,
-        sparse: bool,
-        x: &Tensor<T>,
-        w: &[T],
-        b: &[T],
-        y: &mut [T],
+        &mut self, precision: Precision, sparse: bool, x: &Tensor<T>, w: &[T], b: &[T], y: &mut [T],
     ) {
         let ((ni, no), n) = (sizes(w, b), x.batch());
         let share = plan::dense_sparse_share(n);
@@ -208,12 +202,7 @@ impl<T: Float> DenseOps<T> {
     /// kernels compute `dXᵀ = W·dYᵀ`, reading `W`'s rows in place (no 3.6 MB transpose of
     /// dense1's weights); only `dY` (tiny) and the result are transposed.
     pub fn input_grad(
-        &mut self,
-        precision: Precision,
-        x: &Tensor<T>,
-        dy: &[T],
-        w: &[T],
-        dx: &mut [T],
+        &mut self, precision: Precision, x: &Tensor<T>, dy: &[T], w: &[T], dx: &mut [T],
     ) {
         let n = x.batch();
         let (ni, no) = (x.len() / n, dy.len() / n);

@@ -217,11 +217,7 @@ impl ConvPlan {
 /// weight gradient where an output row (`OW` pixels) has, the input gradient
 /// ([`Kernel::PhasesBf16`]) for an input read in place with an even `Cout`.
 pub fn conv<T: Float>(
-    g: &ConvGeom,
-    n: usize,
-    winograd: bool,
-    in_border: Border,
-    precision: Precision,
+    g: &ConvGeom, n: usize, winograd: bool, in_border: Border, precision: Precision,
 ) -> ConvPlan {
     if T::simd() && bf16_runs(precision) {
         let f32_plan = conv::<T>(g, n, false, in_border, Precision::F32);

@@ -115,10 +115,7 @@ impl<T: Float> Background<T> {
     /// compiles for AVX2).
     #[inline(always)]
     pub(super) fn split_portable<'x>(
-        &mut self,
-        g: &ConvGeom,
-        rows: impl Iterator<Item = &'x [T]>,
-        limit: usize,
+        &mut self, g: &ConvGeom, rows: impl Iterator<Item = &'x [T]>, limit: usize,
     ) -> bool
     where
         T: 'x,
@@ -136,10 +133,7 @@ impl<T: Float> Background<T> {
     /// the pixels of the others are looked at one by one.
     #[inline(always)]
     pub(super) fn differing<'x>(
-        &mut self,
-        g: &ConvGeom,
-        rows: impl Iterator<Item = &'x [T]>,
-        limit: usize,
+        &mut self, g: &ConvGeom, rows: impl Iterator<Item = &'x [T]>, limit: usize,
         differs: impl Fn(&[T], &[T]) -> bool,
     ) -> bool
     where
@@ -177,13 +171,7 @@ impl<T: Float> Background<T> {
     /// `[KH, KW, Cin, Cout]` and bias `b` `[Cout]`: output pixel `r` (row-major) is written at
     /// `y[rows[r]..rows[r] + Cout]`, and `act` is `max(·, 0)` if `relu`.
     pub fn conv(
-        &mut self,
-        g: &ConvGeom,
-        w: &[T],
-        bias: &[T],
-        relu: bool,
-        y: &mut [T],
-        rows: &[usize],
+        &mut self, g: &ConvGeom, w: &[T], bias: &[T], relu: bool, y: &mut [T], rows: &[usize],
     ) {
         let cout = g.cout;
         assert_eq!(w.len(), g.kh * g.kw * g.cin * cout, "Background: weights");
@@ -213,13 +201,7 @@ impl<T: Float> Background<T> {
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     pub(super) fn run(
-        &mut self,
-        g: &ConvGeom,
-        w: &[T],
-        bias: &[T],
-        relu: bool,
-        y: &mut [T],
-        rows: &[usize],
+        &mut self, g: &ConvGeom, w: &[T], bias: &[T], relu: bool, y: &mut [T], rows: &[usize],
         add: impl Fn(&mut [T], &[T], &[T]),
     ) {
         self.response(g, w, bias);
@@ -338,12 +320,7 @@ impl<T: Float> Background<T> {
 /// this stride and padding before: `0 ≤ o·stride + t − pad < size`. Consecutive outputs mostly
 /// share one; `of[o]` is the index of output `o`'s in `ranges`.
 fn tap_ranges(
-    n: usize,
-    stride: usize,
-    pad: usize,
-    size: usize,
-    k: usize,
-    ranges: &mut Vec<(usize, usize)>,
+    n: usize, stride: usize, pad: usize, size: usize, k: usize, ranges: &mut Vec<(usize, usize)>,
     of: &mut Vec<usize>,
 ) {
     ranges.clear();

@@ -183,13 +183,7 @@ impl ConvGeom {
     /// (a zero size or stride, or a VALID filter larger than the input).
     #[allow(clippy::too_many_arguments)]
     pub fn new(
-        h: usize,
-        w: usize,
-        cin: usize,
-        cout: usize,
-        kh: usize,
-        kw: usize,
-        stride: (usize, usize),
+        h: usize, w: usize, cin: usize, cout: usize, kh: usize, kw: usize, stride: (usize, usize),
         padding: Padding,
     ) -> Option<ConvGeom> {
         let (sh, sw) = stride;
@@ -462,14 +456,7 @@ pub fn conv2d_reference<T: Float>(g: &ConvGeom, n: usize, x: &[T], w: &[T], b: &
 /// Overwrites `dx`, `dw` and `db`.
 #[allow(clippy::too_many_arguments)]
 pub fn conv2d_reference_backward<T: Float>(
-    g: &ConvGeom,
-    n: usize,
-    x: &[T],
-    w: &[T],
-    dy: &[T],
-    dx: &mut [T],
-    dw: &mut [T],
-    db: &mut [T],
+    g: &ConvGeom, n: usize, x: &[T], w: &[T], dy: &[T], dx: &mut [T], dw: &mut [T], db: &mut [T],
 ) {
     dx.fill(T::zero());
     dw.fill(T::zero());

@@ -62,16 +62,8 @@ pub trait Float:
     /// `C = alpha·op(A)·op(B) + (accumulate ? C : 0)` by faer, on row-major slices.
     #[allow(clippy::too_many_arguments)]
     fn gemm_faer(
-        ta: bool,
-        tb: bool,
-        m: usize,
-        n: usize,
-        k: usize,
-        alpha: Self,
-        a: &[Self],
-        b: &[Self],
-        accumulate: bool,
-        c: &mut [Self],
+        ta: bool, tb: bool, m: usize, n: usize, k: usize, alpha: Self, a: &[Self], b: &[Self],
+        accumulate: bool, c: &mut [Self],
     );
 
     /// `C = alpha·A·B + beta·C` by matrixmultiply on strided matrices: A is `m x k` with row
@@ -83,20 +75,8 @@ pub trait Float:
     /// checks this.
     #[allow(clippy::too_many_arguments)]
     unsafe fn gemm_raw(
-        m: usize,
-        k: usize,
-        n: usize,
-        alpha: Self,
-        a: *const Self,
-        rsa: isize,
-        csa: isize,
-        b: *const Self,
-        rsb: isize,
-        csb: isize,
-        beta: Self,
-        c: *mut Self,
-        rsc: isize,
-        csc: isize,
+        m: usize, k: usize, n: usize, alpha: Self, a: *const Self, rsa: isize, csa: isize,
+        b: *const Self, rsb: isize, csb: isize, beta: Self, c: *mut Self, rsc: isize, csc: isize,
     );
 }
 
@@ -104,16 +84,8 @@ pub trait Float:
 macro_rules! faer_gemm_impl {
     ($t:ty) => {
         fn gemm_faer(
-            ta: bool,
-            tb: bool,
-            m: usize,
-            n: usize,
-            k: usize,
-            alpha: $t,
-            a: &[$t],
-            b: &[$t],
-            accumulate: bool,
-            c: &mut [$t],
+            ta: bool, tb: bool, m: usize, n: usize, k: usize, alpha: $t, a: &[$t], b: &[$t],
+            accumulate: bool, c: &mut [$t],
         ) {
             use faer::{Accum, MatMut, MatRef, Par};
             let a = if ta {
@@ -175,20 +147,8 @@ impl Float for f32 {
         }
     }
     unsafe fn gemm_raw(
-        m: usize,
-        k: usize,
-        n: usize,
-        alpha: f32,
-        a: *const f32,
-        rsa: isize,
-        csa: isize,
-        b: *const f32,
-        rsb: isize,
-        csb: isize,
-        beta: f32,
-        c: *mut f32,
-        rsc: isize,
-        csc: isize,
+        m: usize, k: usize, n: usize, alpha: f32, a: *const f32, rsa: isize, csa: isize,
+        b: *const f32, rsb: isize, csb: isize, beta: f32, c: *mut f32, rsc: isize, csc: isize,
     ) {
         matrixmultiply::sgemm(m, k, n, alpha, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
     }
@@ -201,20 +161,8 @@ impl Float for f64 {
         x
     }
     unsafe fn gemm_raw(
-        m: usize,
-        k: usize,
-        n: usize,
-        alpha: f64,
-        a: *const f64,
-        rsa: isize,
-        csa: isize,
-        b: *const f64,
-        rsb: isize,
-        csb: isize,
-        beta: f64,
-        c: *mut f64,
-        rsc: isize,
-        csc: isize,
+        m: usize, k: usize, n: usize, alpha: f64, a: *const f64, rsa: isize, csa: isize,
+        b: *const f64, rsb: isize, csb: isize, beta: f64, c: *mut f64, rsc: isize, csc: isize,
     ) {
         matrixmultiply::dgemm(m, k, n, alpha, a, rsa, csa, b, rsb, csb, beta, c, rsc, csc)
     }

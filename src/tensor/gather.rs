@@ -113,12 +113,7 @@ pub(crate) fn row_start(c_rows: Option<&[usize]>, ldc: usize, r: usize) -> usize
 /// rows of `n` columns at `ldc` apart or at `c_rows` (increasing, not overlapping), inside
 /// `c_len` values; a bias covers the `n` columns.
 pub(crate) fn check_c<T>(
-    kernel: &str,
-    rows: usize,
-    n: usize,
-    ldc: usize,
-    c_rows: Option<&[usize]>,
-    c_len: usize,
+    kernel: &str, rows: usize, n: usize, ldc: usize, c_rows: Option<&[usize]>, c_len: usize,
     init: &Init<'_, T>,
 ) {
     match c_rows {

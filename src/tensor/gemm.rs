@@ -35,15 +35,7 @@ fn rows_per_task(m: usize, k: usize, n: usize) -> usize {
 /// `beta` must be 0 (overwrite `C`, whatever it held, NaN included) or 1 (accumulate into it).
 #[allow(clippy::too_many_arguments)]
 pub fn gemm<T: Float>(
-    opa: Op,
-    opb: Op,
-    m: usize,
-    n: usize,
-    k: usize,
-    alpha: T,
-    a: &[T],
-    b: &[T],
-    beta: T,
+    opa: Op, opb: Op, m: usize, n: usize, k: usize, alpha: T, a: &[T], b: &[T], beta: T,
     c: &mut [T],
 ) {
     gemm_faer(opa, opb, m, n, k, alpha, a, b, beta, c)
@@ -58,15 +50,7 @@ pub fn gemm<T: Float>(
 /// If a slice is shorter than its shape needs.
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_matrixmultiply<T: Float>(
-    opa: Op,
-    opb: Op,
-    m: usize,
-    n: usize,
-    k: usize,
-    alpha: T,
-    a: &[T],
-    b: &[T],
-    beta: T,
+    opa: Op, opb: Op, m: usize, n: usize, k: usize, alpha: T, a: &[T], b: &[T], beta: T,
     c: &mut [T],
 ) {
     assert!(a.len() >= m * k, "gemm: A has {} < {}x{}", a.len(), m, k);
@@ -120,15 +104,7 @@ pub fn gemm_matrixmultiply<T: Float>(
 /// The reference product: three plain loops, the oracle for [`gemm`] and every faster kernel.
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_reference<T: Float>(
-    opa: Op,
-    opb: Op,
-    m: usize,
-    n: usize,
-    k: usize,
-    alpha: T,
-    a: &[T],
-    b: &[T],
-    beta: T,
+    opa: Op, opb: Op, m: usize, n: usize, k: usize, alpha: T, a: &[T], b: &[T], beta: T,
     c: &mut [T],
 ) {
     for i in 0..m {
@@ -159,15 +135,7 @@ pub fn gemm_reference<T: Float>(
 /// threads). `beta` must be 0 or 1.
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_faer<T: Float>(
-    opa: Op,
-    opb: Op,
-    m: usize,
-    n: usize,
-    k: usize,
-    alpha: T,
-    a: &[T],
-    b: &[T],
-    beta: T,
+    opa: Op, opb: Op, m: usize, n: usize, k: usize, alpha: T, a: &[T], b: &[T], beta: T,
     c: &mut [T],
 ) {
     assert!(

@@ -75,11 +75,7 @@ pub fn train(cfg: &str, seed: u64, episodes: u64, out: &std::path::Path) -> Outp
 /// directories, for a test that the two end alike.
 #[allow(dead_code)]
 pub fn straight_and_resumed(
-    root: &std::path::Path,
-    config: &std::path::Path,
-    seed: u64,
-    stop: u64,
-    total: u64,
+    root: &std::path::Path, config: &std::path::Path, seed: u64, stop: u64, total: u64,
 ) -> (PathBuf, PathBuf) {
     let config = config.to_str().unwrap();
     let run = |out: &std::path::Path, episodes: u64| ok(&train(config, seed, episodes, out));

@@ -82,11 +82,7 @@ pub fn indices(len: usize, max: usize, rng: &mut impl Rng) -> Vec<usize> {
 /// gradient entry (up to `max_per_tensor` sampled per tensor) with central finite differences.
 /// Also checks that a second backward pass *adds* the same gradient again (accumulation with +=).
 pub fn check_layer(
-    layer: &mut dyn Layer<f64>,
-    x: &Tensor<f64>,
-    dy: &Tensor<f64>,
-    max_per_tensor: usize,
-    seed: u64,
+    layer: &mut dyn Layer<f64>, x: &Tensor<f64>, dy: &Tensor<f64>, max_per_tensor: usize, seed: u64,
 ) -> Result<(), String> {
     let mut rng = rng(seed);
     for p in layer.params_mut() {
@@ -331,13 +327,7 @@ impl Square {
 /// if `relu`) for a batch of `n`, and where each output pixel starts in it.
 #[allow(clippy::too_many_arguments)]
 pub fn reference_output<T: Float>(
-    g: &ConvGeom,
-    n: usize,
-    x: &[T],
-    w: &[T],
-    b: &[T],
-    border: Border,
-    relu: bool,
+    g: &ConvGeom, n: usize, x: &[T], w: &[T], b: &[T], border: Border, relu: bool,
 ) -> (Vec<T>, Vec<usize>) {
     let c = g.cout;
     let mut z = vec![T::zero(); n * g.oh * g.ow * c];

@@ -31,10 +31,7 @@ pub(super) struct Record {
 /// its last agent step: `eval/protocol_*` and `eval/own_game_*` (mean, std, min, max). A failure
 /// is said, not fatal: the scores are in the record and the tables.
 pub(super) fn log_evaluations(
-    dir: &Path,
-    counters: &checkpoint::Counters,
-    protocol: &Scores,
-    own_game: Option<&Scores>,
+    dir: &Path, counters: &checkpoint::Counters, protocol: &Scores, own_game: Option<&Scores>,
 ) {
     if invaders::dqn::tensorboard::event_files(dir).map_or(true, |f| f.is_empty()) {
         return;
@@ -113,10 +110,7 @@ pub(super) fn write_record(dir: &Path, run: &Path, record: &Record) -> anyhow::R
 /// The budget (`episodes`, `max_frames`) may differ: the experiment extends it. Nothing is
 /// written; a directory with no run in it passes.
 pub(super) fn check_reuse(
-    dir: &Path,
-    preset: Preset,
-    overrides: &str,
-    seed: u64,
+    dir: &Path, preset: Preset, overrides: &str, seed: u64,
 ) -> anyhow::Result<()> {
     let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
     let saved = dir.join("config.toml");

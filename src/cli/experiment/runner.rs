@@ -63,11 +63,7 @@ pub(super) struct Finished {
 /// any failed, and returns [`Interrupted`] if a run or evaluation was stopped by a signal (then
 /// nothing further starts).
 pub(super) fn run_all(
-    exe: &Path,
-    jobs: &[Job<'_>],
-    workers: Option<usize>,
-    budget: Budget,
-    evals: Evals,
+    exe: &Path, jobs: &[Job<'_>], workers: Option<usize>, budget: Budget, evals: Evals,
     keep: Option<&Path>,
 ) -> anyhow::Result<Vec<Finished>> {
     let workers = worker_count(workers);
@@ -116,11 +112,7 @@ pub(super) fn run_all(
 /// One job of [`run_all`]: its `--keep` record if that answers the same question, else trained,
 /// evaluated and (with `keep`) recorded.
 pub(super) fn finish_one(
-    exe: &Path,
-    job: &Job<'_>,
-    budget: Budget,
-    evals: Evals,
-    keep: Option<&Path>,
+    exe: &Path, job: &Job<'_>, budget: Budget, evals: Evals, keep: Option<&Path>,
 ) -> anyhow::Result<Finished> {
     let name = format!("{}-seed{}", job.label, job.seed);
     let overrides = std::fs::read_to_string(&job.cfg)

@@ -116,10 +116,7 @@ fn read_columns(path: &Path, x: &str, y: &str) -> anyhow::Result<Vec<(f64, f64)>
 /// Draws reward curves (faint per-episode scores, bold moving averages over `window` episodes)
 /// into a PNG.
 pub fn plot_rewards(
-    curves: &[Curve],
-    title: &str,
-    window: usize,
-    out: &Path,
+    curves: &[Curve], title: &str, window: usize, out: &Path,
 ) -> anyhow::Result<()> {
     let max_x = curves
         .iter()
@@ -222,12 +219,7 @@ fn legend_corner(points: &[(f64, f64)], max: (f64, f64), size: (f64, f64)) -> us
 /// A 1000x600 figure of reward against `x_desc` with axes up to `max` and a legend where `ink`
 /// is thinnest; `draw` adds the series. Every figure of the project goes through here.
 fn figure(
-    out: &Path,
-    title: &str,
-    x_desc: &str,
-    y_desc: &str,
-    max: (f64, f64),
-    ink: Ink,
+    out: &Path, title: &str, x_desc: &str, y_desc: &str, max: (f64, f64), ink: Ink,
     draw: impl FnOnce(&mut Chart<'_, '_>) -> DrawResult,
 ) -> anyhow::Result<()> {
     register_fonts();
@@ -403,11 +395,7 @@ pub fn moving_bounds(curve: &Bounded, window: usize) -> Vec<(f64, f64, f64)> {
 /// lowest to the highest seed; each bounded curve's moving average as a grey band between its
 /// bounds ([`moving_bounds`]).
 pub fn plot_groups(
-    groups: &[Group],
-    bounded: &[Bounded],
-    title: &str,
-    window: usize,
-    out: &Path,
+    groups: &[Group], bounded: &[Bounded], title: &str, window: usize, out: &Path,
 ) -> anyhow::Result<()> {
     let bands: Vec<Vec<(f64, f64, f64, f64)>> =
         groups.iter().map(|g| mean_band(&g.seeds, window)).collect();
@@ -482,9 +470,7 @@ pub fn plot_groups(
 /// Draws one group's `(x, mean, low, high)` points: the mean as a bold line with `label` in the
 /// legend, over a shaded band from the lowest to the highest seed.
 fn draw_band(
-    chart: &mut Chart<'_, '_>,
-    band: &[(f64, f64, f64, f64)],
-    color: PaletteColor<Palette99>,
+    chart: &mut Chart<'_, '_>, band: &[(f64, f64, f64, f64)], color: PaletteColor<Palette99>,
     label: String,
 ) -> DrawResult {
     let mut outline: Vec<(f64, f64)> = band.iter().map(|p| (p.0, p.3)).collect();
@@ -505,9 +491,7 @@ fn draw_band(
 /// the mean, lowest and highest seed at each grid point that every seed reached:
 /// `(frames, mean, low, high)`. `seeds` hold `(frames, reward)` points in episode order.
 pub fn mean_band_frames(
-    seeds: &[Vec<(f64, f64)>],
-    window: usize,
-    step: f64,
+    seeds: &[Vec<(f64, f64)>], window: usize, step: f64,
 ) -> Vec<(f64, f64, f64, f64)> {
     assert!(step > 0.0, "a positive grid step");
     let averaged: Vec<Vec<(f64, f64)>> = seeds
@@ -593,11 +577,7 @@ pub fn read_references(path: &Path, agents: &[String]) -> anyhow::Result<Vec<Ref
 /// band from the lowest to the highest seed, and each reference as a dashed line with points,
 /// up to the frames the groups reached (references beyond are cut there).
 pub fn plot_groups_frames(
-    groups: &[Group],
-    references: &[Reference],
-    title: &str,
-    window: usize,
-    out: &Path,
+    groups: &[Group], references: &[Reference], title: &str, window: usize, out: &Path,
 ) -> anyhow::Result<()> {
     const STEP: f64 = 50_000.0;
     let bands: Vec<Vec<(f64, f64, f64, f64)>> = groups

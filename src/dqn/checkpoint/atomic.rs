@@ -20,8 +20,7 @@ pub fn tmp_path(path: &Path) -> anyhow::Result<std::path::PathBuf> {
 /// synced to disk and renamed over `path` (then the directory is synced). On any error the
 /// temporary file is removed and `path` is left as it was.
 pub fn write_atomic_with(
-    path: &Path,
-    write: impl FnOnce(&Path) -> anyhow::Result<()>,
+    path: &Path, write: impl FnOnce(&Path) -> anyhow::Result<()>,
 ) -> anyhow::Result<()> {
     let tmp = tmp_path(path)?;
     let dir = tmp

@@ -32,8 +32,7 @@ pub fn tensors_checksum<'a>(tensors: impl IntoIterator<Item = (&'a str, &'a [u8]
 
 /// Checks a loaded file's `checksum` metadata against its tensors.
 pub(super) fn verify_checksum(
-    st: &SafeTensors<'_>,
-    meta: &HashMap<String, String>,
+    st: &SafeTensors<'_>, meta: &HashMap<String, String>,
 ) -> anyhow::Result<u32> {
     let stored = parse_checksum(meta_get(meta, "checksum")?)?;
     let tensors = st.tensors();
@@ -53,10 +52,7 @@ pub(super) fn parse_checksum(text: &str) -> anyhow::Result<u32> {
 /// Serialises a checkpoint to safetensors bytes; `replay` names the replay file saved with it,
 /// and that file's checksum, if any.
 pub fn to_bytes(
-    config: &Config,
-    counters: &Counters,
-    learner: &Learner,
-    agent: &AgentState,
+    config: &Config, counters: &Counters, learner: &Learner, agent: &AgentState,
     replay: Option<(&str, u32)>,
 ) -> anyhow::Result<Vec<u8>> {
     let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
@@ -113,9 +109,7 @@ pub fn to_bytes(
 
 /// Copies the named tensors into `net`'s parameters after checking every name, dtype and shape.
 pub(super) fn load_net(
-    st: &SafeTensors<'_>,
-    prefix: &str,
-    net: &mut Sequential<f32>,
+    st: &SafeTensors<'_>, prefix: &str, net: &mut Sequential<f32>,
 ) -> anyhow::Result<()> {
     for p in net.params_mut() {
         let name = format!("{prefix}.{}", p.name);
@@ -126,10 +120,7 @@ pub(super) fn load_net(
 
 /// The tensor `name` after checking its dtype and shape.
 pub(super) fn tensor<'a>(
-    st: &'a SafeTensors<'_>,
-    name: &str,
-    dtype: Dtype,
-    shape: &[usize],
+    st: &'a SafeTensors<'_>, name: &str, dtype: Dtype, shape: &[usize],
 ) -> anyhow::Result<TensorView<'a>> {
     let v = st.tensor(name).map_err(|_| anyhow!("no tensor `{name}`"))?;
     if v.dtype() != dtype {
@@ -148,9 +139,7 @@ pub(super) fn tensor<'a>(
 }
 
 pub(super) fn read_into(
-    st: &SafeTensors<'_>,
-    name: &str,
-    t: &mut Tensor<f32>,
+    st: &SafeTensors<'_>, name: &str, t: &mut Tensor<f32>,
 ) -> anyhow::Result<()> {
     let v = tensor(st, name, Dtype::F32, t.shape())?;
     let values: Vec<f32> = bytemuck::pod_collect_to_vec(v.data());
@@ -182,8 +171,7 @@ pub(super) fn meta_get<'a>(meta: &'a HashMap<String, String>, k: &str) -> anyhow
 /// The configuration, counters, Adam's step count and action count recorded in a checkpoint's or
 /// model file's metadata, checked.
 pub(super) fn header(
-    st: &SafeTensors<'_>,
-    meta: &HashMap<String, String>,
+    st: &SafeTensors<'_>, meta: &HashMap<String, String>,
 ) -> anyhow::Result<(Config, Counters, u64, usize)> {
     let config: Config = toml::from_str(meta_get(meta, "config")?).context("checkpoint config")?;
     config.validate().context("checkpoint config")?;

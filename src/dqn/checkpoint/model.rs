@@ -18,9 +18,7 @@ pub struct Model {
 /// Serialises the online network of a learner with its configuration and counters: a
 /// weights-only model file (format [`MODEL_FORMAT`]).
 pub fn model_to_bytes(
-    config: &Config,
-    counters: &Counters,
-    learner: &Learner,
+    config: &Config, counters: &Counters, learner: &Learner,
 ) -> anyhow::Result<Vec<u8>> {
     let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
     for p in learner.online.params() {

@@ -150,12 +150,7 @@ impl<T: Float> ConvOps<T> {
     /// patch through the offset tables, starting from the bias, `max(·, 0)` stored straight into
     /// the bordered output.
     pub(super) fn forward_gather(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        w: &[T],
-        b: &[T],
-        y: &mut Tensor<T>,
+        &mut self, s: &ConvSpec, x: &Tensor<T>, w: &[T], b: &[T], y: &mut Tensor<T>,
     ) {
         let g = s.geom;
         self.read_input(&g, x);
@@ -177,12 +172,7 @@ impl<T: Float> ConvOps<T> {
     /// `Z = b + x·W` in bf16 ([`Kernel::GatherBf16`]): pairs of patch values (a pixel's
     /// channels, next to each other) against pairs of filter rows.
     pub(super) fn forward_bf16(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        w: &[T],
-        b: &[T],
-        y: &mut Tensor<T>,
+        &mut self, s: &ConvSpec, x: &Tensor<T>, w: &[T], b: &[T], y: &mut Tensor<T>,
     ) {
         let g = s.geom;
         self.read_input(&g, x);
@@ -214,12 +204,7 @@ impl<T: Float> ConvOps<T> {
     /// (padded) input, every input tile (4×4 pixels, or 3×3 blocks of s×s) of a 2×2 output
     /// tile.
     pub(super) fn forward_winograd(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        kind: WinogradKind,
-        w: &[T],
-        b: &[T],
+        &mut self, s: &ConvSpec, x: &Tensor<T>, kind: WinogradKind, w: &[T], b: &[T],
         y: &mut Tensor<T>,
     ) {
         let g = s.geom;
@@ -261,12 +246,7 @@ impl<T: Float> ConvOps<T> {
     /// `SW·Cin` apart in the input: the input paired with itself shifted by that, against pairs
     /// of rows of dZ. `forward` is the kernel the forward pass ran.
     pub(super) fn wgrad_bf16(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        dz: &[T],
-        dw: &mut [T],
-        forward: Kernel,
+        &mut self, s: &ConvSpec, x: &Tensor<T>, dz: &[T], dw: &mut [T], forward: Kernel,
     ) {
         let (g, n) = (s.geom, x.batch());
         self.check_forward(s, n);
@@ -306,12 +286,7 @@ impl<T: Float> ConvOps<T> {
 
     /// `dW` by Winograd: the products' adjoints over the (padded) input's tiles.
     pub(super) fn wgrad_winograd(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        kind: WinogradKind,
-        dz: &[T],
-        dw: &mut [T],
+        &mut self, s: &ConvSpec, x: &Tensor<T>, kind: WinogradKind, dz: &[T], dw: &mut [T],
     ) {
         self.check_forward(s, x.batch());
         let shape = Self::winograd_shape(s, x.batch(), kind);
@@ -322,12 +297,7 @@ impl<T: Float> ConvOps<T> {
     /// `dX` by Winograd, for an input read in place: the adjoint convolution of `dZ`, its
     /// filters into `wino_u` and where each output goes into `wino_pix`.
     pub(super) fn dx_winograd(
-        &mut self,
-        s: &ConvSpec,
-        n: usize,
-        kind: WinogradKind,
-        dz: &[T],
-        w: &[T],
+        &mut self, s: &ConvSpec, n: usize, kind: WinogradKind, dz: &[T], w: &[T],
         dx: &mut Tensor<T>,
     ) {
         let (g, b) = (s.geom, s.in_border);
@@ -404,13 +374,7 @@ impl<T: Float> ConvOps<T> {
     /// border (taps in reverse order, so the offsets are non-negative). Each `dX` value is
     /// written once (no scatter, no overlapping adds), `Cin` columns wide.
     pub(super) fn dx_by_phases(
-        &mut self,
-        s: &ConvSpec,
-        n: usize,
-        dz: &[T],
-        w: &[T],
-        dx: &mut Tensor<T>,
-        bf16: bool,
+        &mut self, s: &ConvSpec, n: usize, dz: &[T], w: &[T], dx: &mut Tensor<T>, bf16: bool,
     ) {
         let g = s.geom;
         let (sh, sw, co, ci) = (g.sh, g.sw, g.cout, g.cin);
@@ -517,12 +481,7 @@ impl<T: Float> ConvOps<T> {
     /// `dX` for a padded copy of the input: `dZ·Wᵀ` (with `Wᵀ` packed) added tile by tile onto
     /// the padded input gradient (col2im fused), whose interior is then `dX`.
     pub(super) fn dx_by_scatter(
-        &mut self,
-        s: &ConvSpec,
-        n: usize,
-        dz: &[T],
-        w: &[T],
-        dx: &mut Tensor<T>,
+        &mut self, s: &ConvSpec, n: usize, dz: &[T], w: &[T], dx: &mut Tensor<T>,
     ) {
         let g = s.geom;
         let (m, k) = (s.rows(n), g.patch_len());
@@ -558,12 +517,7 @@ impl<T: Float> ConvOps<T> {
     /// `(i, oy, ox)`'s window starts at padded pixel `(i, oy·SH, ox·SW)` and tap `(ky, kx)` is
     /// `ky·WP + kx` pixels further on.
     pub(super) fn infer_sparse(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        w: &[T],
-        b: &[T],
-        y: &mut Tensor<T>,
+        &mut self, s: &ConvSpec, x: &Tensor<T>, w: &[T], b: &[T], y: &mut Tensor<T>,
     ) -> bool {
         let g = s.geom;
         let n = x.batch();
@@ -634,12 +588,7 @@ impl<T: Float> ConvOps<T> {
     /// geometry. `false` (nothing written) if more than an eighth of the pixels differ from the
     /// background.
     pub(super) fn infer_background(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        w: &[T],
-        b: &[T],
-        y: &mut Tensor<T>,
+        &mut self, s: &ConvSpec, x: &Tensor<T>, w: &[T], b: &[T], y: &mut Tensor<T>,
     ) -> bool {
         let g = s.geom;
         let (hp, wp) = g.padded();
@@ -693,12 +642,7 @@ impl Padded {
     /// one row's interior. Every place is written on every call (the border with `zero`), so
     /// the buffer is reused without clearing it first.
     fn write<S: Sync, E: Copy + Send + Sync>(
-        &self,
-        src: &[S],
-        n: usize,
-        zero: E,
-        dst: &mut Vec<E>,
-        put: impl Fn(&mut [E], &[S]) + Sync,
+        &self, src: &[S], n: usize, zero: E, dst: &mut Vec<E>, put: impl Fn(&mut [E], &[S]) + Sync,
     ) {
         dst.resize(n * self.height * self.width, zero);
         dst.par_chunks_mut(self.height * self.width)

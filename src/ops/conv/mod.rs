@@ -139,13 +139,7 @@ impl<T: Float> ConvOps<T> {
     /// [`plan::sparse_share`]).
     #[allow(clippy::too_many_arguments)]
     pub fn infer(
-        &mut self,
-        s: &ConvSpec,
-        background: bool,
-        sparse: bool,
-        x: &Tensor<T>,
-        w: &[T],
-        b: &[T],
+        &mut self, s: &ConvSpec, background: bool, sparse: bool, x: &Tensor<T>, w: &[T], b: &[T],
         y: &mut Tensor<T>,
     ) {
         if plan::background(background, x.batch()) && self.infer_background(s, x, w, b, y) {
@@ -165,11 +159,7 @@ impl<T: Float> ConvOps<T> {
     /// `dZ = dY ⊙ [y > 0]` over the interior of `dY` (or just the interior, without a ReLU),
     /// into `dz` as `[N·OH·OW, Cout]`; `false` (and nothing done) when `dZ` is `dY` itself.
     pub fn relu_grad(
-        &mut self,
-        s: &ConvSpec,
-        dy: &Tensor<T>,
-        y: &Tensor<T>,
-        dz: &mut Vec<T>,
+        &mut self, s: &ConvSpec, dy: &Tensor<T>, y: &Tensor<T>, dz: &mut Vec<T>,
     ) -> bool {
         if !s.relu && s.border.is_none() {
             return false;
@@ -206,12 +196,7 @@ impl<T: Float> ConvOps<T> {
     /// plan's input gradient kernel. For an input that arrived already padded, `dX` is the
     /// gradient with respect to it, border places included (the VALID convolution's).
     pub fn input_grad(
-        &mut self,
-        s: &ConvSpec,
-        x: &Tensor<T>,
-        dz: &[T],
-        w: &[T],
-        dx: &mut Tensor<T>,
+        &mut self, s: &ConvSpec, x: &Tensor<T>, dz: &[T], w: &[T], dx: &mut Tensor<T>,
     ) {
         let s = s.for_input(x);
         let (g, n) = (s.geom, x.batch());

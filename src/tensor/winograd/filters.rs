@@ -110,12 +110,7 @@ pub fn winograd_filters_s2d<T: Float>(w: &[T], s: usize, cin: usize, cout: usize
 /// pixel, [`WinogradKind::S2d`]`(1)`, whose `s²·Cin`-channel output "pixels" are stored as `s²`
 /// pixels of `Cin` channels ([`WinogradShape::out_pieces`]).
 pub fn winograd_filters_s2d_adjoint<T: Float>(
-    w: &[T],
-    s: usize,
-    cin: usize,
-    cout: usize,
-    wt: &mut Vec<T>,
-    u: &mut Vec<T>,
+    w: &[T], s: usize, cin: usize, cout: usize, wt: &mut Vec<T>, u: &mut Vec<T>,
 ) {
     let k = 2 * s;
     assert_eq!(w.len(), k * k * cin * cout, "winograd_filters_s2d_adjoint");
@@ -171,11 +166,7 @@ pub(super) fn filter_adjoint<T: Float>(du: &[T], ci: usize, co: usize, dw: &mut 
 /// gradient `dg = Gᵀ·dU·G` (in one dimension `(u₀, u₁, u₂) ↦ (u₀ + u₁, u₁ + u₂)`), added into
 /// `dw [2s, 2s, Cin, Cout]` at `dw[s·by + dy, s·bx + dx, c] += dg[by, bx, (dy·s + dx)·Cin + c]`.
 pub(super) fn filter_adjoint_s2d<T: Float>(
-    du: &[T],
-    s: usize,
-    cin: usize,
-    cout: usize,
-    dw: &mut [T],
+    du: &[T], s: usize, cin: usize, cout: usize, dw: &mut [T],
 ) {
     let k = 2 * s;
     let ni = s * s * cin;

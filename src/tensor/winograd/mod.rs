@@ -206,14 +206,8 @@ struct Part<T> {
 /// at [`SKIP_OUTPUT`]).
 #[allow(clippy::too_many_arguments)]
 pub fn winograd_conv<T: Float>(
-    s: WinogradShape,
-    x: &[T],
-    u: &[T],
-    bias: Option<&[T]>,
-    relu: bool,
-    out: &mut [T],
-    out_pixels: &[usize],
-    scratch: &mut WinogradScratch<T>,
+    s: WinogradShape, x: &[T], u: &[T], bias: Option<&[T]>, relu: bool, out: &mut [T],
+    out_pixels: &[usize], scratch: &mut WinogradScratch<T>,
 ) {
     assert_eq!(x.len(), s.n * s.h * s.w * s.ci, "winograd_conv: input");
     assert_eq!(

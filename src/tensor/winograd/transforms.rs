@@ -136,12 +136,7 @@ pub(super) fn output_transform9<T: Float>(m: &[Lanes<T>; 9]) -> [Lanes<T>; 4] {
 /// tile's `places`; also what the AVX2 family compiles for AVX2).
 #[inline(always)]
 pub(in crate::tensor) fn output_tile_portable<T: Float>(
-    mt: &[T],
-    len: usize,
-    bias: Option<&[T]>,
-    relu: bool,
-    img: &mut [T],
-    at: &[[Option<usize>; 4]],
+    mt: &[T], len: usize, bias: Option<&[T]>, relu: bool, img: &mut [T], at: &[[Option<usize>; 4]],
     places: usize,
 ) {
     if places == 16 {
@@ -156,13 +151,8 @@ pub(in crate::tensor) fn output_tile_portable<T: Float>(
 /// ([`Transforms::input`]). `stride` is `s²I` for the tile-major `V` of the forward pass, the
 /// image's tiles times that for the place-major `V` of the weight gradient.
 pub(super) fn input_tile_any<T: Float>(
-    s: &WinogradShape,
-    img: &[T],
-    zeros: &[T],
-    starts: &[Option<usize>],
-    v: &mut [T],
-    stride: usize,
-    path: Path,
+    s: &WinogradShape, img: &[T], zeros: &[T], starts: &[Option<usize>], v: &mut [T],
+    stride: usize, path: Path,
 ) {
     match path {
         #[cfg(target_arch = "x86_64")]
@@ -195,12 +185,7 @@ pub(super) fn input_tile_any<T: Float>(
 /// [`input_tile_any`]'s portable loop (also what the AVX2 family compiles for AVX2).
 #[inline(always)]
 pub(in crate::tensor) fn input_tile_portable<T: Float>(
-    s: &WinogradShape,
-    img: &[T],
-    zeros: &[T],
-    starts: &[Option<usize>],
-    v: &mut [T],
-    stride: usize,
+    s: &WinogradShape, img: &[T], zeros: &[T], starts: &[Option<usize>], v: &mut [T], stride: usize,
 ) {
     let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
     // Block row dy of every position: `seg` values each, channels dy·seg.. of each place.
@@ -221,11 +206,7 @@ pub(in crate::tensor) fn input_tile_portable<T: Float>(
 /// `V` `stride` apart) from its `P` input pixels or block rows, `L` channels at a time.
 #[inline(always)]
 pub(super) fn input_tile<T: Float, const P: usize>(
-    px: &[&[T]; P],
-    v: &mut [T],
-    stride: usize,
-    off: usize,
-    len: usize,
+    px: &[&[T]; P], v: &mut [T], stride: usize, off: usize, len: usize,
     transform: fn(&[Lanes<T>; P]) -> [Lanes<T>; P],
 ) {
     for c0 in (0..len).step_by(L) {
@@ -245,12 +226,7 @@ pub(super) fn input_tile<T: Float, const P: usize>(
 /// `Some` (inside the output, and not skipped).
 #[inline(always)]
 pub(super) fn output_tile<T: Float, const P: usize>(
-    m: &[T],
-    len: usize,
-    bias: Option<&[T]>,
-    relu: bool,
-    img: &mut [T],
-    at: &[[Option<usize>; 4]],
+    m: &[T], len: usize, bias: Option<&[T]>, relu: bool, img: &mut [T], at: &[[Option<usize>; 4]],
     transform: fn(&[Lanes<T>; P]) -> [Lanes<T>; 4],
 ) {
     let co = at.len() * len;

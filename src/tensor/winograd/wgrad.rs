@@ -23,11 +23,7 @@ use super::*;
 /// every `dU` value sums its chunks in order, so the result does not depend on the thread
 /// count; within a chunk, images are transformed in parallel and the 16 GEMMs run in parallel.
 pub fn winograd_wgrad<T: Float>(
-    s: WinogradShape,
-    x: &[T],
-    dz: &[T],
-    dw: &mut [T],
-    scratch: &mut WinogradScratch<T>,
+    s: WinogradShape, x: &[T], dz: &[T], dw: &mut [T], scratch: &mut WinogradScratch<T>,
 ) {
     let k = match s.kind {
         WinogradKind::F2x3 => 3,
@@ -192,12 +188,7 @@ pub(super) fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T],
 /// AVX2): the outputs `at` of `img` (zeros where `None`) into `mt`, places `stride` apart.
 #[inline(always)]
 pub(in crate::tensor) fn adjoint_tile_portable<T: Float>(
-    img: &[T],
-    at: [Option<usize>; 4],
-    mt: &mut [T],
-    stride: usize,
-    co: usize,
-    places: usize,
+    img: &[T], at: [Option<usize>; 4], mt: &mut [T], stride: usize, co: usize, places: usize,
 ) {
     let zeros = [T::zero(); L];
     // A·dY, column by column, then ·Aᵀ, row by row: with F(2×2, 3×3)'s `A`,

@@ -31,10 +31,7 @@ pub(crate) unsafe fn collect<T: Float>(nz: &mut Nonzeros<T>, x: &[T], c: usize) 
 /// The CPU runs AVX2 and FMA.
 #[target_feature(enable = "avx2,fma")]
 pub(crate) unsafe fn split<'x, T: Float>(
-    bg: &mut Background<T>,
-    g: &ConvGeom,
-    rows: impl Iterator<Item = &'x [T]>,
-    limit: usize,
+    bg: &mut Background<T>, g: &ConvGeom, rows: impl Iterator<Item = &'x [T]>, limit: usize,
 ) -> bool {
     bg.split_portable(g, rows, limit)
 }
@@ -64,10 +61,7 @@ pub(crate) unsafe fn sparse_run<T: Float>(mut g: SparseConv<'_, T>, cin: usize, 
 /// Output channels `c0 ..+ 8·NV` of every row of [`sparse_run`].
 #[target_feature(enable = "avx2,fma")]
 unsafe fn sparse_columns<T: Float, const NV: usize>(
-    g: &mut SparseConv<'_, T>,
-    cin: usize,
-    cout: usize,
-    c0: usize,
+    g: &mut SparseConv<'_, T>, cin: usize, cout: usize, c0: usize,
 ) {
     let (w, bias) = (cast::<T>(g.w), cast::<T>(g.bias));
     let y: &mut [f32] = bytemuck::cast_slice_mut(&mut *g.y);
@@ -106,12 +100,7 @@ unsafe fn sparse_columns<T: Float, const NV: usize>(
 /// The CPU runs AVX2 and FMA, `T` is `f32` and `Cout` a multiple of 8.
 #[target_feature(enable = "avx2,fma")]
 pub(crate) unsafe fn background_conv<T: Float>(
-    bg: &mut Background<T>,
-    g: &ConvGeom,
-    w: &[T],
-    bias: &[T],
-    relu: bool,
-    y: &mut [T],
+    bg: &mut Background<T>, g: &ConvGeom, w: &[T], bias: &[T], relu: bool, y: &mut [T],
     rows: &[usize],
 ) {
     debug_assert!(std::mem::size_of::<T>() == 4 && g.cout.is_multiple_of(8));

@@ -15,10 +15,7 @@ fn cast<T: Float>(s: &[T]) -> &[f32] {
 /// The CPU must run AVX-512F and `T` must be `f32`.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn split<'x, T: Float>(
-    bg: &mut Background<T>,
-    g: &ConvGeom,
-    rows: impl Iterator<Item = &'x [T]>,
-    limit: usize,
+    bg: &mut Background<T>, g: &ConvGeom, rows: impl Iterator<Item = &'x [T]>, limit: usize,
 ) -> bool {
     debug_assert_eq!(std::mem::size_of::<T>(), 4, "Background: f32 on AVX-512");
     bg.differing(g, rows, limit, |block, tiled| {
@@ -42,12 +39,7 @@ pub unsafe fn split<'x, T: Float>(
 /// # Safety
 /// The CPU must run AVX-512F, `T` must be `f32`, and `Cout` a multiple of 16 up to 128.
 pub unsafe fn conv<T: Float>(
-    bg: &mut Background<T>,
-    g: &ConvGeom,
-    w: &[T],
-    bias: &[T],
-    relu: bool,
-    y: &mut [T],
+    bg: &mut Background<T>, g: &ConvGeom, w: &[T], bias: &[T], relu: bool, y: &mut [T],
     rows: &[usize],
 ) {
     debug_assert_eq!(std::mem::size_of::<T>(), 4, "Background: f32 on AVX-512");
@@ -67,12 +59,7 @@ pub unsafe fn conv<T: Float>(
 
 #[target_feature(enable = "avx512f")]
 unsafe fn conv_nv<T: Float, const NV: usize>(
-    bg: &mut Background<T>,
-    g: &ConvGeom,
-    w: &[T],
-    bias: &[T],
-    relu: bool,
-    y: &mut [T],
+    bg: &mut Background<T>, g: &ConvGeom, w: &[T], bias: &[T], relu: bool, y: &mut [T],
     rows: &[usize],
 ) {
     bg.run(g, w, bias, relu, y, rows, |a, d, w| {

@@ -72,16 +72,8 @@ fn lane_mask(lanes: usize) -> [i32; 8] {
 #[inline]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile<const H: usize, const NV: usize, const FULL: bool>(
-    a: *const f32,
-    p: &[usize],
-    q: Steps<'_>,
-    b: *const f32,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    masks: [__m256i; NV],
-    start: Start,
-    relu: bool,
+    a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
+    crow: &[usize], masks: [__m256i; NV], start: Start, relu: bool,
 ) {
     let mut acc = [[_mm256_setzero_ps(); NV]; H];
     for r in 0..H {
@@ -180,19 +172,8 @@ fn runs(q: &[usize], out: &mut Vec<(usize, usize)>) {
 #[target_feature(enable = "avx2,fma")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_any(
-    h: usize,
-    nv: usize,
-    full: bool,
-    a: *const f32,
-    p: &[usize],
-    q: Steps<'_>,
-    b: *const f32,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    m: [__m256i; 4],
-    start: Start,
-    relu: bool,
+    h: usize, nv: usize, full: bool, a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32,
+    ldb: usize, c: *mut f32, crow: &[usize], m: [__m256i; 4], start: Start, relu: bool,
 ) {
     macro_rules! go {
         ($h:literal) => {
@@ -233,16 +214,8 @@ unsafe fn tile_any(
 #[target_feature(enable = "avx2,fma")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn task(
-    a: &[f32],
-    p: &[usize],
-    q: &[usize],
-    b: &[f32],
-    ldb: usize,
-    n: usize,
-    c: *mut f32,
-    dest: Dest<'_>,
-    init: Start,
-    relu: bool,
+    a: &[f32], p: &[usize], q: &[usize], b: &[f32], ldb: usize, n: usize, c: *mut f32,
+    dest: Dest<'_>, init: Start, relu: bool,
 ) {
     let (nr, steps) = (p.len(), q.len());
     // The whole reduction in one block where it is short and `C` narrow (conv1's forward: 256

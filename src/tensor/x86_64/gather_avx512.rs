@@ -114,16 +114,8 @@ unsafe fn load_b<const FULL: bool>(mask: u16, p: *const f32) -> __m512 {
 #[inline]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
-    a: *const f32,
-    p: &[usize],
-    q: Steps<'_>,
-    b: *const f32,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    masks: [u16; NV],
-    start: Start,
-    end: End,
+    a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
+    crow: &[usize], masks: [u16; NV], start: Start, end: End,
 ) {
     let mut acc = [[_mm512_setzero_ps(); NV]; MR];
     for r in 0..MR {
@@ -241,17 +233,8 @@ pub(crate) use by_height;
 #[inline]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_nv<const MR: usize>(
-    nv: usize,
-    a: *const f32,
-    p: &[usize],
-    q: Steps<'_>,
-    b: *const f32,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    m: [u16; 4],
-    start: Start,
-    end: End,
+    nv: usize, a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
+    crow: &[usize], m: [u16; 4], start: Start, end: End,
 ) {
     by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, end))
 }
@@ -263,18 +246,8 @@ unsafe fn tile_nv<const MR: usize>(
 #[target_feature(enable = "avx512f")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_any(
-    h: usize,
-    nv: usize,
-    a: *const f32,
-    p: &[usize],
-    q: Steps<'_>,
-    b: *const f32,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    m: [u16; 4],
-    start: Start,
-    end: End,
+    h: usize, nv: usize, a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize,
+    c: *mut f32, crow: &[usize], m: [u16; 4], start: Start, end: End,
 ) {
     by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, end))
 }
@@ -320,17 +293,8 @@ impl Dest<'_> {
 #[target_feature(enable = "avx512f")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn task(
-    mr: usize,
-    a: &[f32],
-    p: &[usize],
-    q: &[usize],
-    b: &[f32],
-    ldb: usize,
-    n: usize,
-    c: *mut f32,
-    dest: Dest<'_>,
-    init: Start,
-    relu: bool,
+    mr: usize, a: &[f32], p: &[usize], q: &[usize], b: &[f32], ldb: usize, n: usize, c: *mut f32,
+    dest: Dest<'_>, init: Start, relu: bool,
 ) {
     let nr = p.len();
     let steps = q.len();
@@ -517,18 +481,8 @@ pub fn scatter_gemm(g: crate::tensor::gather::ScatterGemm<'_, f32>) {
 #[target_feature(enable = "avx512f")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn scatter_task(
-    mr: usize,
-    a: &[f32],
-    p: &[usize],
-    q: &[usize],
-    b: &[f32],
-    ldb: usize,
-    n: usize,
-    o: &mut [f32],
-    orows: &[usize],
-    base: usize,
-    ocols: &[usize],
-    contiguous: &dyn Fn(usize) -> bool,
+    mr: usize, a: &[f32], p: &[usize], q: &[usize], b: &[f32], ldb: usize, n: usize, o: &mut [f32],
+    orows: &[usize], base: usize, ocols: &[usize], contiguous: &dyn Fn(usize) -> bool,
 ) {
     let nr = p.len();
     let steps = q.len();
@@ -647,11 +601,7 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
 /// Runs tasks `t0..t1` on their disjoint parts of `c` (which starts at index `base` of the
 /// whole `C`; task `t`'s part starts at `start(t)`), halving the range with `rayon::join`.
 pub(crate) fn split_tasks(
-    c: &mut [f32],
-    base: usize,
-    t0: usize,
-    t1: usize,
-    start: &(dyn Fn(usize) -> usize + Sync),
+    c: &mut [f32], base: usize, t0: usize, t1: usize, start: &(dyn Fn(usize) -> usize + Sync),
     run: &(dyn Fn(usize, &mut [f32], usize) + Sync),
 ) {
     if t1 - t0 == 1 {

@@ -46,16 +46,8 @@ enum Start {
 #[inline]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
-    a: *const u16,
-    p: &[usize],
-    q: &[usize],
-    b: *const u16,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    masks: [u16; NV],
-    start: Start,
-    relu: bool,
+    a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize, c: *mut f32,
+    crow: &[usize], masks: [u16; NV], start: Start, relu: bool,
 ) {
     let mut acc = [[_mm512_setzero_ps(); NV]; MR];
     for r in 0..MR {
@@ -113,17 +105,8 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
 #[inline]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_nv<const MR: usize>(
-    nv: usize,
-    a: *const u16,
-    p: &[usize],
-    q: &[usize],
-    b: *const u16,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    m: [u16; 4],
-    start: Start,
-    relu: bool,
+    nv: usize, a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize, c: *mut f32,
+    crow: &[usize], m: [u16; 4], start: Start, relu: bool,
 ) {
     by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, relu))
 }
@@ -135,18 +118,8 @@ unsafe fn tile_nv<const MR: usize>(
 #[target_feature(enable = "avx512f,avx512bf16")]
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_any(
-    h: usize,
-    nv: usize,
-    a: *const u16,
-    p: &[usize],
-    q: &[usize],
-    b: *const u16,
-    ldb: usize,
-    c: *mut f32,
-    crow: &[usize],
-    m: [u16; 4],
-    start: Start,
-    relu: bool,
+    h: usize, nv: usize, a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize,
+    c: *mut f32, crow: &[usize], m: [u16; 4], start: Start, relu: bool,
 ) {
     by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, relu))
 }

@@ -25,12 +25,7 @@ fn cast_mut<T: Float>(s: &mut [T]) -> &mut [f32] {
 /// the tile's last place).
 #[target_feature(enable = "avx2,fma")]
 pub(crate) unsafe fn input_tile<T: Float>(
-    s: &WinogradShape,
-    img: &[T],
-    zeros: &[T],
-    starts: &[Option<usize>],
-    v: &mut [T],
-    stride: usize,
+    s: &WinogradShape, img: &[T], zeros: &[T], starts: &[Option<usize>], v: &mut [T], stride: usize,
 ) {
     let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
     if !seg.is_multiple_of(8) {
@@ -51,12 +46,7 @@ pub(crate) unsafe fn input_tile<T: Float>(
 /// destination `len` inside the image.
 #[target_feature(enable = "avx2,fma")]
 pub(crate) unsafe fn output_tile<T: Float>(
-    mt: &[T],
-    len: usize,
-    bias: Option<&[T]>,
-    relu: bool,
-    img: &mut [T],
-    at: &[[Option<usize>; 4]],
+    mt: &[T], len: usize, bias: Option<&[T]>, relu: bool, img: &mut [T], at: &[[Option<usize>; 4]],
     places: usize,
 ) {
     if !len.is_multiple_of(8) {
@@ -77,12 +67,7 @@ pub(crate) unsafe fn output_tile<T: Float>(
 /// and `mt` reaches the tile's last place.
 #[target_feature(enable = "avx2,fma")]
 pub(crate) unsafe fn adjoint_tile<T: Float>(
-    img: &[T],
-    at: [Option<usize>; 4],
-    mt: &mut [T],
-    stride: usize,
-    co: usize,
-    places: usize,
+    img: &[T], at: [Option<usize>; 4], mt: &mut [T], stride: usize, co: usize, places: usize,
 ) {
     if !co.is_multiple_of(8) {
         return adjoint_tile_portable(img, at, mt, stride, co, places);
@@ -117,12 +102,7 @@ unsafe fn row(img: &[f32], zeros: &[f32], at: Option<usize>) -> *const f32 {
 /// of 8.
 #[target_feature(enable = "avx2,fma")]
 unsafe fn input_tile_v(
-    img: &[f32],
-    zeros: &[f32],
-    starts: &[Option<usize>],
-    v: &mut [f32],
-    stride: usize,
-    blk: usize,
+    img: &[f32], zeros: &[f32], starts: &[Option<usize>], v: &mut [f32], stride: usize, blk: usize,
     seg: usize,
 ) {
     debug_assert!(seg.is_multiple_of(8) && zeros.len() >= seg && stride >= blk * seg);
@@ -162,12 +142,7 @@ unsafe fn input_tile_v(
 /// As [`input_tile_v`], with `starts` of `9·blk` and `v` of `8·stride + blk·seg` values.
 #[target_feature(enable = "avx2,fma")]
 unsafe fn input_tile9_v(
-    img: &[f32],
-    zeros: &[f32],
-    starts: &[Option<usize>],
-    v: &mut [f32],
-    stride: usize,
-    blk: usize,
+    img: &[f32], zeros: &[f32], starts: &[Option<usize>], v: &mut [f32], stride: usize, blk: usize,
     seg: usize,
 ) {
     debug_assert!(seg.is_multiple_of(8) && zeros.len() >= seg && stride >= blk * seg);
@@ -207,11 +182,7 @@ unsafe fn input_tile9_v(
 /// `15·stride + co` values, and `co` be a multiple of 8.
 #[target_feature(enable = "avx2,fma")]
 unsafe fn adjoint_tile_v(
-    img: &[f32],
-    at: [Option<usize>; 4],
-    m: &mut [f32],
-    stride: usize,
-    co: usize,
+    img: &[f32], at: [Option<usize>; 4], m: &mut [f32], stride: usize, co: usize,
 ) {
     debug_assert!(co.is_multiple_of(8) && m.len() >= 15 * stride + co);
     debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
@@ -249,11 +220,7 @@ unsafe fn adjoint_tile_v(
 /// As [`adjoint_tile_v`], with `m` holding `8·stride + co` values.
 #[target_feature(enable = "avx2,fma")]
 unsafe fn adjoint_tile9_v(
-    img: &[f32],
-    at: [Option<usize>; 4],
-    m: &mut [f32],
-    stride: usize,
-    co: usize,
+    img: &[f32], at: [Option<usize>; 4], m: &mut [f32], stride: usize, co: usize,
 ) {
     debug_assert!(co.is_multiple_of(8) && m.len() >= 8 * stride + co);
     debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
@@ -287,13 +254,8 @@ unsafe fn adjoint_tile9_v(
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 unsafe fn finish(
-    mut y: [__m256; 4],
-    bias: Option<&[f32]>,
-    relu: bool,
-    ip: *mut f32,
-    at: [Option<usize>; 4],
-    c0: usize,
-    c: usize,
+    mut y: [__m256; 4], bias: Option<&[f32]>, relu: bool, ip: *mut f32, at: [Option<usize>; 4],
+    c0: usize, c: usize,
 ) {
     if let Some(b) = bias {
         let bv = _mm256_loadu_ps(b.as_ptr().add(c0));
@@ -321,11 +283,7 @@ unsafe fn finish(
 /// multiple of 8.
 #[target_feature(enable = "avx2,fma")]
 unsafe fn output_tile_v(
-    m: &[f32],
-    len: usize,
-    bias: Option<&[f32]>,
-    relu: bool,
-    img: &mut [f32],
+    m: &[f32], len: usize, bias: Option<&[f32]>, relu: bool, img: &mut [f32],
     at: &[[Option<usize>; 4]],
 ) {
     let co = at.len() * len;
@@ -359,11 +317,7 @@ unsafe fn output_tile_v(
 /// As [`output_tile_v`], with `m` holding `9·co` values.
 #[target_feature(enable = "avx2,fma")]
 unsafe fn output_tile9_v(
-    m: &[f32],
-    len: usize,
-    bias: Option<&[f32]>,
-    relu: bool,
-    img: &mut [f32],
+    m: &[f32], len: usize, bias: Option<&[f32]>, relu: bool, img: &mut [f32],
     at: &[[Option<usize>; 4]],
 ) {
     let co = at.len() * len;

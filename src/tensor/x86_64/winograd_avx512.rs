@@ -26,12 +26,7 @@ unsafe fn row(img: &[f32], zeros: &[f32], at: Option<usize>) -> *const f32 {
 /// of 16.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn input_tile(
-    img: &[f32],
-    zeros: &[f32],
-    starts: &[Option<usize>],
-    v: &mut [f32],
-    stride: usize,
-    blk: usize,
+    img: &[f32], zeros: &[f32], starts: &[Option<usize>], v: &mut [f32], stride: usize, blk: usize,
     seg: usize,
 ) {
     debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && stride >= blk * seg);
@@ -71,12 +66,7 @@ pub unsafe fn input_tile(
 /// As [`input_tile`], with `starts` of `9·blk` and `v` of `8·stride + blk·seg` values.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn input_tile9(
-    img: &[f32],
-    zeros: &[f32],
-    starts: &[Option<usize>],
-    v: &mut [f32],
-    stride: usize,
-    blk: usize,
+    img: &[f32], zeros: &[f32], starts: &[Option<usize>], v: &mut [f32], stride: usize, blk: usize,
     seg: usize,
 ) {
     debug_assert!(seg.is_multiple_of(16) && zeros.len() >= seg && stride >= blk * seg);
@@ -117,11 +107,7 @@ pub unsafe fn input_tile9(
 /// `15·stride + co` values, and `co` be a multiple of 16.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn adjoint_tile(
-    img: &[f32],
-    at: [Option<usize>; 4],
-    m: &mut [f32],
-    stride: usize,
-    co: usize,
+    img: &[f32], at: [Option<usize>; 4], m: &mut [f32], stride: usize, co: usize,
 ) {
     debug_assert!(co.is_multiple_of(16) && m.len() >= 15 * stride + co);
     debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
@@ -160,11 +146,7 @@ pub unsafe fn adjoint_tile(
 /// As [`adjoint_tile`], with `m` holding `8·stride + co` values.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn adjoint_tile9(
-    img: &[f32],
-    at: [Option<usize>; 4],
-    m: &mut [f32],
-    stride: usize,
-    co: usize,
+    img: &[f32], at: [Option<usize>; 4], m: &mut [f32], stride: usize, co: usize,
 ) {
     debug_assert!(co.is_multiple_of(16) && m.len() >= 8 * stride + co);
     debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
@@ -198,13 +180,8 @@ pub unsafe fn adjoint_tile9(
 #[target_feature(enable = "avx512f")]
 #[inline]
 unsafe fn finish(
-    mut y: [__m512; 4],
-    bias: Option<&[f32]>,
-    relu: bool,
-    ip: *mut f32,
-    at: [Option<usize>; 4],
-    c0: usize,
-    c: usize,
+    mut y: [__m512; 4], bias: Option<&[f32]>, relu: bool, ip: *mut f32, at: [Option<usize>; 4],
+    c0: usize, c: usize,
 ) {
     if let Some(b) = bias {
         let bv = _mm512_loadu_ps(b.as_ptr().add(c0));
@@ -233,11 +210,7 @@ unsafe fn finish(
 /// multiple of 16.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn output_tile(
-    m: &[f32],
-    len: usize,
-    bias: Option<&[f32]>,
-    relu: bool,
-    img: &mut [f32],
+    m: &[f32], len: usize, bias: Option<&[f32]>, relu: bool, img: &mut [f32],
     at: &[[Option<usize>; 4]],
 ) {
     let co = at.len() * len;
@@ -272,11 +245,7 @@ pub unsafe fn output_tile(
 /// As [`output_tile`], with `m` holding `9·co` values.
 #[target_feature(enable = "avx512f")]
 pub unsafe fn output_tile9(
-    m: &[f32],
-    len: usize,
-    bias: Option<&[f32]>,
-    relu: bool,
-    img: &mut [f32],
+    m: &[f32], len: usize, bias: Option<&[f32]>, relu: bool, img: &mut [f32],
     at: &[[Option<usize>; 4]],
 ) {
     let co = at.len() * len;
