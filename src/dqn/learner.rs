@@ -221,13 +221,7 @@ impl Learner {
         // 3. The loss and its gradient ∂L/∂Q(s, a), weighted under prioritized sampling.
         let loss = self.regression_loss(batch);
         // 4. Backward from dQ (non-zero at the taken actions only), then one Adam step.
-        scatter_rows(&self.dq_taken, batch, na * k, k, &mut self.dq);
-        let grad_norm = self.backward_and_step(batch);
-        StepStats {
-            loss,
-            mean_max_q: max_q_sum / b as f32,
-            grad_norm,
-        }
+        self.backward_and_step(batch, na * k, k, loss, max_q_sum)
     }
 
     /// The loss of `q_taken` against `y` (MSE or Huber; with a quantile head the quantile Huber
@@ -400,19 +394,18 @@ impl Learner {
             loss = weight_terms(&batch.weights, &self.per_sample, n, &mut self.dq_taken);
         }
         // 4. `dZ`: each row's gradient at its sample's action only.
-        scatter_rows(&self.dq_taken, batch, na, 1, &mut self.dq);
-        let grad_norm = self.backward_and_step(batch);
-        StepStats {
-            loss,
-            mean_max_q: max_q_sum / b as f32,
-            grad_norm,
-        }
+        self.backward_and_step(batch, na, 1, loss, max_q_sum)
     }
 
-    /// Back-propagates `self.dq` through the online network's last forward pass (on
-    /// `batch.states`), clips the gradient if configured, takes one Adam step; returns the
-    /// gradient's global norm before clipping.
-    fn backward_and_step(&mut self, batch: &Batch) -> f32 {
+    /// `dQ` (`self.dq`): `dq_taken` at each sample's taken action (rows of `width` values, `k`
+    /// per action), zeros elsewhere; back-propagated through the online network's last forward
+    /// pass (on `batch.states`), the gradient clipped if configured, one Adam step. Returns the
+    /// step's statistics: `loss`, the mean of `max_q_sum` and the gradient's global norm before
+    /// clipping.
+    fn backward_and_step(
+        &mut self, batch: &Batch, width: usize, k: usize, loss: f32, max_q_sum: f32,
+    ) -> StepStats {
+        scatter_rows(&self.dq_taken, batch, width, k, &mut self.dq);
         self.online.zero_grad();
         self.online.backward(&batch.states, &self.dq, false);
         let grad_norm = match self.clip_norm {
@@ -420,7 +413,11 @@ impl Learner {
             None => crate::optim::global_grad_norm(self.online.params()),
         };
         self.adam.step(self.online.params_mut());
-        grad_norm
+        StepStats {
+            loss,
+            mean_max_q: max_q_sum / batch.len() as f32,
+            grad_norm,
+        }
     }
 }
 

@@ -67,19 +67,8 @@ impl<T: Float> DenseOps<T> {
                 // Rows i·In, steps 0..In, starting from the bias.
                 fill_iota(&mut self.x_rows, n, ni);
                 fill_iota(&mut self.iota_in, ni, 1);
-                T::gather_gemm(GatherGemm {
-                    a: x.data(),
-                    p: &self.x_rows,
-                    q: &self.iota_in,
-                    b: w,
-                    ldb: no,
-                    n: no,
-                    c: y,
-                    ldc: no,
-                    c_rows: None,
-                    init: Init::Bias(b),
-                    relu: false,
-                });
+                let (p, q) = (&self.x_rows, &self.iota_in);
+                T::gather_gemm(GatherGemm::new(x.data(), p, q, w, no, y, Init::Bias(b)));
             }
             Kernel::GatherBf16 => {
                 // Pairs of inputs x[n, 2u..2u + 2] against pairs of weight rows.
@@ -87,19 +76,9 @@ impl<T: Float> DenseOps<T> {
                 fill_iota(&mut self.bf_q, ni / 2, 2);
                 to_bf16_vec(f32s(x.data()), &mut self.bf.x);
                 pack_pairs(f32s(w), ni, no, no, &mut self.bf.w_pairs);
-                gather_gemm_bf16(GatherGemmBf16 {
-                    a: &self.bf.x,
-                    p: &self.x_rows,
-                    q: &self.bf_q,
-                    b: &self.bf.w_pairs,
-                    ldb: no,
-                    n: no,
-                    c: f32s_mut(y),
-                    ldc: no,
-                    c_rows: None,
-                    init: Init::Bias(f32s(b)),
-                    relu: false,
-                });
+                let (p, q, b) = (&self.x_rows, &self.bf_q, Init::Bias(f32s(b)));
+                let (a, w, y) = (&self.bf.x, &self.bf.w_pairs, f32s_mut(y));
+                gather_gemm_bf16(GatherGemmBf16::new(a, p, q, w, no, y, b));
             }
             k => unreachable!("{k:?} computes no dense product"),
         }
@@ -158,19 +137,16 @@ impl<T: Float> DenseOps<T> {
                 // dW[i, j] += Σ_n x[n, i]·dY[n, j]: rows i (offsets 0..In), steps n (n·In).
                 fill_iota(&mut self.x_rows, n, ni);
                 fill_iota(&mut self.iota_in, ni, 1);
-                T::gather_gemm(GatherGemm {
-                    a: x.data(),
-                    p: &self.iota_in,
-                    q: &self.x_rows,
-                    b: dy,
-                    ldb: no,
-                    n: no,
-                    c: dw,
-                    ldc: no,
-                    c_rows: None,
-                    init: Init::Accumulate,
-                    relu: false,
-                });
+                let (p, q) = (&self.iota_in, &self.x_rows);
+                T::gather_gemm(GatherGemm::new(
+                    x.data(),
+                    p,
+                    q,
+                    dy,
+                    no,
+                    dw,
+                    Init::Accumulate,
+                ));
             }
             Kernel::GatherBf16 => {
                 // Over pairs of samples, both packed in pairs of rows (an odd batch padded with
@@ -180,19 +156,9 @@ impl<T: Float> DenseOps<T> {
                 pack_pairs(f32s(dy), n, no, no, &mut self.bf.dy_pairs);
                 fill_iota(&mut self.bf_p, ni, 2);
                 fill_iota(&mut self.bf_q, pairs, 2 * ni);
-                gather_gemm_bf16(GatherGemmBf16 {
-                    a: &self.bf.x_pairs,
-                    p: &self.bf_p,
-                    q: &self.bf_q,
-                    b: &self.bf.dy_pairs,
-                    ldb: no,
-                    n: no,
-                    c: f32s_mut(dw),
-                    ldc: no,
-                    c_rows: None,
-                    init: Init::Accumulate,
-                    relu: false,
-                });
+                let (a, b, dw) = (&self.bf.x_pairs, &self.bf.dy_pairs, f32s_mut(dw));
+                let (p, q, sum) = (&self.bf_p, &self.bf_q, Init::Accumulate);
+                gather_gemm_bf16(GatherGemmBf16::new(a, p, q, b, no, dw, sum));
             }
             k => unreachable!("{k:?} computes no dense product"),
         }
@@ -219,38 +185,17 @@ impl<T: Float> DenseOps<T> {
             Kernel::Gather => {
                 // dXᵀ[i, n] = Σ_j W[i, j]·dYᵀ[j, n].
                 fill_iota(&mut self.iota_out, no, 1);
-                T::gather_gemm(GatherGemm {
-                    a: w,
-                    p: &self.x_rows,
-                    q: &self.iota_out,
-                    b: &self.dyt,
-                    ldb: n,
-                    n,
-                    c: &mut self.dxt,
-                    ldc: n,
-                    c_rows: None,
-                    init: Init::Zero,
-                    relu: false,
-                });
+                let (p, q, dxt) = (&self.x_rows, &self.iota_out, &mut self.dxt);
+                T::gather_gemm(GatherGemm::new(w, p, q, &self.dyt, n, dxt, Init::Zero));
             }
             Kernel::GatherBf16 => {
                 // dXᵀ[i, n] = Σ_u W[i, 2u..2u + 2]·dYᵀ2[u, n], over pairs of outputs.
                 to_bf16_vec(f32s(w), &mut self.bf.w);
                 pack_pairs(f32s(&self.dyt), no, n, n, &mut self.bf.dyt_pairs);
                 fill_iota(&mut self.bf_q, no / 2, 2);
-                gather_gemm_bf16(GatherGemmBf16 {
-                    a: &self.bf.w,
-                    p: &self.x_rows,
-                    q: &self.bf_q,
-                    b: &self.bf.dyt_pairs,
-                    ldb: n,
-                    n,
-                    c: f32s_mut(&mut self.dxt),
-                    ldc: n,
-                    c_rows: None,
-                    init: Init::Zero,
-                    relu: false,
-                });
+                let (a, b, dxt) = (&self.bf.w, &self.bf.dyt_pairs, f32s_mut(&mut self.dxt));
+                let (p, q) = (&self.x_rows, &self.bf_q);
+                gather_gemm_bf16(GatherGemmBf16::new(a, p, q, b, n, dxt, Init::Zero));
             }
             k => unreachable!("{k:?} computes no dense product"),
         }

@@ -31,29 +31,57 @@ pub enum Init<'a, T> {
     Bias(&'a [T]),
 }
 
-/// The operands of one gather GEMM (see the module documentation).
-pub struct GatherGemm<'a, T> {
+/// The operands of one gather GEMM (see the module documentation): `A` and `B` of `T`, `C` of
+/// `O`. In f32 or f64 all three are of one type; in bf16 ([`super::GatherGemmBf16`]) `A` and `B`
+/// hold bf16 bits in pairs of reduction steps and `C` is f32.
+pub struct GatherGemm<'a, T, O = T> {
     /// The gathered operand.
     pub a: &'a [T],
     /// One offset into `a` per row of `C`.
     pub p: &'a [usize],
-    /// One offset into `a` per reduction step.
+    /// One offset into `a` per reduction step (bf16: per pair of steps, the pair being
+    /// `a[p[r] + q[u]]` and the value after it).
     pub q: &'a [usize],
-    /// The right operand: row `t` is `b[t·ldb .. t·ldb + n]`.
+    /// The right operand: row `t` is `b[t·ldb .. t·ldb + n]` (bf16: pair `u` of column `j` is
+    /// `b[2·(u·ldb + j)..][..2]`).
     pub b: &'a [T],
     pub ldb: usize,
     /// Columns of `C`.
     pub n: usize,
     /// The result: row `r` is `c[r·ldc .. r·ldc + n]`, or `c[c_rows[r] ..][..n]` if given.
-    pub c: &'a mut [T],
+    pub c: &'a mut [O],
     pub ldc: usize,
     /// Where each row of `C` starts in `c`, strictly increasing by at least `n` (e.g. the
     /// interior pixels of an output with a zero border): `None` means `r·ldc`. Places of `c`
     /// between rows are not touched.
     pub c_rows: Option<&'a [usize]>,
-    pub init: Init<'a, T>,
+    pub init: Init<'a, O>,
     /// Store `max(C, 0)` instead of `C` (a fused ReLU).
     pub relu: bool,
+}
+
+impl<'a, T, O> GatherGemm<'a, T, O> {
+    /// `C = init + A[p, q]·B` in the common layout: `B` and `C` packed `n` wide (`ldb = ldc =
+    /// n`), the rows of `C` one after another, no ReLU. Set `c_rows` or `relu` on the result
+    /// for the others.
+    pub fn new(
+        a: &'a [T], p: &'a [usize], q: &'a [usize], b: &'a [T], n: usize, c: &'a mut [O],
+        init: Init<'a, O>,
+    ) -> Self {
+        GatherGemm {
+            a,
+            p,
+            q,
+            b,
+            ldb: n,
+            n,
+            c,
+            ldc: n,
+            c_rows: None,
+            init,
+            relu: false,
+        }
+    }
 }
 
 /// Whether `start + plus < limit`, with `start` `None` when computing it overflowed: no sum in

@@ -26,32 +26,11 @@
 
 use super::bf16::{from_bf16, to_bf16};
 use super::cpu::{avx512_twin, took, Family};
-use super::gather::{check_c, largest, row_start, within, Init};
+use super::gather::{check_c, largest, row_start, within, GatherGemm, Init};
 
-/// The operands of one bf16 gather GEMM (see the module documentation).
-pub struct GatherGemmBf16<'a> {
-    /// The gathered operand, bf16 bits.
-    pub a: &'a [u16],
-    /// One offset into `a` per row of `C`.
-    pub p: &'a [usize],
-    /// One offset into `a` per pair of reduction steps: the pair is `a[p[r] + q[u]]` and the
-    /// value after it.
-    pub q: &'a [usize],
-    /// The right operand in pairs: pair `u` of column `j` is `b[2·(u·ldb + j)..][..2]`.
-    pub b: &'a [u16],
-    /// Pairs per row of `b` (at least `n`).
-    pub ldb: usize,
-    /// Columns of `C`.
-    pub n: usize,
-    /// The result: row `r` is `c[r·ldc ..][..n]`, or `c[c_rows[r] ..][..n]` if given.
-    pub c: &'a mut [f32],
-    pub ldc: usize,
-    /// Where each row of `C` starts in `c`, strictly increasing by at least `n`.
-    pub c_rows: Option<&'a [usize]>,
-    pub init: Init<'a, f32>,
-    /// Store `max(C, 0)` instead of `C` (a fused ReLU).
-    pub relu: bool,
-}
+/// The operands of one bf16 gather GEMM (see the module documentation): [`GatherGemm`] with
+/// `A` and `B` in bf16 bits, in pairs of reduction steps, and `C` in f32.
+pub type GatherGemmBf16<'a> = GatherGemm<'a, u16, f32>;
 
 impl GatherGemmBf16<'_> {
     /// Panics unless every index the product reaches is inside its slice.

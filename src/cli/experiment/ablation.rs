@@ -208,18 +208,8 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         args.out.display()
     );
     let exe = exe_path()?;
-    let evals = Evals {
-        protocol: args.eval_episodes,
-        own_game: None,
-    };
-    let finished = run_all(
-        &exe,
-        &jobs,
-        Some(workers),
-        Budget::Frames(args.frames),
-        evals,
-        args.keep.as_deref(),
-    )?;
+    let keep = args.keep.as_deref();
+    let finished = run_for_frames(&exe, &jobs, workers, args.frames, args.eval_episodes, keep)?;
     let scores: Vec<Scores> = finished.iter().map(|f| f.record.protocol).collect();
     let summaries = finished
         .iter()

@@ -109,6 +109,25 @@ pub(super) fn run_all(
     Ok(finished)
 }
 
+/// [`run_all`] for `frames` per run, `workers` at a time, each final network evaluated by the
+/// protocol's `episodes` only (the `strong` and `ablation` experiments).
+pub(super) fn run_for_frames(
+    exe: &Path, jobs: &[Job<'_>], workers: usize, frames: u64, episodes: u32, keep: Option<&Path>,
+) -> anyhow::Result<Vec<Finished>> {
+    let evals = Evals {
+        protocol: episodes,
+        own_game: None,
+    };
+    run_all(
+        exe,
+        jobs,
+        Some(workers),
+        Budget::Frames(frames),
+        evals,
+        keep,
+    )
+}
+
 /// One job of [`run_all`]: its `--keep` record if that answers the same question, else trained,
 /// evaluated and (with `keep`) recorded.
 pub(super) fn finish_one(

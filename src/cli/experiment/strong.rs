@@ -102,18 +102,8 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         .jobs
         .unwrap_or_else(|| worker_count(None) / args.threads)
         .max(1);
-    let evals = Evals {
-        protocol: args.eval_episodes,
-        own_game: None,
-    };
-    let finished = run_all(
-        &exe,
-        &jobs,
-        Some(workers),
-        Budget::Frames(args.frames),
-        evals,
-        args.keep.as_deref(),
-    )?;
+    let keep = args.keep.as_deref();
+    let finished = run_for_frames(&exe, &jobs, workers, args.frames, args.eval_episodes, keep)?;
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
     for (job, run) in jobs.iter().zip(&finished) {
         let (r, s) = (summarize(run)?, run.record.protocol);

@@ -154,18 +154,21 @@ impl<T: Float> ConvOps<T> {
     ) {
         let g = s.geom;
         self.read_input(&g, x);
+        let (a, f) = (input(&g, x, &self.fast.xpad), &self.fast);
+        let c_rows = bordered_rows(s, x.batch(), &mut self.out_rows);
+        let z = GatherGemm::new(
+            a,
+            &f.pixels,
+            &f.patch,
+            w,
+            g.cout,
+            y.data_mut(),
+            Init::Bias(b),
+        );
         T::gather_gemm(GatherGemm {
-            a: input(&g, x, &self.fast.xpad),
-            p: &self.fast.pixels,
-            q: &self.fast.patch,
-            b: w,
-            ldb: g.cout,
-            n: g.cout,
-            c: y.data_mut(),
-            ldc: g.cout,
-            c_rows: bordered_rows(s, x.batch(), &mut self.out_rows),
-            init: Init::Bias(b),
+            c_rows,
             relu: s.relu,
+            ..z
         });
     }
 
@@ -185,18 +188,13 @@ impl<T: Float> ConvOps<T> {
         to_bf16_vec(f32s(input(&g, x, &f.xpad)), &mut f.bf_x);
         f.bf_x_of = Some((x.data().as_ptr() as usize, x.len()));
         pack_pairs(f32s(w), g.patch_len(), g.cout, g.cout, &mut f.bf_w);
+        let (y, b) = (f32s_mut(y.data_mut()), Init::Bias(f32s(b)));
+        let z = GatherGemmBf16::new(&f.bf_x, &f.pixels, &f.bf_q, &f.bf_w, g.cout, y, b);
+        let c_rows = bordered_rows(s, x.batch(), &mut self.out_rows);
         gather_gemm_bf16(GatherGemmBf16 {
-            a: &f.bf_x,
-            p: &f.pixels,
-            q: &f.bf_q,
-            b: &f.bf_w,
-            ldb: g.cout,
-            n: g.cout,
-            c: f32s_mut(y.data_mut()),
-            ldc: g.cout,
-            c_rows: bordered_rows(s, x.batch(), &mut self.out_rows),
-            init: Init::Bias(f32s(b)),
+            c_rows,
             relu: s.relu,
+            ..z
         });
     }
 
@@ -226,19 +224,9 @@ impl<T: Float> ConvOps<T> {
     pub(super) fn wgrad_gather(&mut self, s: &ConvSpec, x: &Tensor<T>, dz: &[T], dw: &mut [T]) {
         self.check_forward(s, x.batch());
         let g = s.geom;
-        T::gather_gemm(GatherGemm {
-            a: input(&g, x, &self.fast.xpad),
-            p: &self.fast.patch,
-            q: &self.fast.pixels,
-            b: dz,
-            ldb: g.cout,
-            n: g.cout,
-            c: dw,
-            ldc: g.cout,
-            c_rows: None,
-            init: Init::Accumulate,
-            relu: false,
-        });
+        let (a, f) = (input(&g, x, &self.fast.xpad), &self.fast);
+        let sum = Init::Accumulate;
+        T::gather_gemm(GatherGemm::new(a, &f.patch, &f.pixels, dz, g.cout, dw, sum));
     }
 
     /// `dW` in bf16: `dW[k, co] += Σ_m x[pixels[m] + patch[k]]·dZ[m, co]` over pairs of output
@@ -269,19 +257,10 @@ impl<T: Float> ConvOps<T> {
             pack_shifted(f32s(a), d, &mut f.bf_xs);
         }
         pack_pairs(f32s(dz), s.rows(n), g.cout, g.cout, &mut f.bf_dz);
-        gather_gemm_bf16(GatherGemmBf16 {
-            a: &f.bf_xs,
-            p: &f.bf_p,
-            q: &f.bf_q,
-            b: &f.bf_dz,
-            ldb: g.cout,
-            n: g.cout,
-            c: f32s_mut(dw),
-            ldc: g.cout,
-            c_rows: None,
-            init: Init::Accumulate,
-            relu: false,
-        });
+        let (dw, sum) = (f32s_mut(dw), Init::Accumulate);
+        gather_gemm_bf16(GatherGemmBf16::new(
+            &f.bf_xs, &f.bf_p, &f.bf_q, &f.bf_dz, g.cout, dw, sum,
+        ));
     }
 
     /// `dW` by Winograd: the products' adjoints over the (padded) input's tiles.
@@ -446,33 +425,27 @@ impl<T: Float> ConvOps<T> {
                         self.name
                     );
                     pack_pairs(f32s(&f.ph_w), f.ph_q.len(), ci, ci, &mut f.bf_taps);
+                    let (dx, zero) = (f32s_mut(dx.data_mut()), Init::Zero);
+                    let z = GatherGemmBf16::new(
+                        &f.bf_dzpad,
+                        &f.ph_p,
+                        &f.bf_q,
+                        &f.bf_taps,
+                        ci,
+                        dx,
+                        zero,
+                    );
                     gather_gemm_bf16(GatherGemmBf16 {
-                        a: &f.bf_dzpad,
-                        p: &f.ph_p,
-                        q: &f.bf_q,
-                        b: &f.bf_taps,
-                        ldb: ci,
-                        n: ci,
-                        c: f32s_mut(dx.data_mut()),
-                        ldc: ci,
                         c_rows: Some(&f.ph_rows),
-                        init: Init::Zero,
-                        relu: false,
+                        ..z
                     });
                     continue;
                 }
+                let (f, dx, zero) = (&self.fast, dx.data_mut(), Init::Zero);
+                let z = GatherGemm::new(&f.dzpad, &f.ph_p, &f.ph_q, &f.ph_w, ci, dx, zero);
                 T::gather_gemm(GatherGemm {
-                    a: &self.fast.dzpad,
-                    p: &self.fast.ph_p,
-                    q: &self.fast.ph_q,
-                    b: &self.fast.ph_w,
-                    ldb: ci,
-                    n: ci,
-                    c: dx.data_mut(),
-                    ldc: ci,
-                    c_rows: Some(&self.fast.ph_rows),
-                    init: Init::Zero,
-                    relu: false,
+                    c_rows: Some(&f.ph_rows),
+                    ..z
                 });
             }
         }

@@ -108,19 +108,11 @@ pub fn winograd_wgrad<T: Float>(
             .par_chunks_mut(ci * co)
             .enumerate()
             .for_each(|(xi, du)| {
-                T::gather_gemm(GatherGemm {
-                    a: &v[xi * img_tiles * ci..],
-                    p,
-                    q,
-                    b: &m[xi * tiles * co..][..tiles * co],
-                    ldb: co,
-                    n: co,
-                    c: du,
-                    ldc: co,
-                    c_rows: None,
-                    init: Init::Accumulate,
-                    relu: false,
-                })
+                let (a, b) = (
+                    &v[xi * img_tiles * ci..],
+                    &m[xi * tiles * co..][..tiles * co],
+                );
+                T::gather_gemm(GatherGemm::new(a, p, q, b, co, du, Init::Accumulate))
             });
     }
     match s.kind {
