@@ -38,15 +38,38 @@ pub struct Features {
     pub bf16_switched_off: bool,
 }
 
+/// What this CPU has, whatever the environment says: AVX-512F and FMA, AVX2 and FMA,
+/// AVX512-BF16 (nothing off x86-64).
+fn detect() -> Features {
+    #[cfg(target_arch = "x86_64")]
+    let (avx512, avx2, avx512_bf16) = {
+        let fma = is_x86_feature_detected!("fma");
+        (
+            is_x86_feature_detected!("avx512f") && fma,
+            is_x86_feature_detected!("avx2") && fma,
+            is_x86_feature_detected!("avx512bf16"),
+        )
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let (avx512, avx2, avx512_bf16) = (false, false, false);
+    Features {
+        avx512,
+        avx2,
+        avx512_bf16,
+        bf16_switched_off: false,
+    }
+}
+
 /// The features of this CPU (detected on the first call, then cached).
 pub fn features() -> Features {
     static FEATURES: OnceLock<Features> = OnceLock::new();
     *FEATURES.get_or_init(|| {
         let simd = std::env::var_os("INVADERS_NO_SIMD").is_none();
         let no_avx512 = std::env::var_os("INVADERS_NO_AVX512").is_some();
-        let avx512 = detect_avx512() && simd && !no_avx512;
-        let avx2 = !avx512 && detect_avx2() && simd;
-        let bf16 = avx512 && detect_avx512_bf16();
+        let has = detect();
+        let avx512 = has.avx512 && simd && !no_avx512;
+        let avx2 = !avx512 && has.avx2 && simd;
+        let bf16 = avx512 && has.avx512_bf16;
         let off = std::env::var_os("INVADERS_NO_BF16").is_some();
         Features {
             avx512,
@@ -57,30 +80,10 @@ pub fn features() -> Features {
     })
 }
 
-#[cfg(target_arch = "x86_64")]
-fn detect_avx2() -> bool {
-    is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma")
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-fn detect_avx2() -> bool {
-    false
-}
-
 /// Whether the AVX2 family runs (see [`Features::avx2`]).
 #[inline]
 pub fn avx2() -> bool {
     features().avx2
-}
-
-#[cfg(target_arch = "x86_64")]
-fn detect_avx512_bf16() -> bool {
-    is_x86_feature_detected!("avx512bf16")
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-fn detect_avx512_bf16() -> bool {
-    false
 }
 
 /// Whether the AVX512-BF16 kernels may run (AVX-512 as [`avx512`], AVX512-BF16, and
@@ -88,16 +91,6 @@ fn detect_avx512_bf16() -> bool {
 #[inline]
 pub fn avx512_bf16() -> bool {
     features().avx512_bf16
-}
-
-#[cfg(target_arch = "x86_64")]
-fn detect_avx512() -> bool {
-    is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("fma")
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-fn detect_avx512() -> bool {
-    false
 }
 
 /// Whether the AVX-512 kernels run (see the module documentation).

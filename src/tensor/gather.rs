@@ -171,31 +171,45 @@ impl<T: Float> GatherGemm<'_, T> {
 
     /// Panics unless every index the product reaches is inside its slice.
     pub fn check(&self) {
-        let (rows, steps) = (self.p.len(), self.q.len());
+        self.check_steps("gather_gemm", 1);
+    }
+}
+
+impl<T, O> GatherGemm<'_, T, O> {
+    /// Panics (naming `what`) unless every index the product reaches is inside its slice, each
+    /// reduction step reading `w` consecutive values of `A` and of `B` (1, or 2 for bf16 pairs).
+    pub(crate) fn check_steps(&self, what: &str, w: usize) {
+        let rows = self.p.len();
         if rows == 0 || self.n == 0 {
             return;
         }
-        check_c(
-            "gather_gemm",
-            rows,
-            self.n,
-            self.ldc,
-            self.c_rows,
-            self.c.len(),
-            &self.init,
-        );
-        if steps > 0 {
-            assert!(self.n <= self.ldb, "gather_gemm: n > ldb");
-            assert!(
-                within((steps - 1).checked_mul(self.ldb), self.n, self.b.len() + 1),
-                "gather_gemm: B too short"
-            );
-            assert!(
-                within(Some(largest(self.p)), largest(self.q), self.a.len()),
-                "gather_gemm: A index out of range"
-            );
-        }
+        let c_len = self.c.len();
+        check_c(what, rows, self.n, self.ldc, self.c_rows, c_len, &self.init);
+        let (a, b) = (self.a.len(), self.b.len());
+        check_ab(what, a, self.p, self.q, b, self.ldb, self.n, w);
     }
+}
+
+/// Panics (naming `what`) unless a gather GEMM's `A` (`a` values) and `B` (`b` values, rows
+/// `ldb` apart, `n` wide) hold every value its offsets `p` and `q` reach, each reduction step
+/// reading `w` consecutive values of both (1, or 2 for bf16 pairs).
+#[allow(clippy::too_many_arguments)]
+fn check_ab(
+    what: &str, a: usize, p: &[usize], q: &[usize], b: usize, ldb: usize, n: usize, w: usize,
+) {
+    if q.is_empty() {
+        return;
+    }
+    assert!(n <= ldb, "{what}: n > ldb");
+    // The last step of the last row of `b` ends at w·((steps − 1)·ldb + n).
+    let b_end = (q.len() - 1)
+        .checked_mul(ldb)
+        .and_then(|x| x.checked_add(n))
+        .and_then(|x| x.checked_mul(w));
+    assert!(within(b_end, 0, b + 1), "{what}: B too short");
+    // The last value of the farthest step: p + q + w − 1 < a.len().
+    let far = largest(p).checked_add(w - 1);
+    assert!(within(far, largest(q), a), "{what}: A index out of range");
 }
 
 /// A gather GEMM whose rows are added onto scattered, possibly overlapping places of `out`:
@@ -224,7 +238,7 @@ pub struct ScatterGemm<'a, T> {
 impl<T: Float> ScatterGemm<'_, T> {
     /// Panics unless every index is inside its slice and each group's rows stay in its part.
     pub fn check(&self) {
-        let (rows, steps) = (self.p.len(), self.q.len());
+        let rows = self.p.len();
         if rows == 0 || self.n == 0 {
             return;
         }
@@ -245,17 +259,8 @@ impl<T: Float> ScatterGemm<'_, T> {
                 "scatter_gemm: row {r} leaves its group"
             );
         }
-        if steps > 0 {
-            assert!(self.n <= self.ldb, "scatter_gemm: n > ldb");
-            assert!(
-                within((steps - 1).checked_mul(self.ldb), self.n, self.b.len() + 1),
-                "scatter_gemm: B too short"
-            );
-            assert!(
-                within(Some(largest(self.p)), largest(self.q), self.a.len()),
-                "scatter_gemm: A index out of range"
-            );
-        }
+        let (a, b) = (self.a.len(), self.b.len());
+        check_ab("scatter_gemm", a, self.p, self.q, b, self.ldb, self.n, 1);
     }
 }
 

@@ -26,7 +26,7 @@
 
 use super::bf16::{from_bf16, to_bf16};
 use super::cpu::{avx512_twin, took, Family};
-use super::gather::{check_c, largest, row_start, within, GatherGemm, Init};
+use super::gather::{row_start, GatherGemm, Init};
 
 /// The operands of one bf16 gather GEMM (see the module documentation): [`GatherGemm`] with
 /// `A` and `B` in bf16 bits, in pairs of reduction steps, and `C` in f32.
@@ -35,40 +35,7 @@ pub type GatherGemmBf16<'a> = GatherGemm<'a, u16, f32>;
 impl GatherGemmBf16<'_> {
     /// Panics unless every index the product reaches is inside its slice.
     pub fn check(&self) {
-        let (rows, pairs) = (self.p.len(), self.q.len());
-        if rows == 0 || self.n == 0 {
-            return;
-        }
-        check_c(
-            "gather_gemm_bf16",
-            rows,
-            self.n,
-            self.ldc,
-            self.c_rows,
-            self.c.len(),
-            &self.init,
-        );
-        if pairs > 0 {
-            assert!(self.n <= self.ldb, "gather_gemm_bf16: n > ldb");
-            // The last pair of the last row of `b` ends at 2·((pairs − 1)·ldb + n).
-            let b_end = (pairs - 1)
-                .checked_mul(self.ldb)
-                .and_then(|x| x.checked_add(self.n))
-                .and_then(|x| x.checked_mul(2));
-            assert!(
-                within(b_end, 0, self.b.len() + 1),
-                "gather_gemm_bf16: B too short"
-            );
-            // The second value of the farthest pair: p + q + 1 < a.len().
-            assert!(
-                within(
-                    largest(self.p).checked_add(1),
-                    largest(self.q),
-                    self.a.len()
-                ),
-                "gather_gemm_bf16: A index out of range"
-            );
-        }
+        self.check_steps("gather_gemm_bf16", 2);
     }
 }
 
