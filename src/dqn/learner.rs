@@ -242,19 +242,7 @@ impl Learner {
                 &mut self.per_sample,
             )
         };
-        self.td.clear();
-        self.td.extend(
-            self.q_taken
-                .chunks_exact(k)
-                .zip(self.y.chunks_exact(k))
-                .map(|(q, y)| {
-                    if k == 1 {
-                        q[0] - y[0]
-                    } else {
-                        mean(q) - mean(y)
-                    }
-                }),
-        );
+        td_errors(&self.q_taken, &self.y, b, &mut self.td);
         if batch.weights.is_empty() {
             return loss;
         }
@@ -383,13 +371,7 @@ impl Learner {
             &mut self.dq_taken,
             &mut self.per_sample,
         );
-        self.td.clear();
-        self.td.extend(
-            self.q_taken
-                .chunks_exact(n)
-                .zip(self.y.chunks_exact(n2))
-                .map(|(q, y)| mean(q) - mean(y)),
-        );
+        td_errors(&self.q_taken, &self.y, b, &mut self.td);
         if !batch.weights.is_empty() {
             loss = weight_terms(&batch.weights, &self.per_sample, n, &mut self.dq_taken);
         }
@@ -588,6 +570,21 @@ pub fn greedy_rows(rows: &[f32], n_actions: usize) -> usize {
 }
 
 /// The mean of a slice.
+/// The TD errors for prioritized replay, `b` samples: each sample's prediction minus its target,
+/// or with a quantile head the mean of its predictions minus the mean of its target samples.
+fn td_errors(q: &[f32], y: &[f32], b: usize, td: &mut Vec<f32>) {
+    let (n, n_target) = (q.len() / b, y.len() / b);
+    let pairs = q.chunks_exact(n).zip(y.chunks_exact(n_target));
+    td.clear();
+    td.extend(pairs.map(|(q, y)| {
+        if n == 1 && n_target == 1 {
+            q[0] - y[0]
+        } else {
+            mean(q) - mean(y)
+        }
+    }));
+}
+
 fn mean(x: &[f32]) -> f32 {
     x.iter().sum::<f32>() / x.len() as f32
 }
