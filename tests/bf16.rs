@@ -4,17 +4,18 @@
 
 mod common;
 
-use common::{avx512_expected, on_path, rng, set_params, uniform, Square};
+use common::{
+    abs64, avx512_expected, f64s, forward_backward_into, on_path, padded_input, random_params,
+    reference_forward, reference_grads, rng, same_on_1_2_3_threads, set_params, uniform, Square,
+};
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::bf16::to_bf16;
 use invaders::tensor::bf16::{dot_bf16, dot_bf16_reference, dot_error_bound, round_bf16};
 use invaders::tensor::cpu::Family;
 use invaders::tensor::gather_bf16::{pack_pairs, pack_shifted, pair_shifted, to_bf16_vec};
-use invaders::tensor::{
-    conv2d_reference, conv2d_reference_backward, pad_input, ConvGeom, Padding, Tensor,
-};
 use invaders::tensor::{gather_gemm_bf16, gather_gemm_bf16_portable, GatherGemmBf16, Init};
+use invaders::tensor::{ConvGeom, Padding};
 use proptest::prelude::*;
 use rand::Rng;
 
@@ -295,16 +296,7 @@ proptest! {
 #[test]
 fn gather_gemm_bf16_is_the_same_on_any_thread_count() {
     let case = Case::draw(301, 600, 70, 5);
-    let on = |t: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(t)
-            .build()
-            .unwrap()
-            .install(|| case.run(gather_gemm_bf16))
-    };
-    let one = on(1);
-    assert_eq!(one, on(2));
-    assert_eq!(one, on(3));
+    same_on_1_2_3_threads(|| case.run(gather_gemm_bf16));
 }
 
 /// `|got − want| ≤ bound` element by element, naming the first that fails.
@@ -326,14 +318,6 @@ fn within_bounds(
     Ok(())
 }
 
-fn f64s(v: &[f32]) -> Vec<f64> {
-    v.iter().map(|&x| f64::from(x)).collect()
-}
-
-fn abs64(v: &[f32]) -> Vec<f64> {
-    v.iter().map(|&x| f64::from(x).abs()).collect()
-}
-
 /// A convolution in bf16 on an input that arrives padded (read in place, as conv2 and conv3
 /// read theirs): forward, weight gradient and input gradient against the exact products of the
 /// unrounded operands (f64), each element to `dot_error_bound` of its own `Σ|terms|` (the same
@@ -351,10 +335,7 @@ fn conv_case(c: Square, n: usize, seed: u64) -> Result<(), TestCaseError> {
     let bt = uniform::<f32>(&[cout], &mut r);
     set_params(&mut layer, &[&wt, &bt]);
     let x = uniform::<f32>(&[n, h, w, cin], &mut r);
-    let (hp, wp) = g.padded();
-    let mut xp = Vec::new();
-    pad_input(&g, n, x.data(), &mut xp);
-    let xp = Tensor::from_vec(&[n, hp, wp, cin], xp);
+    let xp = padded_input(&g, n, &x);
     let valid = g.as_valid().0;
     let dy = uniform::<f32>(&[n, g.oh, g.ow, cout], &mut r);
     let bf16 = bf16_expected();
@@ -390,10 +371,8 @@ fn conv_case(c: Square, n: usize, seed: u64) -> Result<(), TestCaseError> {
         abs64(bt.data()),
         abs64(dy.data()),
     );
-    let mut y = vec![0.0; dy.len()];
-    let mut ya = y.clone();
-    conv2d_reference(&valid, n, &x64, &w64, &b64, &mut y);
-    conv2d_reference(&valid, n, &xa, &wa, &ba, &mut ya);
+    let y = reference_forward(&valid, n, &x64, &w64, &b64, false);
+    let ya = reference_forward(&valid, n, &xa, &wa, &ba, false);
     let terms = (k * k * cin).max(n * g.oh * g.ow).max(k * k * cout) + 1;
     let bound = |abs: &[f64]| {
         abs.iter()
@@ -401,10 +380,8 @@ fn conv_case(c: Square, n: usize, seed: u64) -> Result<(), TestCaseError> {
             .collect::<Vec<_>>()
     };
     within_bounds("y", layer.output().data(), &y, &bound(&ya))?;
-    let (mut dx, mut dw, mut db) = (vec![0.0; xp.len()], vec![0.0; wt.len()], vec![0.0; cout]);
-    conv2d_reference_backward(&valid, n, &x64, &w64, &dy64, &mut dx, &mut dw, &mut db);
-    let (mut dxa, mut dwa, mut dba) = (vec![0.0; xp.len()], vec![0.0; wt.len()], vec![0.0; cout]);
-    conv2d_reference_backward(&valid, n, &xa, &wa, &dya, &mut dxa, &mut dwa, &mut dba);
+    let (dx, dw, _) = reference_grads(&valid, n, &x64, &w64, &dy64);
+    let (dxa, dwa, _) = reference_grads(&valid, n, &xa, &wa, &dya);
     within_bounds("dw", layer.params()[0].grad.data(), &dw, &bound(&dwa))?;
     within_bounds("dx", layer.input_grad().data(), &dx, &bound(&dxa))?;
     // The same convolution on the unpadded input: the layer pads a copy, whose bf16 rounding
@@ -449,14 +426,7 @@ proptest! {
 /// The article's three convolutions at their shapes, in bf16.
 #[test]
 fn article_convolutions_in_bf16_match_the_exact_products() {
-    for (i, (h, w, cin, cout, k, s)) in [
-        (88, 80, 4, 32, 8, 4),
-        (22, 20, 32, 64, 4, 2),
-        (11, 10, 64, 64, 3, 1),
-    ]
-    .into_iter()
-    .enumerate()
-    {
+    for (i, (h, w, cin, cout, k, s)) in common::ARTICLE_CONVS.into_iter().enumerate() {
         conv_case(
             Square {
                 k,
@@ -531,64 +501,39 @@ proptest! {
 /// with an odd batch.
 #[test]
 fn bf16_layers_are_the_same_on_any_thread_count() {
-    let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
-            let mut r = rng(11);
-            let mut out = Vec::new();
-            let g = ConvGeom::new(24, 22, 32, 64, 4, 4, (2, 2), Padding::Valid).unwrap();
-            let mut conv = Conv2d::<f32>::new("c", g).with_relu();
-            conv.set_precision(Precision::Bf16);
-            let (wt, bt) = (
-                uniform::<f32>(&[4, 4, 32, 64], &mut r),
-                uniform::<f32>(&[64], &mut r),
-            );
-            set_params(&mut conv, &[&wt, &bt]);
-            let x = uniform::<f32>(&[7, 24, 22, 32], &mut r);
-            let dy = uniform::<f32>(&[7, g.oh, g.ow, 64], &mut r);
-            conv.forward(&x);
-            conv.backward(&x, &dy, true);
-            out.extend_from_slice(conv.output().data());
-            out.extend_from_slice(conv.input_grad().data());
-            out.extend_from_slice(conv.params()[0].grad.data());
-            let mut dense = Dense::<f32>::new("d", 700, 130);
-            dense.set_precision(Precision::Bf16);
-            let (wt, bt) = (
-                uniform::<f32>(&[700, 130], &mut r),
-                uniform::<f32>(&[130], &mut r),
-            );
-            set_params(&mut dense, &[&wt, &bt]);
-            let x = uniform::<f32>(&[9, 700], &mut r);
-            let dy = uniform::<f32>(&[9, 130], &mut r);
-            dense.forward(&x);
-            dense.backward(&x, &dy, true);
-            out.extend_from_slice(dense.output().data());
-            out.extend_from_slice(dense.input_grad().data());
-            out.extend_from_slice(dense.params()[0].grad.data());
-            let ran = [
-                Product::ConvForward,
-                Product::ConvWeightGrad,
-                Product::ConvInputGrad,
-                Product::DenseForward,
-                Product::DenseBackward,
-            ]
-            .map(plan::last);
-            if bf16_expected() {
-                let k = |k| Some(k);
-                let want = [Kernel::GatherBf16, Kernel::GatherBf16, Kernel::PhasesBf16]
-                    .map(k)
-                    .into_iter()
-                    .chain([k(Kernel::GatherBf16); 2])
-                    .collect::<Vec<_>>();
-                assert_eq!(ran.to_vec(), want);
-            }
-            out
-        })
-    };
-    let one = run(1);
-    assert_eq!(one, run(2));
-    assert_eq!(one, run(3));
+    same_on_1_2_3_threads(|| {
+        let mut r = rng(11);
+        let mut out = Vec::new();
+        let g = ConvGeom::new(24, 22, 32, 64, 4, 4, (2, 2), Padding::Valid).unwrap();
+        let mut conv = Conv2d::<f32>::new("c", g).with_relu();
+        conv.set_precision(Precision::Bf16);
+        random_params(&mut conv, &mut r);
+        let x = uniform::<f32>(&[7, 24, 22, 32], &mut r);
+        let dy = uniform::<f32>(&[7, g.oh, g.ow, 64], &mut r);
+        forward_backward_into(&mut conv, &x, &dy, &mut out);
+        let mut dense = Dense::<f32>::new("d", 700, 130);
+        dense.set_precision(Precision::Bf16);
+        random_params(&mut dense, &mut r);
+        let x = uniform::<f32>(&[9, 700], &mut r);
+        let dy = uniform::<f32>(&[9, 130], &mut r);
+        forward_backward_into(&mut dense, &x, &dy, &mut out);
+        let ran = [
+            Product::ConvForward,
+            Product::ConvWeightGrad,
+            Product::ConvInputGrad,
+            Product::DenseForward,
+            Product::DenseBackward,
+        ]
+        .map(plan::last);
+        if bf16_expected() {
+            let k = |k| Some(k);
+            let want = [Kernel::GatherBf16, Kernel::GatherBf16, Kernel::PhasesBf16]
+                .map(k)
+                .into_iter()
+                .chain([k(Kernel::GatherBf16); 2])
+                .collect::<Vec<_>>();
+            assert_eq!(ran.to_vec(), want);
+        }
+        out
+    });
 }

@@ -2,26 +2,11 @@
 //! evaluation, resume, plotting, and every bad-input path giving a clear error and a non-zero
 //! exit without touching earlier results.
 
+mod common;
+
+use common::cli::{bin, invaders, ok, resume, tmp_dir, tmp_with_file, train};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
-
-fn invaders(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_invaders"))
-        .args(args)
-        .env_remove("RUST_BACKTRACE")
-        .output()
-        .expect("the binary runs")
-}
-
-fn ok(out: &Output) -> String {
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(out.status.success(), "command failed:\n{text}");
-    text
-}
 
 /// Asserts a failure whose message contains `needle`.
 fn fails_with(out: &Output, needle: &str) {
@@ -41,13 +26,33 @@ fn fails_with(out: &Output, needle: &str) {
 }
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("invaders-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+    tmp_dir("invaders-cli", name)
+}
+
+/// A new temporary directory named `name` holding `file` with `text`; returns the directory and
+/// the file's path.
+fn tmp_with(name: &str, file: &str, text: &str) -> (PathBuf, PathBuf) {
+    tmp_with_file("invaders-cli", name, file, text)
 }
 
 /// A small but real configuration: short episodes (cut at 150 agent steps), learning from step 60.
 const QUICK: &str = "learning_starts = 60\nreplay_capacity = 400\nbatch_size = 8\ncheckpoint_every = 1\nplot_every = 1\n[env]\nmax_episode_steps = 150\n";
+
+/// The experiments' tiny configuration: a small replay memory, learning from step 200.
+const TINY: &str = "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n";
+
+/// The line of a results table whose first cell is `first`; fails the test if there is none.
+fn row<'a>(table: &'a str, first: &str) -> &'a str {
+    table
+        .lines()
+        .find(|l| l.starts_with(&format!("| {first} | ")))
+        .unwrap_or_else(|| panic!("no row for {first}:\n{table}"))
+}
+
+/// `args` run to completion (the binary's arguments as owned strings).
+fn run_owned(args: &[String]) -> Output {
+    invaders(&args.iter().map(String::as_str).collect::<Vec<_>>())
+}
 
 fn metrics_rows(dir: &Path) -> Vec<Vec<String>> {
     let text = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
@@ -61,6 +66,17 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<String>> {
         .collect()
 }
 
+/// The f32 kernel family this host runs, as `bench --json` names it.
+fn f32_family() -> &'static str {
+    if invaders::tensor::cpu::avx512() {
+        "avx512-f32"
+    } else if invaders::tensor::cpu::avx2() {
+        "avx2-f32"
+    } else {
+        "portable-f32"
+    }
+}
+
 /// `bench --precision bf16 --json` says which kernel family ran: AVX512-BF16 where the CPU has
 /// it, else the f32 kernels, with one note on stderr saying why. `INVADERS_NO_BF16=1` makes an
 /// AVX512-BF16 host an AVX-512 one without it (Intel Skylake-SP to Ice Lake), so both kinds are
@@ -69,10 +85,9 @@ fn metrics_rows(dir: &Path) -> Vec<Vec<String>> {
 fn bench_in_bf16_says_which_kernels_ran() {
     use invaders::tensor::cpu;
     for no_bf16 in [false, true] {
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_invaders"));
+        let mut cmd = bin();
         cmd.args(["bench", "--threads", "1", "--steps", "1", "--json"])
-            .args(["--precision", "bf16"])
-            .env_remove("RUST_BACKTRACE");
+            .args(["--precision", "bf16"]);
         if no_bf16 {
             cmd.env("INVADERS_NO_BF16", "1");
         }
@@ -85,15 +100,7 @@ fn bench_in_bf16_says_which_kernels_ran() {
         let json: serde_json::Value = serde_json::from_str(stdout.trim()).expect(&stdout);
         // The child inherits this process's environment, so this process's check applies to it.
         let runs = cpu::avx512_bf16() && !no_bf16;
-        let family = if runs {
-            "avx512-bf16"
-        } else if cpu::avx512() {
-            "avx512-f32"
-        } else if cpu::avx2() {
-            "avx2-f32"
-        } else {
-            "portable-f32"
-        };
+        let family = if runs { "avx512-bf16" } else { f32_family() };
         assert_eq!(json["kernel_family"], family, "{stdout}");
         assert_eq!(json["precision"], "bf16", "{stdout}");
         let conv = json["kernels"]["conv_forward"].as_str().unwrap_or_default();
@@ -114,10 +121,7 @@ fn bench_in_bf16_says_which_kernels_ran() {
 /// not fit TOML's integers).
 #[test]
 fn train_by_frames() {
-    let root = tmp("frames");
-    std::fs::create_dir_all(&root).unwrap();
-    let cfg = root.join("quick.toml");
-    std::fs::write(&cfg, QUICK).unwrap();
+    let (root, cfg) = tmp_with("frames", "quick.toml", QUICK);
     let run = root.join("run");
     let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
     let text = ok(&invaders(&[
@@ -161,14 +165,7 @@ fn train_by_frames() {
     }
     assert_eq!(json["threads"], 1, "{text}");
     assert_eq!(json["precision"], "f32", "{text}");
-    let family = if invaders::tensor::cpu::avx512() {
-        "avx512-f32"
-    } else if invaders::tensor::cpu::avx2() {
-        "avx2-f32"
-    } else {
-        "portable-f32"
-    };
-    assert_eq!(json["kernel_family"], family, "{text}");
+    assert_eq!(json["kernel_family"], f32_family(), "{text}");
     assert!(
         json["kernels"]["conv_forward"].is_string(),
         "each product's kernel: {text}"
@@ -199,25 +196,10 @@ fn train_by_frames() {
 
 #[test]
 fn train_eval_resume_plot() {
-    let root = tmp("run");
-    std::fs::create_dir_all(&root).unwrap();
-    let cfg = root.join("quick.toml");
-    std::fs::write(&cfg, QUICK).unwrap();
+    let (root, cfg) = tmp_with("run", "quick.toml", QUICK);
     let run = root.join("run");
     let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
-    ok(&invaders(&[
-        "train",
-        "--config",
-        cfg_s,
-        "--episodes",
-        "2",
-        "--seed",
-        "5",
-        "--threads",
-        "1",
-        "--out",
-        run_s,
-    ]));
+    ok(&train(cfg_s, 5, 2, &run));
     for f in [
         "config.toml",
         "metrics.csv",
@@ -263,15 +245,7 @@ fn train_eval_resume_plot() {
     assert_eq!(u16::from_le_bytes([bytes[8], bytes[9]]), 210, "GIF height");
 
     // Resume continues from the saved counters.
-    ok(&invaders(&[
-        "train",
-        "--resume",
-        run_s,
-        "--episodes",
-        "3",
-        "--threads",
-        "1",
-    ]));
+    ok(&resume(&run, 3));
     let rows = metrics_rows(&run);
     assert_eq!(rows.len(), 3);
     assert_eq!(rows[2][0], "3");
@@ -317,7 +291,6 @@ fn train_eval_resume_plot() {
 #[test]
 fn bad_inputs_give_clear_errors() {
     let root = tmp("bad");
-    std::fs::create_dir_all(&root).unwrap();
     let path = |n: &str| root.join(n).to_str().unwrap().to_string();
     fails_with(&invaders(&["train", "--no-such-flag"]), "--no-such-flag");
     fails_with(&invaders(&["train", "--preset", "nature"]), "nature");
@@ -419,25 +392,14 @@ fn bad_inputs_give_clear_errors() {
 /// the checkpoint) and `--resume` refuses; `eval --protocol` holds to its rules.
 #[test]
 fn strong_preset_export_and_protocol() {
-    let root = tmp("strong");
-    std::fs::create_dir_all(&root).unwrap();
-    let cfg = root.join("quick.toml");
-    std::fs::write(&cfg, format!("preset = \"strong\"\n{QUICK}")).unwrap();
+    let (root, cfg) = tmp_with(
+        "strong",
+        "quick.toml",
+        &format!("preset = \"strong\"\n{QUICK}"),
+    );
     let run = root.join("run");
     let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
-    ok(&invaders(&[
-        "train",
-        "--config",
-        cfg_s,
-        "--episodes",
-        "2",
-        "--seed",
-        "3",
-        "--threads",
-        "1",
-        "--out",
-        run_s,
-    ]));
+    ok(&train(cfg_s, 3, 2, &run));
     let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
     for line in ["dueling = true", "n_step = 3", "life_loss_terminal = true"] {
         assert!(saved.contains(line), "{line} in {saved}");
@@ -569,14 +531,7 @@ fn the_shipped_model_plays() {
 /// again, it trains and plays nothing and reports the same runs.
 #[test]
 fn experiment_strong_trains_evaluates_and_reports() {
-    let root = tmp("experiment-strong");
-    std::fs::create_dir_all(&root).unwrap();
-    let cfg = root.join("tiny.toml");
-    std::fs::write(
-        &cfg,
-        "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n",
-    )
-    .unwrap();
+    let (root, cfg) = tmp_with("experiment-strong", "tiny.toml", TINY);
     let out = root.join("exp");
     let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
     let base = [
@@ -594,19 +549,18 @@ fn experiment_strong_trains_evaluates_and_reports() {
     let with = |extra: &[&str]| -> Vec<String> {
         base.iter().chain(extra).map(|s| s.to_string()).collect()
     };
-    let run = |args: &[String]| invaders(&args.iter().map(String::as_str).collect::<Vec<_>>());
     fails_with(
-        &run(&with(&["--eval-episodes", "50"])),
+        &run_owned(&with(&["--eval-episodes", "50"])),
         "at least 100 episodes",
     );
-    fails_with(&run(&with(&["--threads", "0"])), "--threads must be");
+    fails_with(&run_owned(&with(&["--threads", "0"])), "--threads must be");
     let mut big = with(&[]);
     big[3] = "9223372036854775808".into(); // --seeds
-    fails_with(&run(&big), "at most 9223372036854775807");
+    fails_with(&run_owned(&big), "at most 9223372036854775807");
     let bad = root.join("bad.csv");
     std::fs::write(&bad, "agent,frames\nx,1\n").unwrap();
     fails_with(
-        &run(&with(&["--reference", bad.to_str().unwrap()])),
+        &run_owned(&with(&["--reference", bad.to_str().unwrap()])),
         "agent,frames,score",
     );
     assert!(
@@ -639,10 +593,7 @@ fn experiment_strong_trains_evaluates_and_reports() {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let at_once = format!("2 thread(s) each, {} at a time", (cores / 2).max(1));
     assert!(table.contains(&at_once), "{table}");
-    let row = table
-        .lines()
-        .find(|l| l.starts_with("| 1 | "))
-        .unwrap_or_else(|| panic!("no row for seed 1:\n{table}"));
+    let row = row(&table, "1");
     let cells: Vec<&str> = row.split('|').map(str::trim).collect();
     let frames: u64 = cells[2].parse().unwrap();
     assert!((2000..2000 + 27_000 * 4).contains(&frames), "{row}");
@@ -666,7 +617,7 @@ fn experiment_strong_trains_evaluates_and_reports() {
     assert!(first.contains("strong-seed1: done"), "{first}");
     // Again: nothing to train or play (the evaluation is kept beside the run), the same report.
     assert!(out.join("strong-seed1.protocol").exists());
-    let again = ok(&run(&args));
+    let again = ok(&run_owned(&args));
     assert!(again.contains("strong-seed1: already trained"), "{again}");
     let table2 = std::fs::read_to_string(out.join("results.md")).unwrap();
     assert!(table2.contains(row), "{table2}");
@@ -674,7 +625,7 @@ fn experiment_strong_trains_evaluates_and_reports() {
     let kept = out.join("strong-seed1.protocol");
     let text = std::fs::read_to_string(&kept).unwrap();
     std::fs::write(&kept, &text[..text.find('\n').unwrap() + 8]).unwrap();
-    ok(&run(&args));
+    ok(&run_owned(&args));
     assert_eq!(std::fs::read_to_string(&kept).unwrap(), text);
     let _ = std::fs::remove_dir_all(&root);
 }
@@ -686,11 +637,7 @@ fn experiment_strong_trains_evaluates_and_reports() {
 /// table sets each arm against the preset, which is always trained; run again, nothing trains.
 #[test]
 fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
-    let root = tmp("experiment-ablation");
-    std::fs::create_dir_all(&root).unwrap();
-    let tiny = "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n";
-    let cfg = root.join("tiny.toml");
-    std::fs::write(&cfg, tiny).unwrap();
+    let (root, cfg) = tmp_with("experiment-ablation", "tiny.toml", TINY);
     let out = root.join("exp");
     let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
     let args = [
@@ -712,7 +659,7 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
         "[possible values: strong, no-dueling, n-step-1",
     );
     let already = root.join("already.toml");
-    std::fs::write(&already, format!("{tiny}dueling = false\n")).unwrap();
+    std::fs::write(&already, format!("{TINY}dueling = false\n")).unwrap();
     let mut same = args;
     same[7] = already.to_str().unwrap();
     fails_with(
@@ -758,14 +705,11 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
     let log = std::fs::read_to_string(out.join("no-dueling-seed1.log")).unwrap();
     assert!(log.contains("on 1 thread(s)"), "{log}");
     let table = std::fs::read_to_string(out.join("results.md")).unwrap();
-    let row = |arm: &str| -> Vec<String> {
-        let line = table
-            .lines()
-            .find(|l| l.starts_with(&format!("| {arm} | ")))
-            .unwrap_or_else(|| panic!("no row for {arm}:\n{table}"));
+    let cells_of = |arm: &str| -> Vec<String> {
+        let line = row(&table, arm);
         line.split('|').map(|c| c.trim().to_string()).collect()
     };
-    let (preset, arm) = (row("strong"), row("no-dueling"));
+    let (preset, arm) = (cells_of("strong"), cells_of("no-dueling"));
     assert_eq!(preset[2], "nothing (the preset)");
     assert!(arm[2].starts_with("the dueling head"), "{arm:?}");
     assert_eq!((preset[7].as_str(), preset[9].as_str()), ("+0.0", "+0.0"));
@@ -873,14 +817,11 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
 /// the command run again trains nothing.
 #[test]
 fn experiment_preprocessing_trains_evaluates_and_reports() {
-    let root = tmp("experiment-preprocessing");
-    std::fs::create_dir_all(&root).unwrap();
-    let cfg = root.join("tiny.toml");
-    std::fs::write(
-        &cfg,
-        "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n[env]\nmax_episode_steps = 300\n",
-    )
-    .unwrap();
+    let (root, cfg) = tmp_with(
+        "experiment-preprocessing",
+        "tiny.toml",
+        &format!("{TINY}[env]\nmax_episode_steps = 300\n"),
+    );
     let out = root.join("exp");
     let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
     let notebook = concat!(
@@ -912,13 +853,15 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
         .map(|s| s.to_string())
         .collect()
     };
-    let run = |args: &[String]| invaders(&args.iter().map(String::as_str).collect::<Vec<_>>());
     let bad = root.join("bad.csv");
     std::fs::write(&bad, "episode,reward\n1,2\n").unwrap();
-    fails_with(&run(&args(bad.to_str().unwrap())), "the header must be");
+    fails_with(
+        &run_owned(&args(bad.to_str().unwrap())),
+        "the header must be",
+    );
     assert!(!out.exists(), "nothing made before the inputs are checked");
 
-    let first = ok(&run(&args(notebook)));
+    let first = ok(&run_owned(&args(notebook)));
     let table = std::fs::read_to_string(out.join("results.md")).unwrap();
     for arm in [
         "article-vanilla",
@@ -926,10 +869,7 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
         "article-as-written",
         "article+stack-running-max",
     ] {
-        let row = table
-            .lines()
-            .find(|l| l.starts_with(&format!("| {arm} | ")))
-            .unwrap_or_else(|| panic!("no row for {arm}:\n{table}"));
+        let row = row(&table, arm);
         let cells: Vec<&str> = row.split('|').map(str::trim).collect();
         assert_eq!(cells[2], "1", "seeds: {row}");
         for (i, what) in [(3, "training"), (4, "evaluation"), (5, "protocol")] {
@@ -961,7 +901,7 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
     );
     assert!(std::fs::metadata(out.join("rewards.png")).unwrap().len() > 1000);
     assert!(first.contains("article-seed0: done"), "{first}");
-    let again = ok(&run(&args(notebook)));
+    let again = ok(&run_owned(&args(notebook)));
     assert!(again.contains("article-seed0: already trained"), "{again}");
     assert!(
         !again.contains(": training (log"),
@@ -979,17 +919,14 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
 /// (`INVADERS_NO_BF16`); a resume keeps it.
 #[test]
 fn auto_precision_is_resolved_and_recorded() {
-    let root = tmp("auto-precision");
-    std::fs::create_dir_all(&root).unwrap();
-    let cfg = root.join("tiny.toml");
-    std::fs::write(
-        &cfg,
+    let (root, cfg) = tmp_with(
+        "auto-precision",
+        "tiny.toml",
         "replay_capacity = 2000\nlearning_starts = 100\nbatch_size = 8\n[env]\nmax_episode_steps = 60\n",
-    )
-    .unwrap();
+    );
     for no_bf16 in [false, true] {
         let run = root.join(format!("run-{no_bf16}"));
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_invaders"));
+        let mut cmd = bin();
         if no_bf16 {
             cmd.env("INVADERS_NO_BF16", "1");
         }
@@ -1026,15 +963,7 @@ fn auto_precision_is_resolved_and_recorded() {
         if no_bf16 || !invaders::tensor::cpu::avx512_bf16() {
             assert_eq!(recorded, "precision = \"f32\"", "{text}");
         }
-        ok(&invaders(&[
-            "train",
-            "--resume",
-            run.to_str().unwrap(),
-            "--episodes",
-            "3",
-            "--threads",
-            "1",
-        ]));
+        ok(&resume(&run, 3));
         let again = std::fs::read_to_string(run.join("config.toml")).unwrap();
         assert!(
             again.contains(&recorded),

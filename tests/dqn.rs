@@ -81,8 +81,7 @@ impl Game for Corridor {
 }
 
 fn toy_config() -> Config {
-    let mut c = Config::preset(Preset::Article);
-    c.pipeline = Pipeline::Vanilla;
+    let mut c = common::vanilla_config();
     c.replay_capacity = 1_000;
     c.batch_size = 16;
     c.gamma = 0.9;
@@ -256,6 +255,19 @@ fn frame(v: u8) -> Vec<u8> {
     vec![v; FRAME_LEN]
 }
 
+/// The first pixel of each of the 4 frames of state `b` in a batch of [`frame`]-built stacks.
+fn px(t: &Tensor<f32>, b: usize) -> Vec<f32> {
+    t.data()[b * FRAME_LEN * 4..][..4].to_vec()
+}
+
+/// The stack of 4 frames ending at frame `newest` of an episode that began at frame `first`
+/// (whose first frame is repeated at its start), as [`px`] reads it.
+fn stack(newest: u8, first: u8) -> Vec<f32> {
+    (0..4)
+        .map(|i| newest.saturating_sub(3 - i).max(first) as f32)
+        .collect()
+}
+
 /// States are rebuilt from single frames: the last 4 of the same episode, the first frame
 /// repeated at an episode's start, never a frame of the previous episode; `s'` is the state one
 /// entry later; terminal and time-limit flags go where they belong.
@@ -270,27 +282,17 @@ fn replay_rebuilds_stacks_within_episodes() {
     for i in 1..10u8 {
         replay.push_step(i as usize % 6, i as f32, false, &frame(20 + i));
     }
-    let mut table = [0.0f32; 256];
-    for (i, t) in table.iter_mut().enumerate() {
-        *t = i as f32;
-    }
+    let table = common::identity_table();
     let mut batch = Batch::new(8, [88, 80, 4]);
     let mut rng = common::rng(1);
-    let px =
-        |t: &Tensor<f32>, b: usize| -> Vec<f32> { t.data()[b * FRAME_LEN * 4..][..4].to_vec() };
     for _ in 0..80 {
         replay.sample(&mut rng, &table, &mut batch);
         for b in 0..8 {
             let (s, s2) = (px(&batch.states, b), px(&batch.next_states, b));
             let newest = s[3] as u8;
-            let expect = |newest: u8, first: u8| -> Vec<f32> {
-                (0..4)
-                    .map(|i| newest.saturating_sub(3 - i).max(first) as f32)
-                    .collect()
-            };
             let first = if newest >= 20 { 20 } else { 10 };
-            assert_eq!(s, expect(newest, first), "state ending at {newest}");
-            assert_eq!(s2, expect(newest + 1, first), "next state after {newest}");
+            assert_eq!(s, stack(newest, first), "state ending at {newest}");
+            assert_eq!(s2, stack(newest + 1, first), "next state after {newest}");
             assert!(
                 newest != 12 && newest != 29,
                 "entries without a successor are never sampled"
@@ -353,19 +355,9 @@ fn replay_sums_n_step_returns_within_episodes() {
             f => panic!("entry {f} has no successor and must not be sampled"),
         }
     };
-    let mut table = [0.0f32; 256];
-    for (i, t) in table.iter_mut().enumerate() {
-        *t = i as f32;
-    }
+    let table = common::identity_table();
     let mut batch = Batch::new(8, [88, 80, 4]);
     let mut rng = common::rng(2);
-    let px =
-        |t: &Tensor<f32>, b: usize| -> Vec<f32> { t.data()[b * FRAME_LEN * 4..][..4].to_vec() };
-    let stack = |newest: u8, first: u8| -> Vec<f32> {
-        (0..4)
-            .map(|i| newest.saturating_sub(3 - i).max(first) as f32)
-            .collect()
-    };
     let mut seen = std::collections::BTreeSet::new();
     for _ in 0..100 {
         replay.sample(&mut rng, &table, &mut batch);
@@ -449,10 +441,7 @@ fn replay_ring_never_uses_overwritten_frames() {
         replay.push_step(0, i as f32, false, &frame((i % 250) as u8));
     }
     assert_eq!(replay.len(), 16);
-    let mut table = [0.0f32; 256];
-    for (i, t) in table.iter_mut().enumerate() {
-        *t = i as f32;
-    }
+    let table = common::identity_table();
     let mut batch = Batch::new(8, [88, 80, 4]);
     let mut rng = common::rng(2);
     for _ in 0..50 {
@@ -557,21 +546,13 @@ fn checkpoints_round_trip_and_refuse_damage() {
     assert_eq!(back.config, agent.config);
     assert_eq!(back.counters, counters);
     assert_eq!(back.learner.adam.t, agent.learner.adam.t);
-    for (a, b) in back
-        .learner
-        .online
-        .params()
-        .zip(agent.learner.online.params())
-    {
-        assert_eq!(a.value, b.value, "{}", a.name);
-    }
-    for (a, b) in back
-        .learner
-        .target
-        .params()
-        .zip(agent.learner.target.params())
-    {
-        assert_eq!(a.value, b.value, "{}", a.name);
+    for (restored, saved) in [
+        (&back.learner.online, &agent.learner.online),
+        (&back.learner.target, &agent.learner.target),
+    ] {
+        for (a, b) in restored.params().zip(saved.params()) {
+            assert_eq!(a.value, b.value, "{}", a.name);
+        }
     }
     assert_eq!(back.learner.adam.m, agent.learner.adam.m);
     assert_eq!(back.learner.adam.v, agent.learner.adam.v);

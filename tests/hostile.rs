@@ -10,7 +10,9 @@ use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
-use common::cli::{bin, fails_with, invaders, ok, tmp_dir, train};
+use common::cli::{
+    bin, fails_with, invaders, ok, resume, resume_args, tmp_dir, train, train_command, write_file,
+};
 
 fn tmp(name: &str) -> PathBuf {
     tmp_dir("invaders-hostile", name)
@@ -19,10 +21,24 @@ fn tmp(name: &str) -> PathBuf {
 /// Short episodes (cut at 50 agent steps, so two seeds reach the same counters), learning early.
 const FAST: &str = "learning_starts = 30\nreplay_capacity = 300\nbatch_size = 8\ncheckpoint_every = 1\nplot_every = 1000\n[env]\nmax_episode_steps = 50\n";
 
+/// Writes `text` to `root/fast.toml`; returns its path.
 fn config(root: &Path, text: &str) -> String {
-    let p = root.join("fast.toml");
-    std::fs::write(&p, text).unwrap();
-    p.to_str().unwrap().to_string()
+    s(&write_file(root, "fast.toml", text)).to_string()
+}
+
+/// [`FAST`] without periodic checkpoints: only the end of the budget or a stop writes one.
+fn no_periodic_checkpoint() -> String {
+    FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000")
+}
+
+/// A new temporary directory with [`FAST`] in it and a run of it (seed 1) of `episodes` in
+/// `run`: the directory, the configuration's path and the run's.
+fn trained(name: &str, episodes: u64) -> (PathBuf, String, PathBuf) {
+    let root = tmp(name);
+    let cfg = config(&root, FAST);
+    let run = root.join("run");
+    ok(&train(&cfg, 1, episodes, &run));
+    (root, cfg, run)
 }
 
 fn s(p: &Path) -> &str {
@@ -110,15 +126,7 @@ fn nothing_a_user_types_loses_or_damages_data() {
     let own = std::fs::read(a.join(replay)).unwrap();
     std::fs::copy(b.join(replay), a.join(replay)).unwrap();
     fails_with(
-        &invaders(&[
-            "train",
-            "--resume",
-            s(&a),
-            "--episodes",
-            "2",
-            "--threads",
-            "1",
-        ]),
+        &resume(&a, 2),
         &["not the replay memory saved with this checkpoint"],
     );
     std::fs::write(a.join(replay), own).unwrap();
@@ -126,41 +134,14 @@ fn nothing_a_user_types_loses_or_damages_data() {
     // Malformed metrics rows are named, not dropped; a deleted file is said to be lost.
     let good_metrics = std::fs::read_to_string(&metrics).unwrap();
     std::fs::write(&metrics, good_metrics.replace("\n1,", "\nx,")).unwrap();
-    fails_with(
-        &invaders(&[
-            "train",
-            "--resume",
-            s(&a),
-            "--episodes",
-            "2",
-            "--threads",
-            "1",
-        ]),
-        &["line 2", "malformed"],
-    );
+    fails_with(&resume(&a, 2), &["line 2", "malformed"]);
     std::fs::remove_file(&metrics).unwrap();
-    let out = ok(&invaders(&[
-        "train",
-        "--resume",
-        s(&a),
-        "--episodes",
-        "2",
-        "--threads",
-        "1",
-    ]));
+    let out = ok(&resume(&a, 2));
     assert!(out.contains("metrics.csv is missing"), "{out}");
 
     // One process per run directory: a second one is refused while the first trains.
     let mut first = bin()
-        .args([
-            "train",
-            "--resume",
-            s(&a),
-            "--episodes",
-            "1000000",
-            "--threads",
-            "1",
-        ])
+        .args(resume_args(&a, 1_000_000))
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
@@ -173,15 +154,7 @@ fn nothing_a_user_types_loses_or_damages_data() {
     });
     assert!(started, "the first process trains: {seen:?}");
     fails_with(
-        &invaders(&[
-            "train",
-            "--resume",
-            s(&a),
-            "--episodes",
-            "1000000",
-            "--threads",
-            "1",
-        ]),
+        &resume(&a, 1_000_000),
         &["in use by another process", &format!("pid {}", first.id())],
     );
     first.kill().unwrap();
@@ -218,29 +191,10 @@ fn the_configuration_says_what_runs() {
     );
 
     // Extending a resumed run's budget rewrites config.toml; a budget already met is an error.
-    ok(&invaders(&[
-        "train",
-        "--resume",
-        s(&run),
-        "--episodes",
-        "2",
-        "--threads",
-        "1",
-    ]));
+    ok(&resume(&run, 2));
     let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
     assert!(saved.contains("episodes = 2\n"), "{saved}");
-    fails_with(
-        &invaders(&[
-            "train",
-            "--resume",
-            s(&run),
-            "--episodes",
-            "1",
-            "--threads",
-            "1",
-        ]),
-        &["has done 2 episodes", "larger"],
-    );
+    fails_with(&resume(&run, 1), &["has done 2 episodes", "larger"]);
     fails_with(
         &invaders(&[
             "train",
@@ -365,12 +319,8 @@ fn no_input_panics_aborts_or_hangs() {
 #[test]
 fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
     let root = tmp("experiment-signals");
-    std::fs::create_dir_all(&root).unwrap();
     // No periodic checkpoint: the one the test finds must be the stop's.
-    let cfg = config(
-        &root,
-        &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
-    );
+    let cfg = config(&root, &no_periodic_checkpoint());
     let out = root.join("exp");
     let child = bin()
         .args([
@@ -466,39 +416,11 @@ fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
 fn an_interrupted_run_keeps_its_work() {
     let root = tmp("signals");
     // No checkpoint until the end of the budget: SIGTERM must write one.
-    let cfg = config(
-        &root,
-        &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
-    );
+    let cfg = config(&root, &no_periodic_checkpoint());
     let run = root.join("run");
-    let mut child = bin()
-        .args([
-            "train",
-            "--config",
-            &cfg,
-            "--seed",
-            "4",
-            "--threads",
-            "1",
-            "--episodes",
-            "1000000",
-            "--out",
-            s(&run),
-        ])
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
-    let started = lines
-        .by_ref()
-        .map_while(Result::ok)
-        .any(|l| l.starts_with("ep 2 "));
-    assert!(started, "training runs");
-    let killed = Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
+    let (mut child, mut lines) = spawn_train(&cfg, 4, 1_000_000, &run);
+    wait_for_line(&mut lines, "ep 2 ");
+    sigterm(&child);
     let rest: Vec<String> = lines.map_while(Result::ok).collect();
     let status = child.wait().unwrap();
     assert_eq!(
@@ -509,30 +431,14 @@ fn an_interrupted_run_keeps_its_work() {
     assert!(rest.iter().any(|l| l.contains("--resume")), "{rest:?}");
     let ckpt = invaders::dqn::checkpoint::load(&run.join("checkpoint.safetensors")).unwrap();
     assert!(ckpt.counters.episodes >= 2, "the episodes played are kept");
-    ok(&invaders(&[
-        "train",
-        "--resume",
-        s(&run),
-        "--episodes",
-        &(ckpt.counters.episodes + 1).to_string(),
-        "--threads",
-        "1",
-    ]));
+    ok(&resume(&run, ckpt.counters.episodes + 1));
 
     // A directory stopped before its first checkpoint can be resumed from its start, or reused.
     let early = root.join("early");
     std::fs::create_dir_all(&early).unwrap();
     std::fs::copy(&cfg, early.join("config.toml")).unwrap();
     std::fs::write(early.join("metrics.csv"), "episode\n").unwrap();
-    let out = ok(&invaders(&[
-        "train",
-        "--resume",
-        s(&early),
-        "--episodes",
-        "1",
-        "--threads",
-        "1",
-    ]));
+    let out = ok(&resume(&early, 1));
     assert!(out.contains("before its first checkpoint"), "{out}");
     assert!(early.join("checkpoint.safetensors").is_file());
     let reuse = root.join("reuse");
@@ -559,17 +465,7 @@ fn spawn_train(
     std::process::Child,
     std::io::Lines<BufReader<std::process::ChildStderr>>,
 ) {
-    let mut child = bin()
-        .args([
-            "train",
-            "--config",
-            cfg,
-            "--seed",
-            &seed.to_string(),
-            "--threads",
-            "1",
-        ])
-        .args(["--episodes", &episodes.to_string(), "--out", s(out)])
+    let mut child = train_command(cfg, seed, episodes, out)
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
@@ -675,10 +571,7 @@ fn no_temporary_files(dir: &Path) {
 #[test]
 fn an_output_file_is_replaced_whole_or_written_through_never_destroyed() {
     use std::os::unix::fs::FileTypeExt;
-    let root = tmp("outputs");
-    let cfg = config(&root, FAST);
-    let run = root.join("run");
-    ok(&train(&cfg, 1, 1, &run));
+    let (root, _, run) = trained("outputs", 1);
 
     // A plot over an existing file: a new file takes its place (another inode), nothing left.
     let png = root.join("curve.png");
@@ -784,10 +677,8 @@ fn a_closed_or_failing_stream_costs_no_work() {
     // train with stderr a pipe nobody reads, and with stderr /dev/full.
     for (name, closed) in [("closed", true), ("full", false)] {
         let run = root.join(name);
-        let mut cmd = bin();
-        cmd.args(["train", "--config", &cfg, "--seed", "1", "--threads", "1"])
-            .args(["--episodes", "3", "--out", s(&run)])
-            .stdout(Stdio::null());
+        let mut cmd = train_command(&cfg, 1, 3, &run);
+        cmd.stdout(Stdio::null());
         if closed {
             cmd.stderr(Stdio::piped());
         } else {
@@ -858,21 +749,8 @@ fn a_closed_or_failing_stream_costs_no_work() {
         unsafe { libc::fcntl(fd, libc::F_SETFD, libc::FD_CLOEXEC) };
     }
     let tty = root.join("tty");
-    let no_periodic = config(
-        &root,
-        &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
-    );
-    let mut cmd = bin();
-    cmd.args([
-        "train",
-        "--config",
-        &no_periodic,
-        "--seed",
-        "2",
-        "--threads",
-        "1",
-    ])
-    .args(["--episodes", "1000000", "--out", s(&tty)]);
+    let no_periodic = config(&root, &no_periodic_checkpoint());
+    let mut cmd = train_command(&no_periodic, 2, 1_000_000, &tty);
     // SAFETY: `slave` is an open descriptor; dup gives each stream its own.
     unsafe {
         use std::os::fd::FromRawFd;
@@ -946,12 +824,11 @@ fn a_reused_experiment_folder_is_refused_under_another_configuration() {
         &root,
         "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n",
     );
-    let b_path = root.join("b.toml");
-    std::fs::write(
-        &b_path,
+    let b_path = write_file(
+        &root,
+        "b.toml",
         "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 16\ngamma = 0.9\n",
-    )
-    .unwrap();
+    );
     let exp = root.join("exp");
     let strong = |cfg: &str| {
         invaders(&[
@@ -1046,23 +923,10 @@ fn a_reused_experiment_folder_is_refused_under_another_configuration() {
 /// what is lost.
 #[test]
 fn a_run_whose_checkpoint_is_lost_is_not_restarted_over_its_history() {
-    let root = tmp("lost");
-    let cfg = config(&root, FAST);
-    let run = root.join("run");
-    ok(&train(&cfg, 1, 3, &run));
+    let (root, cfg, run) = trained("lost", 3);
     std::fs::remove_file(run.join("checkpoint.safetensors")).unwrap();
     let metrics = std::fs::read(run.join("metrics.csv")).unwrap();
-    let resume = || {
-        invaders(&[
-            "train",
-            "--resume",
-            s(&run),
-            "--episodes",
-            "5",
-            "--threads",
-            "1",
-        ])
-    };
+    let resume = || resume(&run, 5);
     // The replay file is still there: it is the run's, and says a checkpoint was written.
     let err = fails_with(&resume(), &["checkpoint is lost", "replay-3.safetensors"]);
     assert!(!err.contains("does not write"), "{err}");
@@ -1125,10 +989,7 @@ fn an_input_without_end_does_not_hang() {
 
     // Two signals during a run that has no checkpoint yet: the message says so (or, if the
     // first signal's checkpoint came between them, names it).
-    let cfg = config(
-        &root,
-        &FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000"),
-    );
+    let cfg = config(&root, &no_periodic_checkpoint());
     let run = root.join("run");
     let (mut child, mut lines) = spawn_train(&cfg, 3, 1_000_000, &run);
     wait_for_line(&mut lines, "ep 1 ");
@@ -1154,10 +1015,7 @@ fn an_input_without_end_does_not_hang() {
 /// Class 6: messages say what is so.
 #[test]
 fn messages_say_what_is_so() {
-    let root = tmp("messages");
-    let cfg = config(&root, FAST);
-    let run = root.join("run");
-    ok(&train(&cfg, 1, 1, &run));
+    let (root, cfg, run) = trained("messages", 1);
 
     // `export` over an existing file suggests --force, and --force works.
     let model = root.join("model.safetensors");

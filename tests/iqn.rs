@@ -6,19 +6,18 @@
 mod common;
 
 use common::cli::{
-    invaders, metrics_but_wall_time, ok, online_weights, straight_and_resumed, tmp_dir,
+    invaders, metrics_but_wall_time, ok, online_weights, straight_and_resumed, tmp_with_file,
 };
 use invaders::dqn::checkpoint;
 
 #[test]
 fn iqn_munchausen_run_resumes_exactly_and_plays() {
-    let root = tmp_dir("invaders-iqn", "resume");
-    let cfg = root.join("config.toml");
-    std::fs::write(
-        &cfg,
+    let (root, cfg) = tmp_with_file(
+        "invaders-iqn",
+        "resume",
+        "config.toml",
         "preset = \"strong\"\niqn_samples = 4\niqn_target_samples = 5\niqn_policy_samples = 3\niqn_embedding = 8\nmunchausen_alpha = 0.9\nprioritized = true\nhidden = 16\nlearning_starts = 40\nreplay_capacity = 150\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\nmax_frames = 0\nepisodes = 10\n[env]\nmax_episode_steps = 60\n",
-    )
-    .unwrap();
+    );
     let (straight, split) = straight_and_resumed(&root, &cfg, 4, 2, 4);
     let (ca, ra) = checkpoint::load_run(&straight).unwrap();
     let (cb, rb) = checkpoint::load_run(&split).unwrap();

@@ -5,10 +5,8 @@
 
 mod common;
 
-use invaders::dqn::{
-    greedy_atoms, Agent, Batch, Config, Head, Learner, Preset, FLAG_ACTED, FLAG_DONE,
-};
-use invaders::env::{Game, Pipeline, StepResult, FRAME_LEN};
+use invaders::dqn::{greedy_atoms, Agent, Batch, Config, Head, Learner, FLAG_ACTED, FLAG_DONE};
+use invaders::env::{Game, StepResult, FRAME_LEN};
 use invaders::layers::loss::LossKind;
 use invaders::layers::Sequential;
 use invaders::optim::global_grad_norm;
@@ -60,6 +58,21 @@ struct T {
     m: u32,
 }
 
+impl T {
+    /// A one-step transition, not done, from a state of sum `s` by action `a` with return `r`
+    /// to a state of sum `next`.
+    fn new(s: f32, a: usize, r: f32, next: f32) -> T {
+        T {
+            s,
+            a,
+            r,
+            next,
+            done: false,
+            m: 1,
+        }
+    }
+}
+
 /// A batch of [`INPUT`] states, each image's 16 pixels equal (`sum / 16`).
 fn batch(ts: &[T]) -> Batch {
     let mut b = Batch::new(ts.len(), INPUT);
@@ -97,38 +110,13 @@ fn td_targets_match_a_hand_computation() {
     let (wt, bt) = ([1.0, -1.0, 0.5], [0.25, 2.0, 0.0]);
     let mut l = learner(0.5, (w, b), (wt, bt));
     let ts = [
+        T::new(2.0, 0, 1.0, 1.0),
+        T::new(1.0, 2, -1.0, 4.0),
         T {
-            s: 2.0,
-            a: 0,
-            r: 1.0,
-            next: 1.0,
-            done: false,
-            m: 1,
-        },
-        T {
-            s: 1.0,
-            a: 2,
-            r: -1.0,
-            next: 4.0,
-            done: false,
-            m: 1,
-        },
-        T {
-            s: 0.5,
-            a: 1,
-            r: 0.5,
-            next: 3.0,
             done: true,
-            m: 1,
+            ..T::new(0.5, 1, 0.5, 3.0)
         },
-        T {
-            s: 3.0,
-            a: 2,
-            r: 2.0,
-            next: 0.5,
-            done: false,
-            m: 1,
-        },
+        T::new(3.0, 2, 2.0, 0.5),
     ];
     let batch = batch(&ts);
     // The construction: Q_target(s') is the hand formula's.
@@ -166,23 +154,9 @@ fn double_dqn_evaluates_the_online_argmax_with_the_target() {
     let target = ([-1.0, 1.0, 0.0], [0.0, 0.0, -3.0]);
     let ts = [
         // Σ s' = 2: Q_online = (2, −2, 0.5) → 0; Q_target = (−2, 2, −3).
-        T {
-            s: 1.0,
-            a: 1,
-            r: 1.0,
-            next: 2.0,
-            done: false,
-            m: 1,
-        },
+        T::new(1.0, 1, 1.0, 2.0),
         // Σ s' = 0.25: Q_online = (0.25, −0.25, 0.5) → 2; Q_target = (−0.25, 0.25, −3).
-        T {
-            s: 1.0,
-            a: 0,
-            r: 0.0,
-            next: 0.25,
-            done: false,
-            m: 1,
-        },
+        T::new(1.0, 0, 0.0, 0.25),
     ];
     for (double, y) in [
         (true, [1.0 + 0.5 * -2.0, 0.5 * -3.0]),
@@ -221,24 +195,7 @@ fn n_step_targets_discount_by_the_steps_taken() {
 #[test]
 fn huber_clamps_the_gradient_of_a_large_td_error() {
     // Q(s, 0) = Σ s; the target network is all zeros, so y = r.
-    let ts = [
-        T {
-            s: 10.0,
-            a: 0,
-            r: 0.0,
-            next: 1.0,
-            done: false,
-            m: 1,
-        },
-        T {
-            s: 1.0,
-            a: 1,
-            r: 1.25,
-            next: 1.0,
-            done: false,
-            m: 1,
-        },
-    ];
+    let ts = [T::new(10.0, 0, 0.0, 1.0), T::new(1.0, 1, 1.25, 1.0)];
     let online = ([1.0, 1.0, 0.0], [0.0; A]);
     for (loss, grad, value) in [
         (LossKind::Huber, [0.5, -0.125, 0.0], (9.5 + 0.03125) / 2.0),
@@ -258,24 +215,7 @@ fn huber_clamps_the_gradient_of_a_large_td_error() {
 /// when the norm exceeds `max`, untouched when it does not.
 #[test]
 fn the_learner_clips_gradients_by_global_norm() {
-    let ts = [
-        T {
-            s: 10.0,
-            a: 0,
-            r: 0.0,
-            next: 1.0,
-            done: false,
-            m: 1,
-        },
-        T {
-            s: 2.0,
-            a: 1,
-            r: 3.0,
-            next: 1.0,
-            done: false,
-            m: 1,
-        },
-    ];
+    let ts = [T::new(10.0, 0, 0.0, 1.0), T::new(2.0, 1, 3.0, 1.0)];
     let batch = batch(&ts);
     let run = |clip: Option<f32>| {
         let mut l = learner(0.5, ([1.0, 1.0, 0.0], [0.5; A]), ([0.0; A], [0.0; A]));
@@ -311,8 +251,7 @@ fn the_learner_clips_gradients_by_global_norm() {
 /// (0 meaning none), γ and Adam's ε.
 #[test]
 fn the_learner_takes_its_switches_from_the_config() {
-    let mut c = Config::preset(Preset::Article);
-    c.pipeline = Pipeline::Vanilla;
+    let mut c = common::vanilla_config();
     for (double, loss, clip) in [(true, LossKind::Huber, 2.5), (false, LossKind::Mse, 0.0)] {
         c.double_dqn = double;
         c.loss = loss;
@@ -392,8 +331,7 @@ impl Game for Scripted {
 
 /// A small single-frame configuration that never trains and acts greedily.
 fn agent_config() -> Config {
-    let mut c = Config::preset(Preset::Article);
-    c.pipeline = Pipeline::Vanilla;
+    let mut c = common::vanilla_config();
     c.replay_capacity = 64;
     c.batch_size = 2;
     c.learning_starts = 1_000_000;
@@ -633,14 +571,7 @@ fn quantile_learner(double: bool, online: [f32; 6], target: [f32; 6]) -> Learner
 fn quantile_targets_and_loss_match_a_hand_computation() {
     let online = [0.0, 2.0, 1.0, 1.0, -1.0, 5.0];
     let target = [4.0, 8.0, 0.0, 0.0, 1.0, 3.0];
-    let t = T {
-        s: 1.0,
-        a: 0,
-        r: 1.0,
-        next: 2.0,
-        done: false,
-        m: 1,
-    };
+    let t = T::new(1.0, 0, 1.0, 2.0);
     let mut l = quantile_learner(true, online, target);
     let stats = l.train_step(&batch(&[t]));
     assert_eq!(l.targets(), [1.5, 2.5]);
@@ -687,14 +618,7 @@ fn iqn_learner(double: bool, online: [f32; 3], target: [f32; 3]) -> Learner {
 /// and the soft value Σ π·(q − log π) of s' (the same values, s' = s here).
 #[test]
 fn iqn_targets_and_loss_match_a_hand_computation() {
-    let t = T {
-        s: 1.0,
-        a: 0,
-        r: 1.0,
-        next: 2.0,
-        done: false,
-        m: 1,
-    };
+    let t = T::new(1.0, 0, 1.0, 2.0);
     let with_taus = |ts: &[T]| {
         let mut b = batch(ts);
         b.taus = vec![0.1, 0.6];
@@ -782,29 +706,14 @@ fn munchausen_dqn_targets_match_a_hand_computation() {
     };
     l.munchausen = Some(m);
     let ts = [
+        T::new(2.0, 0, 1.0, 1.0),
         T {
-            s: 2.0,
-            a: 0,
-            r: 1.0,
-            next: 1.0,
-            done: false,
-            m: 1,
-        },
-        T {
-            s: 1.0,
-            a: 2,
-            r: -1.0,
-            next: 4.0,
-            done: false,
             m: 2,
+            ..T::new(1.0, 2, -1.0, 4.0)
         },
         T {
-            s: 0.5,
-            a: 1,
-            r: 0.5,
-            next: 3.0,
             done: true,
-            m: 1,
+            ..T::new(0.5, 1, 0.5, 3.0)
         },
     ];
     l.train_step(&batch(&ts));

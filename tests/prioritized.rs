@@ -5,7 +5,7 @@
 mod common;
 
 use common::cli::{
-    invaders, metrics_but_wall_time, ok, online_weights, straight_and_resumed, tmp_dir,
+    invaders, metrics_but_wall_time, ok, online_weights, straight_and_resumed, tmp_with_file,
 };
 use invaders::dqn::checkpoint;
 use invaders::dqn::{Batch, Learner, Replay, SumTree};
@@ -61,10 +61,7 @@ fn numbered_memory(alpha: f64, beta: f64) -> (Replay, [f32; 256]) {
     for i in 1..=30u8 {
         replay.push_step(0, 0.0, false, &vec![i; FRAME_LEN]);
     }
-    let mut table = [0.0f32; 256];
-    for (i, t) in table.iter_mut().enumerate() {
-        *t = i as f32;
-    }
+    let table = common::identity_table();
     (replay, table)
 }
 
@@ -139,10 +136,7 @@ fn priorities_follow_the_ring() {
     let (p, _) = replay.priorities().unwrap();
     assert_eq!(p[10 % 8], 0.0, "the newest entry");
     assert!(p.iter().enumerate().all(|(s, &v)| s == 2 || v == big));
-    let mut table = [0.0f32; 256];
-    for (i, t) in table.iter_mut().enumerate() {
-        *t = i as f32;
-    }
+    let table = common::identity_table();
     let mut batch = Batch::new(4, [88, 80, 1]);
     let mut rng = common::rng(5);
     for _ in 0..200 {
@@ -207,13 +201,12 @@ fn the_learner_weights_each_transition_loss() {
 /// quantile head).
 #[test]
 fn prioritized_run_resumes_exactly() {
-    let root = tmp_dir("invaders-per", "resume");
-    let cfg = root.join("config.toml");
-    std::fs::write(
-        &cfg,
+    let (root, cfg) = tmp_with_file(
+        "invaders-per",
+        "resume",
+        "config.toml",
         "prioritized = true\nquantiles = 4\ndueling = true\nhidden = 16\nn_step = 3\nlearning_starts = 40\nreplay_capacity = 150\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\n[env]\nmax_episode_steps = 60\n",
-    )
-    .unwrap();
+    );
     let (straight, split) = straight_and_resumed(&root, &cfg, 4, 2, 4);
     let (ca, ra) = checkpoint::load_run(&straight).unwrap();
     let (cb, rb) = checkpoint::load_run(&split).unwrap();

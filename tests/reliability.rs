@@ -5,7 +5,9 @@
 
 mod common;
 
-use common::cli::{bin, fails_with, invaders, ok, tmp_dir, train};
+use common::cli::{
+    bin, fails_with, invaders, ok, resume, resume_args, tmp_dir, train, train_command, write_file,
+};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -21,29 +23,15 @@ fn tmp(name: &str) -> PathBuf {
 /// that wraps within a few episodes, ε still mostly random so both branches run.
 const FAST: &str = "learning_starts = 40\nreplay_capacity = 300\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\n[env]\nmax_episode_steps = 60\n";
 
+/// Writes `extra` then [`FAST`] to `root/config.toml`; returns its path.
 fn write_config(root: &Path, extra: &str) -> String {
-    let p = root.join("config.toml");
-    std::fs::write(&p, format!("{extra}{FAST}")).unwrap();
+    let p = write_file(root, "config.toml", &format!("{extra}{FAST}"));
     p.to_str().unwrap().to_string()
 }
 
 /// A new run of `cfg` with seed 11 on one thread.
 fn new_run(cfg: &str, out: &Path, episodes: u64) -> Output {
     train(cfg, 11, episodes, out)
-}
-
-fn resume_args(dir: &Path, episodes: u64) -> Vec<String> {
-    [
-        "train",
-        "--resume",
-        dir.to_str().unwrap(),
-        "--threads",
-        "1",
-        "--episodes",
-        &episodes.to_string(),
-    ]
-    .map(String::from)
-    .to_vec()
 }
 
 /// metrics.csv rows without the wall-time column.
@@ -105,10 +93,7 @@ fn resumed_run_matches_uninterrupted_run_exactly() {
     ok(&new_run(&cfg, &straight, 6));
     ok(&new_run(&cfg, &split, 3));
     assert_eq!(rows(&split).len(), 3);
-    let args = resume_args(&split, 6);
-    ok(&invaders(
-        &args.iter().map(String::as_str).collect::<Vec<_>>(),
-    ));
+    ok(&resume(&split, 6));
     let (c, replay) = checkpoint::load_run(&straight).unwrap();
     assert_eq!(c.counters.episodes, 6);
     assert!(
@@ -137,10 +122,7 @@ fn resume_without_replay_starts_an_empty_memory() {
     let cfg = write_config(&root, "checkpoint_replay = false\n");
     let run = root.join("run");
     ok(&new_run(&cfg, &run, 2));
-    let args = resume_args(&run, 3);
-    ok(&invaders(
-        &args.iter().map(String::as_str).collect::<Vec<_>>(),
-    ));
+    ok(&resume(&run, 3));
     let (c, replay) = checkpoint::load_run(&run).unwrap();
     assert!(replay.is_none());
     assert_eq!(c.counters.episodes, 3);
@@ -218,24 +200,13 @@ fn sigkill_at_random_moments_never_loses_the_run() {
     let mut last_episodes = 0;
     let mut episode = None;
     for round in 0.. {
-        let mut cmd = bin();
-        if round == 0 {
-            cmd.args([
-                "train",
-                "--config",
-                &cfg,
-                "--seed",
-                "11",
-                "--threads",
-                "1",
-                "--episodes",
-                &EPISODES.to_string(),
-                "--out",
-                run.to_str().unwrap(),
-            ]);
+        let mut cmd = if round == 0 {
+            train_command(&cfg, 11, EPISODES, &run)
         } else {
-            cmd.args(resume_args(&run, EPISODES));
-        }
+            let mut c = bin();
+            c.args(resume_args(&run, EPISODES));
+            c
+        };
         let mut child = cmd
             .stdout(Stdio::null())
             .stderr(Stdio::null())
@@ -300,13 +271,13 @@ fn sigkill_at_random_moments_never_loses_the_run() {
 fn divergence_stops_the_run_and_keeps_the_last_good_checkpoint() {
     let root = tmp("nan");
     // Learning starts in episode 2 (episodes are at most 60 steps).
-    let cfg = root.join("nan.toml");
-    std::fs::write(
-        &cfg,
-        FAST.replace("learning_starts = 40", "learning_starts = 61")
+    let cfg = write_file(
+        &root,
+        "nan.toml",
+        &FAST
+            .replace("learning_starts = 40", "learning_starts = 61")
             .replace("batch_size = 8", "batch_size = 8\nlearning_rate = 1e30"),
-    )
-    .unwrap();
+    );
     let run = root.join("run");
     let out = new_run(cfg.to_str().unwrap(), &run, 5);
     let err = fails_with(
@@ -338,9 +309,8 @@ fn write_failure_keeps_the_previous_checkpoint() {
     let blocker = run.join(format!(".{CHECKPOINT_FILE}.tmp"));
     std::fs::create_dir(&blocker).unwrap();
     std::fs::write(blocker.join("x"), b"x").unwrap();
-    let args = resume_args(&run, 3);
     fails_with(
-        &invaders(&args.iter().map(String::as_str).collect::<Vec<_>>()),
+        &resume(&run, 3),
         &[
             "cannot save the checkpoint of episode 2",
             "previous version is kept",

@@ -5,17 +5,16 @@
 mod common;
 
 use common::{
-    assert_close, avx2_expected, avx512_expected, on_exactly, on_path, reference_output, rng,
-    set_params, uniform, Square,
+    abs64, assert_close, avx2_expected, avx512_expected, f64s, gamma, on_exactly, on_path,
+    padded_input, random_params, reference_forward, reference_output, rng, set_params, uniform,
+    Square,
 };
 use invaders::dqn::article_qnet;
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::{self, Kernel, Product};
 use invaders::tensor::cpu::{self, Family};
-use invaders::tensor::{
-    conv2d_reference, pad_input, Background, Border, ConvGeom, Float, Nonzeros, Padding, Tensor,
-};
+use invaders::tensor::{pad_input, Background, Border, ConvGeom, Float, Nonzeros, Padding, Tensor};
 use proptest::prelude::*;
 use rand::Rng;
 
@@ -92,10 +91,7 @@ fn conv_case<T: Float>(
         sparse::<T>(&[n, h, w, cin], zeros, &mut r)
     };
     // The same image inside its SAME padding, as a replay batch is laid out: read in place.
-    let mut xpad = Vec::new();
-    pad_input(&g, n, x.data(), &mut xpad);
-    let (hp, wp) = g.padded();
-    let xpad = Tensor::from_vec(&[n, hp, wp, cin], xpad);
+    let xpad = padded_input(&g, n, &x);
     let (y, _) = reference_output(&g, n, x.data(), wt.data(), bt.data(), b, relu);
     let (hb, wb) = b.around(g.oh, g.ow);
     layer.infer(&x);
@@ -241,8 +237,7 @@ fn background_case<T: Float>(
         uniform::<T>(&[cout], &mut r),
     );
     let x = frame::<T>(&[1, h, w, cin], share, &mut r);
-    let mut want = vec![T::zero(); g.oh * g.ow * cout];
-    conv2d_reference(&g, 1, x.data(), wt.data(), bt.data(), &mut want);
+    let want = reference_forward(&g, 1, x.data(), wt.data(), bt.data(), false);
     let mut xpad = Vec::new();
     pad_input(&g, 1, x.data(), &mut xpad);
     let differing = x
@@ -334,11 +329,7 @@ fn backward_after_infer(layer: Conv2d<f32>) {
     let mut layer = layer.with_relu();
     let g = layer.geom;
     let mut r = rng(1);
-    let (wt, bt) = (
-        uniform::<f32>(&[g.kh, g.kw, g.cin, g.cout], &mut r),
-        uniform::<f32>(&[g.cout], &mut r),
-    );
-    set_params(&mut layer, &[&wt, &bt]);
+    random_params(&mut layer, &mut r);
     let x = uniform::<f32>(&[2, g.h, g.w, g.cin], &mut r);
     layer.forward(&x);
     layer.infer(&Tensor::from_vec(
@@ -365,14 +356,6 @@ fn backward_after_background_infer_is_refused() {
     backward_after_infer(Conv2d::new("c", g).with_background_inference(true));
 }
 
-/// `γ_N = N·u/(1 − N·u)` for f32 (`u = 2⁻²⁴`): a sum of `N` rounded additions (or fused
-/// multiply-adds) is within `γ_N·Σ|terms|` of the exact sum, in any order (Higham, Accuracy and
-/// Stability of Numerical Algorithms, §3.1).
-fn gamma(n: usize) -> f64 {
-    let nu = n as f64 * f64::powi(2.0, -24);
-    nu / (1.0 - nu)
-}
-
 /// The output channel counts the sparse and background products' AVX-512 kernels take (a
 /// multiple of 16 up to 128, one register per 16: every arm of their dispatch), and two they
 /// leave to the portable loops (the AVX2 kernels take both, in columns of 64, 40 and 16
@@ -395,14 +378,6 @@ fn acting_path(cout: usize) -> cpu::Path {
     }
 }
 
-fn f64s(v: &[f32]) -> Vec<f64> {
-    v.iter().map(|&x| x as f64).collect()
-}
-
-fn abs64(v: &[f32]) -> Vec<f64> {
-    v.iter().map(|&x| x.abs() as f64).collect()
-}
-
 /// Asserts `|got − want| ≤ γ_n·bound` value by value.
 fn within(what: &str, got: &[f32], want: &[f64], bound: &[f64], n: usize) {
     assert_eq!(got.len(), want.len(), "{what}: lengths");
@@ -412,6 +387,41 @@ fn within(what: &str, got: &[f32], want: &[f64], bound: &[f64], n: usize) {
             "{what}[{i}]: {g} vs {w} (bound {b})"
         );
     }
+}
+
+/// The f64 reference convolution `conv(x, W) + b` of one f32 image.
+fn reference64(g: &ConvGeom, x: &Tensor<f32>, w: &Tensor<f32>, b: &Tensor<f32>) -> Vec<f64> {
+    reference_forward(
+        g,
+        1,
+        &f64s(x.data()),
+        &f64s(w.data()),
+        &f64s(b.data()),
+        false,
+    )
+}
+
+/// `layer.infer(x)`, asserting that it ran the sparse kernels' `path` loop and that the plan
+/// recorded the sparse kernel for `product`; if `same_bits`, also that the forward pass gives
+/// the same bits. Returns the inferred output.
+fn sparse_infer(
+    layer: &mut dyn Layer<f32>, x: &Tensor<f32>, path: cpu::Path, product: Product, what: &str,
+    same_bits: bool,
+) -> Vec<f32> {
+    let got = on_exactly(Family::Sparse, path, what, || {
+        layer.infer(x);
+        layer.output().data().to_vec()
+    });
+    assert_eq!(plan::last(product), Some(Kernel::Sparse), "{what}");
+    if same_bits {
+        layer.forward(x);
+        assert_eq!(
+            got,
+            layer.output().data(),
+            "{what}: the forward pass's bits"
+        );
+    }
+    got
 }
 
 /// The sparse product at every output channel count its dispatch knows (16 to 128 by 16: the
@@ -432,66 +442,23 @@ fn sparse_products_at_every_channel_count() {
         // A 3×3 SAME convolution of 16 channels: 1024 padded values, about 58 nonzero.
         let g = ConvGeom::new(6, 6, 16, cout, 3, 3, (1, 1), Padding::Same).unwrap();
         let mut conv = Conv2d::<f32>::new("c", g).with_sparse_inference(true);
-        let (w, b) = (
-            uniform::<f32>(&[3, 3, 16, cout], &mut r),
-            uniform::<f32>(&[cout], &mut r),
-        );
-        set_params(&mut conv, &[&w, &b]);
+        let (w, b) = random_params(&mut conv, &mut r);
         let x = sparse::<f32>(&[1, 6, 6, 16], 0.9, &mut r);
         let what = format!("conv, {cout} channels");
-        let got = on_exactly(Family::Sparse, path, &what, || {
-            conv.infer(&x);
-            conv.output().data().to_vec()
-        });
-        assert_eq!(
-            plan::last(Product::ConvInfer),
-            Some(Kernel::Sparse),
-            "{what}"
-        );
-        if path != cpu::Path::Portable {
-            conv.forward(&x);
-            assert_eq!(got, conv.output().data(), "{what}: the forward pass's bits");
-        }
-        let mut want = vec![0.0; g.oh * g.ow * cout];
-        conv2d_reference(
-            &g,
-            1,
-            &f64s(x.data()),
-            &f64s(w.data()),
-            &f64s(b.data()),
-            &mut want,
-        );
-        let mut bound = vec![0.0; want.len()];
+        let same_bits = path != cpu::Path::Portable;
+        let got = sparse_infer(&mut conv, &x, path, Product::ConvInfer, &what, same_bits);
+        let want = reference64(&g, &x, &w, &b);
         let (xa, wa, ba) = (abs64(x.data()), abs64(w.data()), abs64(b.data()));
-        conv2d_reference(&g, 1, &xa, &wa, &ba, &mut bound);
+        let bound = reference_forward(&g, 1, &xa, &wa, &ba, false);
         within(&what, &got, &want, &bound, g.patch_len() + 1);
 
         // dense1's shape, small: 200 inputs, half of them zero.
         let mut dense = Dense::<f32>::new("d", 200, cout).with_sparse_inference(true);
-        let (w, b) = (
-            uniform::<f32>(&[200, cout], &mut r),
-            uniform::<f32>(&[cout], &mut r),
-        );
-        set_params(&mut dense, &[&w, &b]);
+        let (w, b) = random_params(&mut dense, &mut r);
         let x = sparse::<f32>(&[1, 200], 0.5, &mut r);
         let what = format!("dense, {cout} outputs");
-        let got = on_exactly(Family::Sparse, path, &what, || {
-            dense.infer(&x);
-            dense.output().data().to_vec()
-        });
-        assert_eq!(
-            plan::last(Product::DenseInfer),
-            Some(Kernel::Sparse),
-            "{what}"
-        );
-        if path == cpu::Path::Avx512 {
-            dense.forward(&x);
-            assert_eq!(
-                got,
-                dense.output().data(),
-                "{what}: the forward pass's bits"
-            );
-        }
+        let same_bits = path == cpu::Path::Avx512;
+        let got = sparse_infer(&mut dense, &x, path, Product::DenseInfer, &what, same_bits);
         let (want, bound): (Vec<f64>, Vec<f64>) = (0..cout)
             .map(|j| {
                 (0..200).fold(
@@ -521,11 +488,7 @@ fn background_products_at_every_channel_count() {
     for cout in COUTS {
         let g = ConvGeom::new(16, 16, 4, cout, 8, 8, (4, 4), Padding::Same).unwrap();
         let mut conv = Conv2d::<f32>::new("c1", g).with_background_inference(true);
-        let (w, b) = (
-            uniform::<f32>(&[8, 8, 4, cout], &mut r),
-            uniform::<f32>(&[cout], &mut r),
-        );
-        set_params(&mut conv, &[&w, &b]);
+        let (w, b) = random_params(&mut conv, &mut r);
         let x = frame::<f32>(&[1, 16, 16, 4], 0.95, &mut r);
         let what = format!("background, {cout} channels");
         let got = on_path(Family::BackgroundSplit, avx512_expected(), &what, || {
@@ -539,15 +502,7 @@ fn background_products_at_every_channel_count() {
             Some(Kernel::Background),
             "{what}"
         );
-        let mut want = vec![0.0; g.oh * g.ow * cout];
-        conv2d_reference(
-            &g,
-            1,
-            &f64s(x.data()),
-            &f64s(w.data()),
-            &f64s(b.data()),
-            &mut want,
-        );
+        let want = reference64(&g, &x, &w, &b);
         let beta = abs64(&x.data()[..4]);
         let xa: Vec<f64> = x
             .data()
@@ -555,8 +510,7 @@ fn background_products_at_every_channel_count() {
             .enumerate()
             .map(|(i, v)| v.abs() as f64 + 2.0 * beta[i % 4])
             .collect();
-        let mut bound = vec![0.0; want.len()];
-        conv2d_reference(&g, 1, &xa, &abs64(w.data()), &abs64(b.data()), &mut bound);
+        let bound = reference_forward(&g, 1, &xa, &abs64(w.data()), &abs64(b.data()), false);
         within(&what, &got, &want, &bound, 2 * g.patch_len() + 8 + 8 + 2);
     }
 }

@@ -7,7 +7,7 @@ mod common;
 use std::path::Path;
 use std::process::Stdio;
 
-use common::cli::{bin, invaders, ok, tmp_dir};
+use common::cli::{invaders, ok, resume, tmp_with_file, train, train_command};
 use invaders::dqn::tensorboard::{event_files, read_scalars};
 
 const FAST: &str = "learning_starts = 30\nreplay_capacity = 300\nbatch_size = 8\ncheckpoint_every = 2\nplot_every = 1000\n[env]\nmax_episode_steps = 50\n";
@@ -69,43 +69,17 @@ fn events_match_metrics(dir: &Path) {
 
 #[test]
 fn event_files_agree_with_metrics_after_a_kill_and_a_resume() {
-    let root = tmp_dir("invaders-tb", "events");
-    let cfg = root.join("fast.toml");
-    std::fs::write(&cfg, FAST).unwrap();
-    let train = |dir: &Path, episodes: &str| {
-        invaders(&[
-            "train",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--seed",
-            "3",
-            "--threads",
-            "1",
-            "--episodes",
-            episodes,
-            "--out",
-            dir.to_str().unwrap(),
-        ])
-    };
+    let (root, cfg) = tmp_with_file("invaders-tb", "events", "fast.toml", FAST);
+    let cfg = cfg.to_str().unwrap();
     // A fresh run.
     let fresh = root.join("fresh");
-    ok(&train(&fresh, "5"));
+    ok(&train(cfg, 3, 5, &fresh));
     assert_eq!(event_files(&fresh).unwrap().len(), 1);
     events_match_metrics(&fresh);
 
     // Killed after its checkpoint of episode 2 while it plays on, then resumed to 6 episodes.
     let killed = root.join("killed");
-    let mut child = bin()
-        .args([
-            "train",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--seed",
-            "3",
-            "--threads",
-            "1",
-        ])
-        .args(["--episodes", "1000", "--out", killed.to_str().unwrap()])
+    let mut child = train_command(cfg, 3, 1000, &killed)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -119,15 +93,7 @@ fn event_files_agree_with_metrics_after_a_kill_and_a_resume() {
     child.kill().unwrap();
     child.wait().unwrap();
     let before = read_scalars(&killed).unwrap();
-    ok(&invaders(&[
-        "train",
-        "--resume",
-        killed.to_str().unwrap(),
-        "--episodes",
-        "6",
-        "--threads",
-        "1",
-    ]));
+    ok(&resume(&killed, 6));
     assert_eq!(
         event_files(&killed).unwrap().len(),
         2,

@@ -1,6 +1,6 @@
 //! Running the `invaders` binary from a test, and asserting on what it says.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// The binary, without a backtrace setting inherited from the test's environment.
@@ -52,22 +52,65 @@ pub fn tmp_dir(prefix: &str, name: &str) -> PathBuf {
     d
 }
 
-/// `invaders train --config cfg --seed seed --threads 1 --episodes episodes --out out`.
+/// Writes `text` to the file `file` in `dir`; returns its path.
 #[allow(dead_code)]
-pub fn train(cfg: &str, seed: u64, episodes: u64, out: &std::path::Path) -> Output {
-    invaders(&[
+pub fn write_file(dir: &Path, file: &str, text: &str) -> PathBuf {
+    let path = dir.join(file);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// A new temporary directory ([`tmp_dir`]) holding the file `file` with `text`; returns the
+/// directory and the file's path.
+#[allow(dead_code)]
+pub fn tmp_with_file(prefix: &str, name: &str, file: &str, text: &str) -> (PathBuf, PathBuf) {
+    let dir = tmp_dir(prefix, name);
+    let path = write_file(&dir, file, text);
+    (dir, path)
+}
+
+/// The command `invaders train --config cfg --seed seed --threads 1 --episodes episodes --out
+/// out`, not started.
+#[allow(dead_code)]
+pub fn train_command(cfg: &str, seed: u64, episodes: u64, out: &Path) -> Command {
+    let mut c = bin();
+    c.args(["train", "--config", cfg, "--seed", &seed.to_string()])
+        .args(["--threads", "1", "--episodes", &episodes.to_string()])
+        .args(["--out", out.to_str().unwrap()]);
+    c
+}
+
+/// Runs [`train_command`] to completion.
+#[allow(dead_code)]
+pub fn train(cfg: &str, seed: u64, episodes: u64, out: &Path) -> Output {
+    train_command(cfg, seed, episodes, out)
+        .output()
+        .expect("the binary runs")
+}
+
+/// `invaders train --resume dir --threads 1 --episodes episodes`, as arguments.
+#[allow(dead_code)]
+pub fn resume_args(dir: &Path, episodes: u64) -> Vec<String> {
+    [
         "train",
-        "--config",
-        cfg,
-        "--seed",
-        &seed.to_string(),
+        "--resume",
+        dir.to_str().unwrap(),
         "--threads",
         "1",
         "--episodes",
         &episodes.to_string(),
-        "--out",
-        out.to_str().unwrap(),
-    ])
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
+/// Runs `invaders train --resume dir --threads 1 --episodes episodes` to completion.
+#[allow(dead_code)]
+pub fn resume(dir: &Path, episodes: u64) -> Output {
+    bin()
+        .args(resume_args(dir, episodes))
+        .output()
+        .expect("the binary runs")
 }
 
 /// Trains `config` (a TOML file) with `seed` on one thread twice in `root`: `straight` to
@@ -82,15 +125,7 @@ pub fn straight_and_resumed(
     let (straight, split) = (root.join("straight"), root.join("split"));
     run(&straight, total);
     run(&split, stop);
-    ok(&invaders(&[
-        "train",
-        "--resume",
-        split.to_str().unwrap(),
-        "--threads",
-        "1",
-        "--episodes",
-        &total.to_string(),
-    ]));
+    ok(&resume(&split, total));
     (straight, split)
 }
 

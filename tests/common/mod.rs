@@ -5,7 +5,10 @@ pub mod cli;
 
 use invaders::layers::Layer;
 use invaders::tensor::cpu::{self, Family};
-use invaders::tensor::{conv2d_reference, Border, ConvGeom, Float, Padding, Tensor};
+use invaders::tensor::{
+    conv2d_reference, conv2d_reference_backward, pad_input, Border, ConvGeom, Float, Padding,
+    Tensor,
+};
 use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -323,6 +326,122 @@ impl Square {
     }
 }
 
+/// The reference convolution's output `act(conv(x, W) + b)` (`act` the ReLU if `relu`) for a
+/// batch of `n`.
+pub fn reference_forward<T: Float>(
+    g: &ConvGeom, n: usize, x: &[T], w: &[T], b: &[T], relu: bool,
+) -> Vec<T> {
+    let mut y = vec![T::zero(); n * g.oh * g.ow * g.cout];
+    conv2d_reference(g, n, x, w, b, &mut y);
+    if relu {
+        y.iter_mut().for_each(|v| *v = v.max(T::zero()));
+    }
+    y
+}
+
+/// The reference convolution's gradients `(dX, dW, db)` for `dY` (or `dZ`, past a ReLU) over a
+/// batch of `n`.
+pub fn reference_grads<T: Float>(
+    g: &ConvGeom, n: usize, x: &[T], w: &[T], dy: &[T],
+) -> (Vec<T>, Vec<T>, Vec<T>) {
+    let (mut dx, mut dw, mut db) = (
+        vec![T::zero(); x.len()],
+        vec![T::zero(); w.len()],
+        vec![T::zero(); g.cout],
+    );
+    conv2d_reference_backward(g, n, x, w, dy, &mut dx, &mut dw, &mut db);
+    (dx, dw, db)
+}
+
+/// `x` (`n` images of `g`'s input) inside its SAME padding, as one `[n, HP, WP, Cin]` tensor.
+pub fn padded_input<T: Float>(g: &ConvGeom, n: usize, x: &Tensor<T>) -> Tensor<T> {
+    let (hp, wp) = g.padded();
+    let mut xp = Vec::new();
+    pad_input(g, n, x.data(), &mut xp);
+    Tensor::from_vec(&[n, hp, wp, g.cin], xp)
+}
+
+/// Sets a two-parameter layer's weight and bias to uniform values drawn from `r` (in that
+/// order, at the layer's own shapes); returns them.
+pub fn random_params<T: Float>(
+    layer: &mut dyn Layer<T>, r: &mut impl Rng,
+) -> (Tensor<T>, Tensor<T>) {
+    let shapes: Vec<Vec<usize>> = layer
+        .params()
+        .iter()
+        .map(|p| p.value.shape().to_vec())
+        .collect();
+    assert_eq!(shapes.len(), 2, "a weight and a bias");
+    let (w, b) = (uniform(&shapes[0], r), uniform(&shapes[1], r));
+    set_params(layer, &[&w, &b]);
+    (w, b)
+}
+
+/// Runs `layer` forward on `x` and backward with `dy`, and appends its output, input gradient
+/// and weight gradient to `out`.
+pub fn forward_backward_into(
+    layer: &mut dyn Layer<f32>, x: &Tensor<f32>, dy: &Tensor<f32>, out: &mut Vec<f32>,
+) {
+    layer.forward(x);
+    layer.backward(x, dy, true);
+    out.extend_from_slice(layer.output().data());
+    out.extend_from_slice(layer.input_grad().data());
+    out.extend_from_slice(layer.params()[0].grad.data());
+}
+
+/// Asserts that `run` gives the same result on rayon pools of 1, 2 and 3 threads.
+pub fn same_on_1_2_3_threads<R: PartialEq + std::fmt::Debug + Send>(run: impl Fn() -> R + Sync) {
+    let on = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(&run)
+    };
+    let one = on(1);
+    assert_eq!(one, on(2));
+    assert_eq!(one, on(3));
+}
+
+/// The values as f64.
+pub fn f64s(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x)).collect()
+}
+
+/// The absolute values as f64.
+pub fn abs64(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| f64::from(x).abs()).collect()
+}
+
+/// `γ_N = N·u/(1 − N·u)` for f32 (`u = 2⁻²⁴`): a sum of `N` rounded additions (or fused
+/// multiply-adds) is within `γ_N·Σ|terms|` of the exact sum, in any order (Higham, Accuracy and
+/// Stability of Numerical Algorithms, §3.1).
+pub fn gamma(n: usize) -> f64 {
+    let nu = n as f64 * f64::powi(2.0, -24);
+    nu / (1.0 - nu)
+}
+
+/// The article's preset on the vanilla pipeline (one frame a state, no stacking), the base of
+/// the small hand-checked agents.
+pub fn vanilla_config() -> invaders::dqn::Config {
+    let mut c = invaders::dqn::Config::preset(invaders::dqn::Preset::Article);
+    c.pipeline = invaders::env::Pipeline::Vanilla;
+    c
+}
+
+/// The article's three convolutions: `(h, w, cin, cout, k, s)`, each a `k × k` filter of
+/// stride `s`, SAME.
+pub const ARTICLE_CONVS: [(usize, usize, usize, usize, usize, usize); 3] = [
+    (88, 80, 4, 32, 8, 4),
+    (22, 20, 32, 64, 4, 2),
+    (11, 10, 64, 64, 3, 1),
+];
+
+/// The 256-entry table that maps each byte to its own value, for `Replay::sample`.
+pub fn identity_table() -> [f32; 256] {
+    std::array::from_fn(|i| i as f32)
+}
+
 /// The reference convolution's bordered output `border(act(conv(x, W) + b))` (`act` the ReLU
 /// if `relu`) for a batch of `n`, and where each output pixel starts in it.
 #[allow(clippy::too_many_arguments)]
@@ -330,8 +449,7 @@ pub fn reference_output<T: Float>(
     g: &ConvGeom, n: usize, x: &[T], w: &[T], b: &[T], border: Border, relu: bool,
 ) -> (Vec<T>, Vec<usize>) {
     let c = g.cout;
-    let mut z = vec![T::zero(); n * g.oh * g.ow * c];
-    conv2d_reference(g, n, x, w, b, &mut z);
+    let z = reference_forward(g, n, x, w, b, false);
     let (hb, wb) = border.around(g.oh, g.ow);
     let mut at = Vec::new();
     border.interior_offsets(n, g.oh, g.ow, c, &mut at);
