@@ -110,17 +110,17 @@ impl<T: Float> Conv2d<T> {
 
     /// Lets the plan run the training products by Winograd's minimal filtering
     /// ([`crate::tensor::winograd_conv`]) where the filter shape has one
-    /// ([`plan::winograd_kind`]: 3×3 stride 1, or `2s × 2s` stride `s`) and the batch is large
-    /// enough ([`plan::WINOGRAD_MIN_BATCH`]); see [`plan::conv`] for which products and what
+    /// ([`plan::winograd_kind`](crate::ops::plan::winograd_kind): 3×3 stride 1, or `2s × 2s` stride `s`) and the batch is large
+    /// enough ([`plan::WINOGRAD_MIN_BATCH`](crate::ops::plan::WINOGRAD_MIN_BATCH)); see [`plan::conv`](crate::ops::plan::conv) for which products and what
     /// it measured. The same sums, rounded differently. Off by default;
-    /// [`crate::dqn::article_qnet`] turns it on where [`plan::winograd_pays`] (conv2, conv3).
+    /// [`crate::dqn::article_qnet`] turns it on where [`plan::winograd_pays`](crate::ops::plan::winograd_pays) (conv2, conv3).
     pub fn with_winograd(mut self, on: bool) -> Self {
         self.winograd = on;
         self
     }
 
     /// Acts ([`Layer::infer`]) by a product over the input's nonzero values only
-    /// ([`crate::tensor::SparseConv`]) when few are nonzero ([`plan::sparse_share`]): for a layer
+    /// ([`crate::tensor::SparseConv`]) when few are nonzero ([`plan::sparse_share`](crate::ops::plan::sparse_share)): for a layer
     /// whose input is a ReLU's output, which in a trained network is mostly exact zeros. Off by
     /// default; [`crate::dqn::article_qnet`] turns it on for conv2 and conv3.
     pub fn with_sparse_inference(mut self, on: bool) -> Self {
@@ -132,7 +132,7 @@ impl<T: Float> Conv2d<T> {
     /// and its difference from it, which on game frames is mostly zeros
     /// ([`crate::tensor::Background`]): the background's response costs no pass over the image
     /// and the difference's is summed over its pixels that differ. For a layer that reads
-    /// frames; if too many pixels differ ([`plan::BACKGROUND_MAX_DIFFERING`]), the dense
+    /// frames; if too many pixels differ ([`plan::BACKGROUND_MAX_DIFFERING`](crate::ops::plan::BACKGROUND_MAX_DIFFERING)), the dense
     /// product. Off by default; [`crate::dqn::article_qnet`] turns it on for conv1.
     pub fn with_background_inference(mut self, on: bool) -> Self {
         self.background = on;

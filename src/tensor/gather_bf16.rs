@@ -22,7 +22,7 @@
 //! data without subnormals the AVX512-BF16 kernel matches it bit for bit, and every element of
 //! `C` is summed in the order `u = 0, 1, …` whatever the tiling and the thread count.
 //! The layers never run the portable loop for speed: without AVX512-BF16 the plan keeps f32
-//! ([`super::plan`]).
+//! ([`crate::ops::plan`]).
 
 use super::bf16::{from_bf16, to_bf16};
 use super::cpu::{avx512_twin, took, Family};
