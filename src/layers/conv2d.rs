@@ -20,8 +20,8 @@ use crate::tensor::{Border, ConvGeom, Float, Tensor};
 /// product whose result is already the NHWC output. The gradients are two more products:
 /// `dW += colsᵀ·dZ` and `dX = col2im(dZ·Wᵀ)` ([`Layer::backward`]).
 ///
-/// The same products may run by other kernels, chosen by [`crate::ops::plan::conv`] (f32 on
-/// AVX-512: gather GEMMs that write no im2col matrix; Winograd's minimal filtering,
+/// The same products may run by other kernels, chosen by [`crate::ops::plan::conv`] (f32 with
+/// AVX-512 or AVX2: gather GEMMs that write no im2col matrix; Winograd's minimal filtering,
 /// [`Conv2d::with_winograd`]), and acting by sparse ones ([`Conv2d::with_sparse_inference`],
 /// [`Conv2d::with_background_inference`]).
 ///
