@@ -153,6 +153,8 @@ impl<T: Float> Conv2d<T> {
             border: self.border,
             in_border: self.in_border,
             winograd: self.winograd,
+            sparse: self.sparse,
+            background: self.background,
             precision: self.precision,
         }
     }
@@ -185,8 +187,7 @@ impl<T: Float> Layer<T> for Conv2d<T> {
     fn infer(&mut self, x: &Tensor<T>) {
         let [w, b] = &self.params;
         let (w, b) = (w.value.data(), b.value.data());
-        let (s, bg, sparse) = (self.spec(), self.background, self.sparse);
-        self.ops.infer(&s, bg, sparse, x, w, b, &mut self.y);
+        self.ops.infer(&self.spec(), x, w, b, &mut self.y);
     }
 
     fn output(&self) -> &Tensor<T> {

@@ -88,7 +88,6 @@ impl<T: Float> DenseOps<T> {
     /// only the weight rows of nonzero inputs, at batch 1 always, for a batch if at most a tenth
     /// of the inputs are nonzero ([`plan::dense_sparse_share`]); otherwise
     /// [`DenseOps::forward`].
-    #[allow(clippy::too_many_arguments)]
     pub fn infer(
         &mut self, precision: Precision, sparse: bool, x: &Tensor<T>, w: &[T], b: &[T], y: &mut [T],
     ) {

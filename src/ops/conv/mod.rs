@@ -29,6 +29,10 @@ pub struct ConvSpec {
     pub in_border: Border,
     /// Whether the plan may run the training products by Winograd's minimal filtering.
     pub winograd: bool,
+    /// Whether acting may take the sum over the input's nonzero values only.
+    pub sparse: bool,
+    /// Whether acting on one image may split it into a background and its difference.
+    pub background: bool,
     /// The training products' arithmetic.
     pub precision: Precision,
 }
@@ -131,22 +135,18 @@ impl<T: Float> ConvOps<T> {
         self.zero_border(&s, n, y);
     }
 
-    /// The forward pass for acting: with `background`, one image of which few pixels differ
+    /// The forward pass for acting: with `s.background`, one image of which few pixels differ
     /// from the background, as its response plus the difference's
-    /// ([`crate::tensor::Background`]); with `sparse`, an input of which few values are nonzero,
+    /// ([`crate::tensor::Background`]); with `s.sparse`, an input of which few values are nonzero,
     /// as the sum over those only ([`crate::tensor::SparseConv`]); otherwise
     /// [`ConvOps::forward`]. The shares are the plan's ([`plan::BACKGROUND_MAX_DIFFERING`],
     /// [`plan::sparse_share`]).
-    #[allow(clippy::too_many_arguments)]
-    pub fn infer(
-        &mut self, s: &ConvSpec, background: bool, sparse: bool, x: &Tensor<T>, w: &[T], b: &[T],
-        y: &mut Tensor<T>,
-    ) {
-        if plan::background(background, x.batch()) && self.infer_background(s, x, w, b, y) {
+    pub fn infer(&mut self, s: &ConvSpec, x: &Tensor<T>, w: &[T], b: &[T], y: &mut Tensor<T>) {
+        if plan::background(s.background, x.batch()) && self.infer_background(s, x, w, b, y) {
             plan::ran(Product::ConvInfer, Kernel::Background);
             return;
         }
-        if sparse && self.infer_sparse(&s.for_input(x), x, w, b, y) {
+        if s.sparse && self.infer_sparse(&s.for_input(x), x, w, b, y) {
             plan::ran(Product::ConvInfer, Kernel::Sparse);
             return;
         }
