@@ -7,7 +7,7 @@
 //! and CPU (im2col + GEMM, the reference; gather GEMMs, Winograd, the sparse and background
 //! products for acting).
 
-use super::{Layer, Param};
+use super::{Core, Layer, Param};
 use crate::ops::{ConvOps, ConvSpec, Precision};
 use crate::tensor::{Border, ConvGeom, Float, Tensor};
 
@@ -29,7 +29,8 @@ use crate::tensor::{Border, ConvGeom, Float, Tensor};
 /// padding would otherwise do, each a pass over the whole activation: at batch 48 that is about
 /// 11 MB of memory traffic per forward pass of the article's network.
 pub struct Conv2d<T> {
-    name: String,
+    /// The name, output `y` and input gradient `dX` ([`Core`]).
+    core: Core<T>,
     /// The geometry (input and output sizes, strides, padding).
     pub geom: ConvGeom,
     /// `[weight [KH, KW, Cin, Cout], bias [Cout]]` with their gradients.
@@ -46,8 +47,6 @@ pub struct Conv2d<T> {
     background: bool,
     /// The training products' arithmetic ([`Layer::set_precision`]).
     precision: Precision,
-    y: Tensor<T>,
-    dx: Tensor<T>,
     /// `[N·OH·OW, Cout]`: `dZ`, the gradient with respect to the product before the ReLU and
     /// the border (when there is either; else `dZ` is `dY`).
     dz: Vec<T>,
@@ -60,7 +59,7 @@ impl<T: Float> Conv2d<T> {
     pub fn new(name: &str, geom: ConvGeom) -> Self {
         let wshape = [geom.kh, geom.kw, geom.cin, geom.cout];
         Conv2d {
-            name: name.to_string(),
+            core: Core::new(name),
             geom,
             params: [
                 Param::zeros(format!("{name}.weight"), &wshape),
@@ -73,8 +72,6 @@ impl<T: Float> Conv2d<T> {
             sparse: false,
             background: false,
             precision: Precision::F32,
-            y: Tensor::empty(),
-            dx: Tensor::empty(),
             dz: Vec::new(),
             ops: ConvOps::new(name),
         }
@@ -91,7 +88,7 @@ impl<T: Float> Conv2d<T> {
     /// that arrives for border places is ignored: they are constants.
     pub fn with_border(mut self, border: Border) -> Self {
         self.border = border;
-        self.ops = ConvOps::new(&self.name);
+        self.ops = ConvOps::new(&self.core.name);
         self
     }
 
@@ -101,10 +98,10 @@ impl<T: Float> Conv2d<T> {
         assert!(
             border.top + border.bottom < self.geom.h && border.left + border.right < self.geom.w,
             "{}: input border larger than the input",
-            self.name
+            self.core.name
         );
         self.in_border = border;
-        self.ops = ConvOps::new(&self.name);
+        self.ops = ConvOps::new(&self.core.name);
         self
     }
 
@@ -161,8 +158,8 @@ impl<T: Float> Conv2d<T> {
 }
 
 impl<T: Float> Layer<T> for Conv2d<T> {
-    fn name(&self) -> &str {
-        &self.name
+    fn core(&self) -> &Core<T> {
+        &self.core
     }
 
     fn output_shape(&self) -> Vec<usize> {
@@ -176,7 +173,7 @@ impl<T: Float> Layer<T> for Conv2d<T> {
     fn forward(&mut self, x: &Tensor<T>) {
         let [w, b] = &self.params;
         let (w, b) = (w.value.data(), b.value.data());
-        self.ops.forward(&self.spec(), x, w, b, &mut self.y);
+        self.ops.forward(&self.spec(), x, w, b, &mut self.core.y);
     }
 
     /// The same `y`, for acting: with [`Conv2d::with_background_inference`] one image as a
@@ -187,11 +184,7 @@ impl<T: Float> Layer<T> for Conv2d<T> {
     fn infer(&mut self, x: &Tensor<T>) {
         let [w, b] = &self.params;
         let (w, b) = (w.value.data(), b.value.data());
-        self.ops.infer(&self.spec(), x, w, b, &mut self.y);
-    }
-
-    fn output(&self) -> &Tensor<T> {
-        &self.y
+        self.ops.infer(&self.spec(), x, w, b, &mut self.core.y);
     }
 
     /// With `Z = cols·W + b` (`M = N·OH·OW` rows, `K = KH·KW·Cin`) and `dZ` the interior of `dY`
@@ -211,11 +204,16 @@ impl<T: Float> Layer<T> for Conv2d<T> {
             dy.shape(),
             s.out_shape(n),
             "{}: upstream gradient",
-            self.name
+            self.core.name
         );
-        assert_eq!(x.shape()[1..], [g.h, g.w, g.cin], "{}: input", self.name);
+        assert_eq!(
+            x.shape()[1..],
+            [g.h, g.w, g.cin],
+            "{}: input",
+            self.core.name
+        );
         // dZ = dY ⊙ [y > 0] over the interior (or dY itself, without a ReLU and a border).
-        let own = self.ops.relu_grad(&s, dy, &self.y, &mut self.dz);
+        let own = self.ops.relu_grad(&s, dy, &self.core.y, &mut self.dz);
         let dz = if own { &self.dz[..] } else { dy.data() };
         let [w, b] = &mut self.params;
         // db += Σ_rows dZ
@@ -229,12 +227,9 @@ impl<T: Float> Layer<T> for Conv2d<T> {
         self.ops.weight_grad(&s, x, dz, w.grad.data_mut());
         // dX = col2im(dZ·Wᵀ)
         if need_dx {
-            self.ops.input_grad(&s, x, dz, w.value.data(), &mut self.dx);
+            self.ops
+                .input_grad(&s, x, dz, w.value.data(), &mut self.core.dx);
         }
-    }
-
-    fn input_grad(&self) -> &Tensor<T> {
-        &self.dx
     }
 
     fn params(&self) -> &[Param<T>] {

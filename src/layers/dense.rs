@@ -1,6 +1,6 @@
 //! Fully connected layer.
 
-use super::{Layer, Param};
+use super::{Core, Layer, Param};
 use crate::ops::{DenseOps, Precision};
 use crate::tensor::{Float, Tensor};
 
@@ -11,13 +11,12 @@ use crate::tensor::{Float, Tensor};
 /// flatten costs no copy. Each product is one call to [`DenseOps`], which runs it by the kernel
 /// [`crate::ops::plan::dense`] picks.
 pub struct Dense<T> {
-    name: String,
+    /// The name, output `y` and input gradient `dX` ([`Core`]).
+    core: Core<T>,
     n_in: usize,
     n_out: usize,
     /// `[weight [In, Out], bias [Out]]` with their gradients.
     pub params: [Param<T>; 2],
-    y: Tensor<T>,
-    dx: Tensor<T>,
     /// Whether acting may take the sum over the input's nonzeros ([`Dense::with_sparse_inference`]).
     sparse: bool,
     /// The training products' arithmetic ([`Layer::set_precision`]).
@@ -37,15 +36,13 @@ impl<T: Float> Dense<T> {
             "{name}: a dense layer needs inputs and outputs ({n_in} → {n_out})"
         );
         Dense {
-            name: name.to_string(),
+            core: Core::new(name),
             n_in,
             n_out,
             params: [
                 Param::zeros(format!("{name}.weight"), &[n_in, n_out]),
                 Param::zeros(format!("{name}.bias"), &[n_out]),
             ],
-            y: Tensor::empty(),
-            dx: Tensor::empty(),
             sparse: false,
             precision: Precision::F32,
             ops: DenseOps::default(),
@@ -68,15 +65,15 @@ impl<T: Float> Dense<T> {
             x.shape()[1..].iter().product::<usize>(),
             self.n_in,
             "{}: input shape",
-            self.name
+            self.core.name
         );
-        self.y.set_shape(&[x.batch(), self.n_out]);
+        self.core.y.set_shape(&[x.batch(), self.n_out]);
     }
 }
 
 impl<T: Float> Layer<T> for Dense<T> {
-    fn name(&self) -> &str {
-        &self.name
+    fn core(&self) -> &Core<T> {
+        &self.core
     }
 
     fn output_shape(&self) -> Vec<usize> {
@@ -88,7 +85,8 @@ impl<T: Float> Layer<T> for Dense<T> {
         self.check_input(x);
         let [w, b] = &self.params;
         let (w, b) = (w.value.data(), b.value.data());
-        self.ops.forward(self.precision, x, w, b, self.y.data_mut());
+        self.ops
+            .forward(self.precision, x, w, b, self.core.y.data_mut());
     }
 
     /// The same `y` for acting: with [`Dense::with_sparse_inference`], the sum over nonzero
@@ -97,12 +95,8 @@ impl<T: Float> Layer<T> for Dense<T> {
         self.check_input(x);
         let [w, b] = &self.params;
         let (w, b) = (w.value.data(), b.value.data());
-        let y = self.y.data_mut();
+        let y = self.core.y.data_mut();
         self.ops.infer(self.precision, self.sparse, x, w, b, y);
-    }
-
-    fn output(&self) -> &Tensor<T> {
-        &self.y
     }
 
     /// Differentiating `y[n, j] = b[j] + Σ_i x[n, i]·W[i, j]`:
@@ -115,7 +109,7 @@ impl<T: Float> Layer<T> for Dense<T> {
             dy.shape(),
             [n, self.n_out],
             "{}: upstream gradient",
-            self.name
+            self.core.name
         );
         let [w, b] = &mut self.params;
         self.ops
@@ -127,15 +121,11 @@ impl<T: Float> Layer<T> for Dense<T> {
             }
         }
         if need_dx {
-            self.dx.set_shape(x.shape());
-            let dx = self.dx.data_mut();
+            self.core.dx.set_shape(x.shape());
+            let dx = self.core.dx.data_mut();
             self.ops
                 .input_grad(self.precision, x, dy.data(), w.value.data(), dx);
         }
-    }
-
-    fn input_grad(&self) -> &Tensor<T> {
-        &self.dx
     }
 
     fn params(&self) -> &[Param<T>] {

@@ -1,6 +1,6 @@
 //! The dueling head (Wang et al. 2016): Q-values from a state value and action advantages.
 
-use super::Layer;
+use super::{Core, Layer};
 use crate::tensor::{Float, Tensor};
 
 /// Combines a state value `V(s)` and advantages `A(s, a)` into Q-values, mean-subtracted:
@@ -28,11 +28,10 @@ use crate::tensor::{Float, Tensor};
 /// is done atom by atom: `x [N, (1 + A)·K]` holds the value's `K` atoms, then each action's,
 /// and `y [N, A·K]` holds `Q_{a,k} = V_k + A_{a,k} − (1/A)·Σ_b A_{b,k}`.
 pub struct Dueling<T> {
-    name: String,
+    /// The name, output `y` and input gradient `dX` ([`Core`]).
+    core: Core<T>,
     actions: usize,
     atoms: usize,
-    y: Tensor<T>,
-    dx: Tensor<T>,
 }
 
 impl<T: Float> Dueling<T> {
@@ -47,18 +46,16 @@ impl<T: Float> Dueling<T> {
         assert!(actions > 0, "a dueling head needs at least one action");
         assert!(atoms > 0, "a dueling head needs at least one atom");
         Dueling {
-            name: name.to_string(),
+            core: Core::new(name),
             actions,
             atoms,
-            y: Tensor::empty(),
-            dx: Tensor::empty(),
         }
     }
 }
 
 impl<T: Float> Layer<T> for Dueling<T> {
-    fn name(&self) -> &str {
-        &self.name
+    fn core(&self) -> &Core<T> {
+        &self.core
     }
 
     fn output_shape(&self) -> Vec<usize> {
@@ -74,9 +71,10 @@ impl<T: Float> Layer<T> for Dueling<T> {
             n * (a + 1) * k,
             "dueling head: input is not [N, (1 + A)·K]"
         );
-        self.y.set_shape(&[n, a * k]);
+        self.core.y.set_shape(&[n, a * k]);
         let inv = T::one() / T::of(a as f64);
         for (y, x) in self
+            .core
             .y
             .data_mut()
             .chunks_exact_mut(a * k)
@@ -92,10 +90,6 @@ impl<T: Float> Layer<T> for Dueling<T> {
         }
     }
 
-    fn output(&self) -> &Tensor<T> {
-        &self.y
-    }
-
     /// `dV_k = Σ_a dY_{a,k}`, `dA_{b,k} = dY_{b,k} − (1/A)·Σ_a dY_{a,k}`.
     fn backward(&mut self, _x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         if !need_dx {
@@ -103,9 +97,10 @@ impl<T: Float> Layer<T> for Dueling<T> {
         }
         let (a, k) = (self.actions, self.atoms);
         let n = dy.len() / (a * k);
-        self.dx.set_shape(&[n, (a + 1) * k]);
+        self.core.dx.set_shape(&[n, (a + 1) * k]);
         let inv = T::one() / T::of(a as f64);
         for (dx, dy) in self
+            .core
             .dx
             .data_mut()
             .chunks_exact_mut((a + 1) * k)
@@ -120,9 +115,5 @@ impl<T: Float> Layer<T> for Dueling<T> {
                 }
             }
         }
-    }
-
-    fn input_grad(&self) -> &Tensor<T> {
-        &self.dx
     }
 }

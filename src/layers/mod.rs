@@ -52,10 +52,37 @@ impl<T: Float> Param<T> {
     }
 }
 
+/// What every layer holds besides its parameters and its own state: a name and the two
+/// buffers its passes write, reused from call to call.
+pub struct Core<T> {
+    /// The layer's name; parameters are named `{name}.{kind}`.
+    pub name: String,
+    /// `y`, the output of the last forward pass (`[N, …]`, the layer's output shape).
+    pub y: Tensor<T>,
+    /// `dX = ∂L/∂x`, from the last backward pass that computed it (`x`'s shape).
+    pub dx: Tensor<T>,
+}
+
+impl<T: Float> Core<T> {
+    /// A layer's name and empty buffers.
+    pub fn new(name: &str) -> Self {
+        Core {
+            name: name.to_string(),
+            y: Tensor::empty(),
+            dx: Tensor::empty(),
+        }
+    }
+}
+
 /// A differentiable layer.
 pub trait Layer<T: Float>: Send {
+    /// The layer's name and buffers.
+    fn core(&self) -> &Core<T>;
+
     /// The layer's name; parameters are named `{name}.{kind}`.
-    fn name(&self) -> &str;
+    fn name(&self) -> &str {
+        &self.core().name
+    }
 
     /// Shape of one sample's output for one sample's input shape (batch dimension excluded).
     fn output_shape(&self) -> Vec<usize>;
@@ -72,7 +99,9 @@ pub trait Layer<T: Float>: Send {
     }
 
     /// The output of the last [`Layer::forward`] or [`Layer::infer`].
-    fn output(&self) -> &Tensor<T>;
+    fn output(&self) -> &Tensor<T> {
+        &self.core().y
+    }
 
     /// Given the same `x` as the last forward pass and `dY`, adds `∂L/∂θ` to every parameter
     /// gradient and, if `need_dx`, writes `dX` into the input-gradient buffer (the first layer of a
@@ -80,7 +109,9 @@ pub trait Layer<T: Float>: Send {
     fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool);
 
     /// `dX` from the last [`Layer::backward`] that computed it.
-    fn input_grad(&self) -> &Tensor<T>;
+    fn input_grad(&self) -> &Tensor<T> {
+        &self.core().dx
+    }
 
     /// The parameters, in a fixed order (none by default).
     fn params(&self) -> &[Param<T>] {

@@ -1,7 +1,7 @@
 //! The cosine embedding of quantile fractions that implicit quantile networks (IQN, Dabney et
 //! al. 2018) multiply into a state's features.
 
-use super::{Layer, Param};
+use super::{Core, Layer, Param};
 use crate::ops::{gemm, Op};
 use crate::tensor::{Float, Tensor};
 use rayon::prelude::*;
@@ -32,7 +32,8 @@ use rayon::prelude::*;
 ///
 /// No gradient flows to `τ` (the fractions are sampled, not learned).
 pub struct QuantileEmbedding<T> {
-    name: String,
+    /// The name, output `y` and input gradient `dX` ([`Core`]).
+    core: Core<T>,
     /// `E`, cosines per fraction.
     dim: usize,
     /// `F`, the feature width.
@@ -47,8 +48,6 @@ pub struct QuantileEmbedding<T> {
     phi: Vec<T>,
     /// `[B·N, F]`: `dP` of the last backward pass.
     dp: Vec<T>,
-    y: Tensor<T>,
-    dx: Tensor<T>,
 }
 
 impl<T: Float> QuantileEmbedding<T> {
@@ -57,7 +56,7 @@ impl<T: Float> QuantileEmbedding<T> {
     pub fn new(name: &str, dim: usize, width: usize) -> Self {
         assert!(dim > 0 && width > 0, "QuantileEmbedding: empty");
         QuantileEmbedding {
-            name: name.to_string(),
+            core: Core::new(name),
             dim,
             width,
             params: vec![
@@ -68,8 +67,6 @@ impl<T: Float> QuantileEmbedding<T> {
             cos: Vec::new(),
             phi: Vec::new(),
             dp: Vec::new(),
-            y: Tensor::empty(),
-            dx: Tensor::empty(),
         }
     }
 
@@ -79,7 +76,7 @@ impl<T: Float> QuantileEmbedding<T> {
         assert!(
             batch > 0 && n > 0 && n * batch == self.taus.len(),
             "{}: {} fractions set for a batch of {batch}",
-            self.name,
+            self.core.name,
             self.taus.len()
         );
         n
@@ -99,8 +96,8 @@ fn cosines<T: Float>(tau: f64, c: &mut [T]) {
 }
 
 impl<T: Float> Layer<T> for QuantileEmbedding<T> {
-    fn name(&self) -> &str {
-        &self.name
+    fn core(&self) -> &Core<T> {
+        &self.core
     }
 
     fn output_shape(&self) -> Vec<usize> {
@@ -117,12 +114,12 @@ impl<T: Float> Layer<T> for QuantileEmbedding<T> {
     fn forward(&mut self, x: &Tensor<T>) {
         let (e, f) = (self.dim, self.width);
         let b = x.len() / f;
-        assert_eq!(b * f, x.len(), "{}: input is not [B, {f}]", self.name);
+        assert_eq!(b * f, x.len(), "{}: input is not [B, {f}]", self.core.name);
         let n = self.per_sample(b);
         let rows = b * n;
         self.cos.resize(rows * e, T::zero());
         self.phi.resize(rows * f, T::zero());
-        self.y.set_shape(&[rows, f]);
+        self.core.y.set_shape(&[rows, f]);
         for (c, &tau) in self.cos.chunks_exact_mut(e).zip(&self.taus) {
             cosines(tau, c);
         }
@@ -141,7 +138,7 @@ impl<T: Float> Layer<T> for QuantileEmbedding<T> {
         );
         self.phi
             .par_chunks_mut(n * f)
-            .zip(self.y.data_mut().par_chunks_mut(n * f))
+            .zip(self.core.y.data_mut().par_chunks_mut(n * f))
             .zip(x.data().par_chunks(f))
             .for_each(|((phi, y), xs)| {
                 for (phi, y) in phi.chunks_exact_mut(f).zip(y.chunks_exact_mut(f)) {
@@ -154,10 +151,6 @@ impl<T: Float> Layer<T> for QuantileEmbedding<T> {
             });
     }
 
-    fn output(&self) -> &Tensor<T> {
-        &self.y
-    }
-
     /// `dX_b = Σ_i dY_(bi) ⊙ φ_(bi)` and `dP = dY ⊙ x_b ⊙ [φ > 0]`, sample by sample; then
     /// `dW += Cᵀ·dP` (one GEMM `[E, B·N]·[B·N, F]`) and `db += Σ_rows dP`.
     fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
@@ -165,15 +158,20 @@ impl<T: Float> Layer<T> for QuantileEmbedding<T> {
         let b = x.len() / f;
         let n = self.per_sample(b);
         let rows = b * n;
-        assert_eq!(dy.len(), rows * f, "{}: dY is not [B·N, {f}]", self.name);
+        assert_eq!(
+            dy.len(),
+            rows * f,
+            "{}: dY is not [B·N, {f}]",
+            self.core.name
+        );
         if need_dx {
-            self.dx.set_shape(x.shape());
+            self.core.dx.set_shape(x.shape());
         } else {
-            self.dx.set_shape(&[0]);
+            self.core.dx.set_shape(&[0]);
         }
         self.dp.resize(rows * f, T::zero());
         let dx_chunks: Vec<&mut [T]> = if need_dx {
-            self.dx.data_mut().chunks_exact_mut(f).collect()
+            self.core.dx.data_mut().chunks_exact_mut(f).collect()
         } else {
             Vec::new()
         };
@@ -229,10 +227,6 @@ impl<T: Float> Layer<T> for QuantileEmbedding<T> {
                 *db += d;
             }
         }
-    }
-
-    fn input_grad(&self) -> &Tensor<T> {
-        &self.dx
     }
 
     fn params(&self) -> &[Param<T>] {
