@@ -287,35 +287,35 @@ pub fn scatter_gemm_portable<T: Float>(g: ScatterGemm<'_, T>) {
 /// where AVX-512 is missing, and the oracle for it in the tests).
 pub fn gather_gemm_portable<T: Float>(g: GatherGemm<'_, T>) {
     g.check();
-    let GatherGemm {
-        a,
-        p,
-        q,
-        b,
-        ldb,
-        n,
-        c,
-        ldc,
-        c_rows,
-        init,
-        relu,
-    } = g;
-    for (r, &pr) in p.iter().enumerate() {
-        let row = &mut c[row_start(c_rows, ldc, r)..][..n];
-        match init {
-            Init::Zero => row.fill(T::zero()),
-            Init::Accumulate => {}
-            Init::Bias(bias) => row.copy_from_slice(&bias[..n]),
-        }
+    let (a, q, b, ldb, n) = (g.a, g.q, g.b, g.ldb, g.n);
+    portable_rows(g, |row, pr| {
         for (t, &qt) in q.iter().enumerate() {
             let av = a[pr + qt];
             for (cv, &bv) in row.iter_mut().zip(&b[t * ldb..][..n]) {
                 *cv = av.mul_add(bv, *cv);
             }
         }
-        if relu {
+    });
+}
+
+/// The frame of the portable gather kernels (f32 and f64 here, bf16 in
+/// [`super::gather_bf16`]), row by row of `C`: start the row as `init` says, add the product
+/// of `A`'s row at `p[r]` (`add(row, p[r])`, in the kernel's own summation order), then store
+/// `max(·, 0)` if `relu`.
+pub(crate) fn portable_rows<T, O: Float>(
+    g: GatherGemm<'_, T, O>, mut add: impl FnMut(&mut [O], usize),
+) {
+    for (r, &pr) in g.p.iter().enumerate() {
+        let row = &mut g.c[row_start(g.c_rows, g.ldc, r)..][..g.n];
+        match g.init {
+            Init::Zero => row.fill(O::zero()),
+            Init::Accumulate => {}
+            Init::Bias(bias) => row.copy_from_slice(&bias[..g.n]),
+        }
+        add(row, pr);
+        if g.relu {
             for v in row.iter_mut() {
-                *v = v.max(T::zero());
+                *v = v.max(O::zero());
             }
         }
     }

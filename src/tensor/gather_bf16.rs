@@ -26,7 +26,7 @@
 
 use super::bf16::{from_bf16, to_bf16};
 use super::cpu::{avx512_twin, took, Family};
-use super::gather::{row_start, GatherGemm, Init};
+use super::gather::{portable_rows, GatherGemm};
 
 /// The operands of one bf16 gather GEMM (see the module documentation): [`GatherGemm`] with
 /// `A` and `B` in bf16 bits, in pairs of reduction steps, and `C` in f32.
@@ -50,26 +50,8 @@ pub fn dot_pair(acc: f32, a: [u16; 2], b: [u16; 2]) -> f32 {
 /// The portable loops (the oracle of the AVX512-BF16 kernel; see the module documentation).
 pub fn gather_gemm_bf16_portable(g: GatherGemmBf16<'_>) {
     g.check();
-    let GatherGemmBf16 {
-        a,
-        p,
-        q,
-        b,
-        ldb,
-        n,
-        c,
-        ldc,
-        c_rows,
-        init,
-        relu,
-    } = g;
-    for (r, &pr) in p.iter().enumerate() {
-        let row = &mut c[row_start(c_rows, ldc, r)..][..n];
-        match init {
-            Init::Zero => row.fill(0.0),
-            Init::Accumulate => {}
-            Init::Bias(bias) => row.copy_from_slice(&bias[..n]),
-        }
+    let (a, q, b, ldb) = (g.a, g.q, g.b, g.ldb);
+    portable_rows(g, |row, pr| {
         for (u, &qu) in q.iter().enumerate() {
             let av = [a[pr + qu], a[pr + qu + 1]];
             for (j, cv) in row.iter_mut().enumerate() {
@@ -77,12 +59,7 @@ pub fn gather_gemm_bf16_portable(g: GatherGemmBf16<'_>) {
                 *cv = dot_pair(*cv, av, [b[at], b[at + 1]]);
             }
         }
-        if relu {
-            for v in row.iter_mut() {
-                *v = v.max(0.0);
-            }
-        }
-    }
+    });
 }
 
 /// The bf16 gather GEMM: AVX512-BF16 where the CPU has it, else the portable loops. Recorded
