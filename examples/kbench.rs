@@ -37,6 +37,20 @@ fn cpu_seconds() -> f64 {
     (f.get(11).unwrap_or(&0.0) + f.get(12).unwrap_or(&0.0)) / 100.0
 }
 
+/// Runs `f(i)` for `i < iters`: each call's wall time in ms, sorted, and the CPU time per call
+/// in ms (all threads).
+fn timed(iters: usize, mut f: impl FnMut(usize)) -> (Vec<f64>, f64) {
+    let (mut times, c0) = (Vec::with_capacity(iters), cpu_seconds());
+    for i in 0..iters {
+        let t = Instant::now();
+        f(i);
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let cpu = (cpu_seconds() - c0) * 1e3 / iters as f64;
+    times.sort_by(f64::total_cmp);
+    (times, cpu)
+}
+
 fn main() {
     // On a pool worker, as the `invaders` commands run (see `cli::train::in_pool`);
     // RAYON_NUM_THREADS sets the size.
@@ -62,14 +76,9 @@ fn run() {
         }
         let frames = invaders::dqn::random_play_inputs(&config, 64, 10, &mut rng).unwrap();
         let head = invaders::dqn::Head::of(&config);
-        let (mut times, c0) = (Vec::with_capacity(iters), cpu_seconds());
-        for i in 0..iters {
-            let t = Instant::now();
+        let (times, cpu) = timed(iters, |i| {
             head.greedy(&mut learner.online, &frames[i % frames.len()], 6);
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        let cpu = (cpu_seconds() - c0) * 1e3 / iters as f64;
-        times.sort_by(f64::total_cmp);
+        });
         println!(
             "step infer: {cpu:.3} ms CPU, min {:.3} median {:.3} per action",
             times[0],
@@ -90,19 +99,14 @@ fn run() {
         }
         let x1 = random(&[1, 88, 80, 4], &mut rng);
         learner.train_step(&batch);
-        let (mut times, c0) = (Vec::with_capacity(iters), cpu_seconds());
-        for _ in 0..iters {
-            let t = Instant::now();
+        let (times, cpu) = timed(iters, |_| {
             if op == "act" {
                 learner.online.forward(&x1);
             } else {
                 learner.train_step(&batch);
             }
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        let cpu = (cpu_seconds() - c0) * 1e3 / iters as f64;
+        });
         let mean = times.iter().sum::<f64>() / iters as f64;
-        times.sort_by(f64::total_cmp);
         // The minimum is the machine's quiet moments: on a shared host it is the steadiest
         // figure for comparing two builds.
         println!(

@@ -82,18 +82,12 @@ pub fn to_bytes(
             TensorView::new(Dtype::U8, vec![g.len()], g)?,
         ));
     }
-    let mut counters_json = serde_json::to_value(counters)?;
-    counters_json["adam_steps"] = learner.adam.t.into();
     let rngs = Rngs {
         explore: agent.explore_rng.clone(),
         sample: agent.sample_rng.clone(),
     };
-    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
-    let meta = HashMap::from([
-        ("format".to_string(), FORMAT.to_string()),
-        ("checksum".to_string(), format!("{checksum:08x}")),
-        ("config".to_string(), config.to_toml()),
-        ("counters".to_string(), counters_json.to_string()),
+    let mut meta = make_header(FORMAT, &tensors, config, counters, learner)?;
+    meta.extend([
         ("rngs".to_string(), serde_json::to_string(&rngs)?),
         (
             "replay".to_string(),
@@ -105,6 +99,24 @@ pub fn to_bytes(
         ),
     ]);
     Ok(safetensors::serialize(tensors, &Some(meta))?)
+}
+
+/// The metadata every file of ours starts with (read back by [`header`]): its `format`, the `checksum` of its tensors
+/// ([`tensors_checksum`], as hex), the `config` it trained with (TOML) and its `counters` (JSON,
+/// with Adam's step count).
+pub(super) fn make_header(
+    format: &str, tensors: &[(String, TensorView<'_>)], config: &Config, counters: &Counters,
+    learner: &Learner,
+) -> anyhow::Result<HashMap<String, String>> {
+    let mut counters_json = serde_json::to_value(counters)?;
+    counters_json["adam_steps"] = learner.adam.t.into();
+    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
+    Ok(HashMap::from([
+        ("format".to_string(), format.to_string()),
+        ("checksum".to_string(), format!("{checksum:08x}")),
+        ("config".to_string(), config.to_toml()),
+        ("counters".to_string(), counters_json.to_string()),
+    ]))
 }
 
 /// Copies the named tensors into `net`'s parameters after checking every name, dtype and shape.

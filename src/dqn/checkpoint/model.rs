@@ -24,15 +24,7 @@ pub fn model_to_bytes(
     for p in learner.online.params() {
         tensors.push((format!("online.{}", p.name), view(&p.value)?));
     }
-    let mut counters_json = serde_json::to_value(counters)?;
-    counters_json["adam_steps"] = learner.adam.t.into();
-    let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
-    let meta = HashMap::from([
-        ("format".to_string(), MODEL_FORMAT.to_string()),
-        ("checksum".to_string(), format!("{checksum:08x}")),
-        ("config".to_string(), config.to_toml()),
-        ("counters".to_string(), counters_json.to_string()),
-    ]);
+    let meta = make_header(MODEL_FORMAT, &tensors, config, counters, learner)?;
     Ok(safetensors::serialize(tensors, &Some(meta))?)
 }
 
