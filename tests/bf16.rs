@@ -5,8 +5,8 @@
 mod common;
 
 use common::{
-    abs64, avx512_expected, f64s, forward_backward_into, on_path, padded_input, random_params,
-    reference_forward, reference_grads, rng, same_on_1_2_3_threads, set_params, uniform, Square,
+    abs64, avx512_expected, conv_and_dense_passes, f64s, on_path, padded_input, reference_forward,
+    reference_grads, rng, same_on_1_2_3_threads, set_params, uniform, Square,
 };
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::{self, Kernel, Precision, Product};
@@ -502,21 +502,9 @@ proptest! {
 #[test]
 fn bf16_layers_are_the_same_on_any_thread_count() {
     same_on_1_2_3_threads(|| {
-        let mut r = rng(11);
-        let mut out = Vec::new();
         let g = ConvGeom::new(24, 22, 32, 64, 4, 4, (2, 2), Padding::Valid).unwrap();
-        let mut conv = Conv2d::<f32>::new("c", g).with_relu();
-        conv.set_precision(Precision::Bf16);
-        random_params(&mut conv, &mut r);
-        let x = uniform::<f32>(&[7, 24, 22, 32], &mut r);
-        let dy = uniform::<f32>(&[7, g.oh, g.ow, 64], &mut r);
-        forward_backward_into(&mut conv, &x, &dy, &mut out);
-        let mut dense = Dense::<f32>::new("d", 700, 130);
-        dense.set_precision(Precision::Bf16);
-        random_params(&mut dense, &mut r);
-        let x = uniform::<f32>(&[9, 700], &mut r);
-        let dy = uniform::<f32>(&[9, 130], &mut r);
-        forward_backward_into(&mut dense, &x, &dy, &mut out);
+        let conv = Conv2d::<f32>::new("c", g).with_relu();
+        let out = conv_and_dense_passes(conv, 7, Precision::Bf16, &mut rng(11));
         let ran = [
             Product::ConvForward,
             Product::ConvWeightGrad,

@@ -120,6 +120,18 @@ fn every_kind_of_damage_is_refused_clearly() {
         f(&mut o);
         o.bytes()
     };
+    // A copy with tensor `name`'s dtype and shape changed (where given).
+    let reheaded = |name: &str, dtype: Option<Dtype>, shape: Option<Vec<usize>>| {
+        damaged(&|o| {
+            let t = o.get(name);
+            if let Some(d) = dtype {
+                t.1 = d;
+            }
+            if let Some(s) = &shape {
+                t.2 = s.clone();
+            }
+        })
+    };
     cases.push(("empty file", Vec::new(), "not a safetensors file"));
     cases.push((
         "random bytes",
@@ -161,24 +173,17 @@ fn every_kind_of_damage_is_refused_clearly() {
     ));
     cases.push((
         "wrong shape",
-        damaged(&|o| o.get("target.dense1.bias").2 = vec![64, 2]),
+        reheaded("target.dense1.bias", None, Some(vec![64, 2])),
         "tensor `target.dense1.bias` has shape [64, 2], expected [128]",
     ));
     cases.push((
         "wrong dtype",
-        damaged(&|o| {
-            let t = o.get("online.dense2.weight");
-            t.1 = Dtype::I32;
-        }),
+        reheaded("online.dense2.weight", Some(Dtype::I32), None),
         "tensor `online.dense2.weight` has dtype I32, expected F32",
     ));
     cases.push((
         "wrong observer dtype",
-        damaged(&|o| {
-            let t = o.get("observer.composite");
-            t.1 = Dtype::I16;
-            t.2 = vec![44, 80];
-        }),
+        reheaded("observer.composite", Some(Dtype::I16), Some(vec![44, 80])),
         "observer.composite",
     ));
     cases.push((

@@ -4,7 +4,10 @@
 
 mod common;
 
-use common::cli::{bin, invaders, ok, resume, tmp_dir, tmp_with_file, train};
+use common::cli::{
+    assert_saved_config, bin, experiment_args, invaders, ok, resume, s, tmp_dir, tmp_with_file,
+    train, TINY,
+};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -35,11 +38,30 @@ fn tmp_with(name: &str, file: &str, text: &str) -> (PathBuf, PathBuf) {
     tmp_with_file("invaders-cli", name, file, text)
 }
 
+/// A new temporary directory named `name` holding `text` (a variant of [`QUICK`]) in
+/// `quick.toml`: the directory, the file's path and that of a run in the directory.
+fn quick_run(name: &str, text: &str) -> (PathBuf, PathBuf, PathBuf) {
+    let (root, cfg) = tmp_with(name, "quick.toml", text);
+    let run = root.join("run");
+    (root, cfg, run)
+}
+
+/// A new temporary directory named `name` holding `text` (a variant of [`TINY`]) in
+/// `tiny.toml`: the directory, the file's path and that of an experiment in the directory.
+fn tiny_experiment(name: &str, text: &str) -> (PathBuf, PathBuf, PathBuf) {
+    let (root, cfg) = tmp_with(name, "tiny.toml", text);
+    let out = root.join("exp");
+    (root, cfg, out)
+}
+
 /// A small but real configuration: short episodes (cut at 150 agent steps), learning from step 60.
 const QUICK: &str = "learning_starts = 60\nreplay_capacity = 400\nbatch_size = 8\ncheckpoint_every = 1\nplot_every = 1\n[env]\nmax_episode_steps = 150\n";
 
-/// The experiments' tiny configuration: a small replay memory, learning from step 200.
-const TINY: &str = "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n";
+/// The shipped player's model file.
+const SHIPPED_MODEL: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/models/strong/model.safetensors"
+);
 
 /// The line of a results table whose first cell is `first`; fails the test if there is none.
 fn row<'a>(table: &'a str, first: &str) -> &'a str {
@@ -121,19 +143,17 @@ fn bench_in_bf16_says_which_kernels_ran() {
 /// not fit TOML's integers).
 #[test]
 fn train_by_frames() {
-    let (root, cfg) = tmp_with("frames", "quick.toml", QUICK);
-    let run = root.join("run");
-    let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
+    let (root, cfg, run) = quick_run("frames", QUICK);
     let text = ok(&invaders(&[
         "train",
         "--config",
-        cfg_s,
+        s(&cfg),
         "--frames",
         "900",
         "--threads",
         "1",
         "--out",
-        run_s,
+        s(&run),
     ]));
     assert!(text.contains("frames"), "{text}");
     let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
@@ -148,7 +168,7 @@ fn train_by_frames() {
         "2",
         "--json",
         "--checkpoint",
-        run_s,
+        s(&run),
     ]));
     let json: serde_json::Value = serde_json::from_str(text.trim()).expect(&text);
     for key in [
@@ -171,10 +191,6 @@ fn train_by_frames() {
         "each product's kernel: {text}"
     );
     // A weights-only model file times acting too (the shipped player's network).
-    let model = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/models/strong/model.safetensors"
-    );
     let text = ok(&invaders(&[
         "bench",
         "--threads",
@@ -183,7 +199,7 @@ fn train_by_frames() {
         "1",
         "--json",
         "--checkpoint",
-        model,
+        SHIPPED_MODEL,
     ]));
     let json: serde_json::Value = serde_json::from_str(text.trim()).expect(&text);
     let v = json["act_checkpoint_ms"].as_f64().unwrap_or(-1.0);
@@ -196,10 +212,8 @@ fn train_by_frames() {
 
 #[test]
 fn train_eval_resume_plot() {
-    let (root, cfg) = tmp_with("run", "quick.toml", QUICK);
-    let run = root.join("run");
-    let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
-    ok(&train(cfg_s, 5, 2, &run));
+    let (root, cfg, run) = quick_run("run", QUICK);
+    ok(&train(s(&cfg), 5, 2, &run));
     for f in [
         "config.toml",
         "metrics.csv",
@@ -226,7 +240,7 @@ fn train_eval_resume_plot() {
     let text = ok(&invaders(&[
         "eval",
         "--checkpoint",
-        run_s,
+        s(&run),
         "--episodes",
         "2",
         "--gif",
@@ -259,8 +273,8 @@ fn train_eval_resume_plot() {
     let png = root.join("cmp.png");
     ok(&invaders(&[
         "plot",
-        run_s,
-        run_s,
+        s(&run),
+        s(&run),
         "--out",
         png.to_str().unwrap(),
     ]));
@@ -272,11 +286,11 @@ fn train_eval_resume_plot() {
         &invaders(&[
             "train",
             "--config",
-            cfg_s,
+            s(&cfg),
             "--episodes",
             "1",
             "--out",
-            run_s,
+            s(&run),
         ]),
         "not empty",
     );
@@ -292,92 +306,81 @@ fn train_eval_resume_plot() {
 fn bad_inputs_give_clear_errors() {
     let root = tmp("bad");
     let path = |n: &str| root.join(n).to_str().unwrap().to_string();
-    fails_with(&invaders(&["train", "--no-such-flag"]), "--no-such-flag");
-    fails_with(&invaders(&["train", "--preset", "nature"]), "nature");
-    fails_with(
-        &invaders(&["train", "--config", &path("missing.toml")]),
-        "cannot read config file",
-    );
     std::fs::write(root.join("unknown.toml"), "gama = 0.5\n").unwrap();
-    fails_with(
-        &invaders(&[
-            "train",
-            "--config",
-            &path("unknown.toml"),
-            "--out",
-            &path("r1"),
-        ]),
-        "gama",
-    );
     std::fs::write(root.join("range.toml"), "gamma = 1.5\n").unwrap();
-    fails_with(
-        &invaders(&[
-            "train",
-            "--config",
-            &path("range.toml"),
-            "--out",
-            &path("r2"),
-        ]),
-        "gamma",
-    );
-    fails_with(
-        &invaders(&["train", "--threads", "0", "--out", &path("r3")]),
-        "--threads",
-    );
-    fails_with(
-        &invaders(&["train", "--episodes", "0", "--out", &path("r4")]),
-        "episodes",
-    );
-    fails_with(
-        &invaders(&["train", "--resume", &path("nothing-here")]),
-        "checkpoint",
-    );
-    fails_with(
-        &invaders(&["train", "--precision", "fp16", "--out", &path("r5")]),
-        "fp16",
-    );
-    fails_with(
-        &invaders(&["train", "--precision", "bf16", "--resume", &path("r5")]),
-        "--resume",
-    );
     std::fs::write(root.join("precision.toml"), "precision = \"f16\"\n").unwrap();
-    fails_with(
-        &invaders(&[
-            "train",
-            "--config",
-            &path("precision.toml"),
-            "--out",
-            &path("r6"),
-        ]),
-        "precision",
-    );
-    fails_with(&invaders(&["bench", "--precision", "f64"]), "f64");
-    fails_with(
-        &invaders(&["bench", "--checkpoint", &path("nothing-here")]),
-        "nothing-here",
-    );
     std::fs::write(
         root.join("corrupt.safetensors"),
         b"\x10\x00\x00\x00\x00\x00\x00\x00{\"a\":1}",
     )
     .unwrap();
-    fails_with(
-        &invaders(&["eval", "--checkpoint", &path("corrupt.safetensors")]),
-        "not a valid checkpoint",
-    );
-    fails_with(&invaders(&["eval"]), "--checkpoint");
-    fails_with(
-        &invaders(&["eval", "--random", "--episodes", "0"]),
-        "--episodes",
-    );
-    fails_with(
-        &invaders(&["eval", "--random", "--rom", &path("no.bin")]),
-        "no.bin",
-    );
-    fails_with(
-        &invaders(&["plot", &path("nothing-here"), "--out", &path("x.png")]),
-        "metrics.csv",
-    );
+    // Each command, in order, and what its error must mention.
+    let (nothing, r5) = (path("nothing-here"), path("r5"));
+    let cases: [(&[&str], &str); 18] = [
+        (&["train", "--no-such-flag"], "--no-such-flag"),
+        (&["train", "--preset", "nature"], "nature"),
+        (
+            &["train", "--config", &path("missing.toml")],
+            "cannot read config file",
+        ),
+        (
+            &[
+                "train",
+                "--config",
+                &path("unknown.toml"),
+                "--out",
+                &path("r1"),
+            ],
+            "gama",
+        ),
+        (
+            &[
+                "train",
+                "--config",
+                &path("range.toml"),
+                "--out",
+                &path("r2"),
+            ],
+            "gamma",
+        ),
+        (
+            &["train", "--threads", "0", "--out", &path("r3")],
+            "--threads",
+        ),
+        (
+            &["train", "--episodes", "0", "--out", &path("r4")],
+            "episodes",
+        ),
+        (&["train", "--resume", &nothing], "checkpoint"),
+        (&["train", "--precision", "fp16", "--out", &r5], "fp16"),
+        (
+            &["train", "--precision", "bf16", "--resume", &r5],
+            "--resume",
+        ),
+        (
+            &[
+                "train",
+                "--config",
+                &path("precision.toml"),
+                "--out",
+                &path("r6"),
+            ],
+            "precision",
+        ),
+        (&["bench", "--precision", "f64"], "f64"),
+        (&["bench", "--checkpoint", &nothing], "nothing-here"),
+        (
+            &["eval", "--checkpoint", &path("corrupt.safetensors")],
+            "not a valid checkpoint",
+        ),
+        (&["eval"], "--checkpoint"),
+        (&["eval", "--random", "--episodes", "0"], "--episodes"),
+        (&["eval", "--random", "--rom", &path("no.bin")], "no.bin"),
+        (&["plot", &nothing, "--out", &path("x.png")], "metrics.csv"),
+    ];
+    for (args, needle) in cases {
+        fails_with(&invaders(args), needle);
+    }
     for r in ["r1", "r2", "r3", "r4", "r5", "r6"] {
         assert!(
             !root.join(r).exists() || std::fs::read_dir(root.join(r)).unwrap().next().is_none(),
@@ -392,24 +395,18 @@ fn bad_inputs_give_clear_errors() {
 /// the checkpoint) and `--resume` refuses; `eval --protocol` holds to its rules.
 #[test]
 fn strong_preset_export_and_protocol() {
-    let (root, cfg) = tmp_with(
-        "strong",
-        "quick.toml",
-        &format!("preset = \"strong\"\n{QUICK}"),
+    let (root, cfg, run) = quick_run("strong", &format!("preset = \"strong\"\n{QUICK}"));
+    ok(&train(s(&cfg), 3, 2, &run));
+    assert_saved_config(
+        &run,
+        &["dueling = true", "n_step = 3", "life_loss_terminal = true"],
     );
-    let run = root.join("run");
-    let (cfg_s, run_s) = (cfg.to_str().unwrap(), run.to_str().unwrap());
-    ok(&train(cfg_s, 3, 2, &run));
-    let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
-    for line in ["dueling = true", "n_step = 3", "life_loss_terminal = true"] {
-        assert!(saved.contains(line), "{line} in {saved}");
-    }
     let model = root.join("model.safetensors");
     let model_s = model.to_str().unwrap();
     ok(&invaders(&[
         "export",
         "--checkpoint",
-        run_s,
+        s(&run),
         "--out",
         model_s,
     ]));
@@ -422,7 +419,7 @@ fn strong_preset_export_and_protocol() {
         "the model ({size} B) holds one network of the checkpoint's ({full} B)"
     );
     fails_with(
-        &invaders(&["export", "--checkpoint", run_s, "--out", model_s]),
+        &invaders(&["export", "--checkpoint", s(&run), "--out", model_s]),
         "exists",
     );
     // The same games from the model file and from the checkpoint.
@@ -443,7 +440,7 @@ fn strong_preset_export_and_protocol() {
             .unwrap()
             .to_string()
     };
-    assert_eq!(play(model_s), play(run_s));
+    assert_eq!(play(model_s), play(s(&run)));
     // A model file cannot continue a run.
     let resumed = root.join("resumed");
     std::fs::create_dir_all(&resumed).unwrap();
@@ -484,14 +481,10 @@ fn strong_preset_export_and_protocol() {
 /// clone, by the file's own configuration; it holds no training state, so `--resume` refuses it.
 #[test]
 fn the_shipped_model_plays() {
-    let model = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/models/strong/model.safetensors"
-    );
     let text = ok(&invaders(&[
         "eval",
         "--checkpoint",
-        model,
+        SHIPPED_MODEL,
         "--episodes",
         "1",
         "--epsilon",
@@ -531,21 +524,9 @@ fn the_shipped_model_plays() {
 /// again, it trains and plays nothing and reports the same runs.
 #[test]
 fn experiment_strong_trains_evaluates_and_reports() {
-    let (root, cfg) = tmp_with("experiment-strong", "tiny.toml", TINY);
-    let out = root.join("exp");
-    let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
-    let base = [
-        "experiment",
-        "strong",
-        "--seeds",
-        "1",
-        "--frames",
-        "2000",
-        "--config",
-        cfg_s,
-        "--out",
-        out_s,
-    ];
+    let (root, cfg, out) = tiny_experiment("experiment-strong", TINY);
+    let flags = ["--seeds", "1", "--frames", "2000"];
+    let base = experiment_args("strong", &flags, s(&cfg), s(&out));
     let with = |extra: &[&str]| -> Vec<String> {
         base.iter().chain(extra).map(|s| s.to_string()).collect()
     };
@@ -637,22 +618,10 @@ fn experiment_strong_trains_evaluates_and_reports() {
 /// table sets each arm against the preset, which is always trained; run again, nothing trains.
 #[test]
 fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
-    let (root, cfg) = tmp_with("experiment-ablation", "tiny.toml", TINY);
-    let out = root.join("exp");
-    let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
-    let args = [
-        "experiment",
-        "ablation",
-        "--frames",
-        "2000",
-        "--arms",
-        "no-dueling",
-        "--config",
-        cfg_s,
-        "--out",
-        out_s,
-    ];
-    let mut unknown = args;
+    let (root, cfg, out) = tiny_experiment("experiment-ablation", TINY);
+    let flags = ["--frames", "2000", "--arms", "no-dueling"];
+    let args = experiment_args("ablation", &flags, s(&cfg), s(&out));
+    let mut unknown = args.clone();
     unknown[5] = "no-such-arm";
     fails_with(
         &invaders(&unknown),
@@ -660,7 +629,7 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
     );
     let already = root.join("already.toml");
     std::fs::write(&already, format!("{TINY}dueling = false\n")).unwrap();
-    let mut same = args;
+    let mut same = args.clone();
     same[7] = already.to_str().unwrap();
     fails_with(
         &invaders(&same),
@@ -817,13 +786,10 @@ fn experiment_ablation_trains_each_arm_and_compares_it_with_the_preset() {
 /// the command run again trains nothing.
 #[test]
 fn experiment_preprocessing_trains_evaluates_and_reports() {
-    let (root, cfg) = tmp_with(
+    let (root, cfg, out) = tiny_experiment(
         "experiment-preprocessing",
-        "tiny.toml",
         &format!("{TINY}[env]\nmax_episode_steps = 300\n"),
     );
-    let out = root.join("exp");
-    let (cfg_s, out_s) = (cfg.to_str().unwrap(), out.to_str().unwrap());
     let notebook = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/docs/experiment/notebook/plot-digitized.csv"
@@ -843,11 +809,11 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
             "--jobs",
             "2",
             "--config",
-            cfg_s,
+            s(&cfg),
             "--notebook",
             nb,
             "--out",
-            out_s,
+            s(&out),
         ]
         .iter()
         .map(|s| s.to_string())

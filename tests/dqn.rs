@@ -64,16 +64,8 @@ impl Game for Corridor {
         self.steps += 1;
         self.draw();
         let terminal = self.pos == LEN - 1;
-        StepResult {
-            reward: if terminal { 1.0 } else { 0.0 },
-            terminal,
-            truncated: !terminal && self.steps >= LIMIT,
-            lives: 1,
-            frames: 1,
-        }
-    }
-    fn last_two_frames(&self) -> (&[u8], &[u8]) {
-        (&self.frame, &self.frame)
+        let reward = if terminal { 1.0 } else { 0.0 };
+        common::toy_step(reward, terminal, !terminal && self.steps >= LIMIT)
     }
     fn observation(&self) -> &[u8] {
         &self.frame
@@ -81,16 +73,11 @@ impl Game for Corridor {
 }
 
 fn toy_config() -> Config {
-    let mut c = common::vanilla_config();
-    c.replay_capacity = 1_000;
-    c.batch_size = 16;
+    let mut c = common::small_config(1_000, 16, 64, 25, 3);
     c.gamma = 0.9;
-    c.learning_starts = 64;
     c.train_every = 1;
-    c.target_update = 25;
     c.epsilon_decay_steps = 600;
     c.epsilon_end = 0.1;
-    c.seed = 3;
     c
 }
 
@@ -98,7 +85,7 @@ fn toy_config() -> Config {
 /// the corridor and Q-values near γ^k.
 #[test]
 fn dqn_learns_a_toy_corridor() {
-    learns_the_corridor(Precision::F32);
+    learns(|c| c.precision = Precision::F32);
 }
 
 /// The same in bf16 (issue 19: learning parity), with the bf16 kernels asserted where the CPU
@@ -106,7 +93,7 @@ fn dqn_learns_a_toy_corridor() {
 #[test]
 fn dqn_learns_a_toy_corridor_in_bf16() {
     let before = invaders::tensor::cpu::paths(invaders::tensor::cpu::Family::Bf16);
-    learns_the_corridor(Precision::Bf16);
+    learns(|c| c.precision = Precision::Bf16);
     let ran = invaders::tensor::cpu::paths(invaders::tensor::cpu::Family::Bf16).since(before);
     assert_eq!(
         ran.avx512 > 0,
@@ -120,21 +107,18 @@ fn dqn_learns_a_toy_corridor_in_bf16() {
 /// γ^k. (Munchausen's entropy term lowers the values by at most `τ log 2` per step: 0.02 here.)
 #[test]
 fn iqn_with_munchausen_learns_a_toy_corridor() {
-    let mut config = toy_config();
-    config.iqn_samples = 8;
-    config.iqn_target_samples = 8;
-    config.iqn_policy_samples = 8;
-    config.munchausen_alpha = 0.9;
-    learns(config);
+    learns(|c| {
+        c.iqn_samples = 8;
+        c.iqn_target_samples = 8;
+        c.iqn_policy_samples = 8;
+        c.munchausen_alpha = 0.9;
+    });
 }
 
-fn learns_the_corridor(precision: Precision) {
+/// An agent of [`toy_config`] changed by `set` learns the corridor.
+fn learns(set: impl FnOnce(&mut Config)) {
     let mut config = toy_config();
-    config.precision = precision;
-    learns(config);
-}
-
-fn learns(config: Config) {
+    set(&mut config);
     let mut agent = Agent::new(config, Corridor::new());
     for _ in 0..120 {
         agent.play_episode().unwrap();
@@ -211,18 +195,12 @@ impl Game for ThreeLives {
     fn step(&mut self, _action: usize) -> StepResult {
         self.steps += 1;
         StepResult {
-            reward: 1.0,
-            terminal: self.steps == 6,
-            truncated: false,
             lives: 3
                 - (self.steps >= 2) as i32
                 - (self.steps >= 4) as i32
                 - (self.steps >= 6) as i32,
-            frames: 1,
+            ..common::toy_step(1.0, self.steps == 6, false)
         }
-    }
-    fn last_two_frames(&self) -> (&[u8], &[u8]) {
-        (&self.frame, &self.frame)
     }
     fn observation(&self) -> &[u8] {
         &self.frame
@@ -268,6 +246,22 @@ fn stack(newest: u8, first: u8) -> Vec<f32> {
         .collect()
 }
 
+/// Draws `rounds` batches of 8 four-frame states from `replay` (with a generator of `seed`) and
+/// calls `check` with each batch and each index in it.
+fn for_each_sampled(
+    replay: &mut Replay, seed: u64, rounds: usize, mut check: impl FnMut(&Batch, usize),
+) {
+    let table = common::identity_table();
+    let mut batch = Batch::new(8, [88, 80, 4]);
+    let mut rng = common::rng(seed);
+    for _ in 0..rounds {
+        replay.sample(&mut rng, &table, &mut batch);
+        for b in 0..8 {
+            check(&batch, b);
+        }
+    }
+}
+
 /// States are rebuilt from single frames: the last 4 of the same episode, the first frame
 /// repeated at an episode's start, never a frame of the previous episode; `s'` is the state one
 /// entry later; terminal and time-limit flags go where they belong.
@@ -282,40 +276,34 @@ fn replay_rebuilds_stacks_within_episodes() {
     for i in 1..10u8 {
         replay.push_step(i as usize % 6, i as f32, false, &frame(20 + i));
     }
-    let table = common::identity_table();
-    let mut batch = Batch::new(8, [88, 80, 4]);
-    let mut rng = common::rng(1);
-    for _ in 0..80 {
-        replay.sample(&mut rng, &table, &mut batch);
-        for b in 0..8 {
-            let (s, s2) = (px(&batch.states, b), px(&batch.next_states, b));
-            let newest = s[3] as u8;
-            let first = if newest >= 20 { 20 } else { 10 };
-            assert_eq!(s, stack(newest, first), "state ending at {newest}");
-            assert_eq!(s2, stack(newest + 1, first), "next state after {newest}");
-            assert!(
-                newest != 12 && newest != 29,
-                "entries without a successor are never sampled"
-            );
-            match newest {
-                10 => assert_eq!(
+    for_each_sampled(&mut replay, 1, 80, |batch, b| {
+        let (s, s2) = (px(&batch.states, b), px(&batch.next_states, b));
+        let newest = s[3] as u8;
+        let first = if newest >= 20 { 20 } else { 10 };
+        assert_eq!(s, stack(newest, first), "state ending at {newest}");
+        assert_eq!(s2, stack(newest + 1, first), "next state after {newest}");
+        assert!(
+            newest != 12 && newest != 29,
+            "entries without a successor are never sampled"
+        );
+        match newest {
+            10 => assert_eq!(
+                (batch.actions[b], batch.rewards[b], batch.dones[b]),
+                (1, 1.0, false)
+            ),
+            11 => assert_eq!(
+                (batch.actions[b], batch.rewards[b], batch.dones[b]),
+                (2, 2.0, true)
+            ),
+            n => {
+                let i = n - 20 + 1;
+                assert_eq!(
                     (batch.actions[b], batch.rewards[b], batch.dones[b]),
-                    (1, 1.0, false)
-                ),
-                11 => assert_eq!(
-                    (batch.actions[b], batch.rewards[b], batch.dones[b]),
-                    (2, 2.0, true)
-                ),
-                n => {
-                    let i = n - 20 + 1;
-                    assert_eq!(
-                        (batch.actions[b], batch.rewards[b], batch.dones[b]),
-                        (i as usize % 6, i as f32, false)
-                    );
-                }
+                    (i as usize % 6, i as f32, false)
+                );
             }
         }
-    }
+    });
 }
 
 /// n-step returns (n = 3, γ = 0.5, so every sum is exact) against sums worked out by hand: they
@@ -355,29 +343,23 @@ fn replay_sums_n_step_returns_within_episodes() {
             f => panic!("entry {f} has no successor and must not be sampled"),
         }
     };
-    let table = common::identity_table();
-    let mut batch = Batch::new(8, [88, 80, 4]);
-    let mut rng = common::rng(2);
     let mut seen = std::collections::BTreeSet::new();
-    for _ in 0..100 {
-        replay.sample(&mut rng, &table, &mut batch);
-        for b in 0..8 {
-            let f = px(&batch.states, b)[3] as u8;
-            let (ret, m, done, next, first) = expected(f);
-            assert_eq!(px(&batch.states, b), stack(f, first), "state ending at {f}");
-            assert_eq!(
-                (batch.rewards[b], batch.steps[b], batch.dones[b]),
-                (ret, m, done),
-                "return from {f}"
-            );
-            assert_eq!(
-                px(&batch.next_states, b),
-                stack(next, first),
-                "s' of the return from {f}"
-            );
-            seen.insert(f);
-        }
-    }
+    for_each_sampled(&mut replay, 2, 100, |batch, b| {
+        let f = px(&batch.states, b)[3] as u8;
+        let (ret, m, done, next, first) = expected(f);
+        assert_eq!(px(&batch.states, b), stack(f, first), "state ending at {f}");
+        assert_eq!(
+            (batch.rewards[b], batch.steps[b], batch.dones[b]),
+            (ret, m, done),
+            "return from {f}"
+        );
+        assert_eq!(
+            px(&batch.next_states, b),
+            stack(next, first),
+            "s' of the return from {f}"
+        );
+        seen.insert(f);
+    });
     assert_eq!(seen.len(), 10, "every sampleable entry drawn: {seen:?}");
 }
 
@@ -441,23 +423,17 @@ fn replay_ring_never_uses_overwritten_frames() {
         replay.push_step(0, i as f32, false, &frame((i % 250) as u8));
     }
     assert_eq!(replay.len(), 16);
-    let table = common::identity_table();
-    let mut batch = Batch::new(8, [88, 80, 4]);
-    let mut rng = common::rng(2);
-    for _ in 0..50 {
-        replay.sample(&mut rng, &table, &mut batch);
-        for b in 0..8 {
-            let s = &batch.states.data()[b * FRAME_LEN * 4..][..4];
-            // The oldest frame held is 84 (entries 84..=99); a state's 4 frames are consecutive.
-            assert!(s[0] >= 84.0, "state {s:?} uses an overwritten frame");
-            assert_eq!([s[1] - s[0], s[2] - s[1], s[3] - s[2]], [1.0, 1.0, 1.0]);
-            assert_eq!(
-                batch.rewards[b],
-                s[3] + 1.0,
-                "the reward of the step from the newest frame"
-            );
-        }
-    }
+    for_each_sampled(&mut replay, 2, 50, |batch, b| {
+        let s = &batch.states.data()[b * FRAME_LEN * 4..][..4];
+        // The oldest frame held is 84 (entries 84..=99); a state's 4 frames are consecutive.
+        assert!(s[0] >= 84.0, "state {s:?} uses an overwritten frame");
+        assert_eq!([s[1] - s[0], s[2] - s[1], s[3] - s[2]], [1.0, 1.0, 1.0]);
+        assert_eq!(
+            batch.rewards[b],
+            s[3] + 1.0,
+            "the reward of the step from the newest frame"
+        );
+    });
 }
 
 #[test]

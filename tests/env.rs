@@ -16,6 +16,15 @@ fn mode(m: EnvMode) -> EnvConfig {
     EnvConfig::from_mode(m)
 }
 
+/// The game in v0 mode with episodes cut at `max_episode_steps` agent steps (`None`: never).
+fn v0_capped(max_episode_steps: Option<u32>, seed: u64) -> SpaceInvaders {
+    let cfg = EnvConfig {
+        max_episode_steps,
+        ..mode(EnvMode::V0)
+    };
+    env(&cfg, seed)
+}
+
 /// A fixed pseudo-random action sequence, independent of the environment.
 fn actions(n: usize, n_actions: usize, seed: u64) -> Vec<usize> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -176,11 +185,7 @@ fn sticky_actions_repeat_the_previous_action_with_the_set_probability() {
 
 #[test]
 fn step_limit_truncates() {
-    let cfg = EnvConfig {
-        max_episode_steps: Some(25),
-        ..mode(EnvMode::V0)
-    };
-    let mut e = env(&cfg, 0);
+    let mut e = v0_capped(Some(25), 0);
     for i in 1..=25 {
         let r = e.step(0);
         assert!(!r.terminal);
@@ -195,11 +200,7 @@ fn step_limit_truncates() {
 #[test]
 #[should_panic(expected = "finished episode")]
 fn stepping_a_finished_episode_panics() {
-    let cfg = EnvConfig {
-        max_episode_steps: Some(1),
-        ..mode(EnvMode::V0)
-    };
-    let mut e = env(&cfg, 0);
+    let mut e = v0_capped(Some(1), 0);
     e.step(0);
     e.step(0);
 }
@@ -372,11 +373,7 @@ fn observer_stacks_composites_oldest_first_as_nhwc() {
 
 #[test]
 fn episodes_end_and_lives_count_down_from_three() {
-    let cfg = EnvConfig {
-        max_episode_steps: None,
-        ..mode(EnvMode::V0)
-    };
-    let mut e = env(&cfg, 9);
+    let mut e = v0_capped(None, 9);
     assert_eq!(e.lives(), 3);
     let mut lives_seen = vec![3];
     let mut rng = ChaCha8Rng::seed_from_u64(9);

@@ -11,7 +11,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
 use common::cli::{
-    bin, fails_with, invaders, ok, resume, resume_args, tmp_dir, train, train_command, write_file,
+    assert_saved_config, bin, experiment_args, fails_with, invaders, ok, resume, resume_args, s,
+    tmp_dir, train, train_command, write_file, TINY,
 };
 
 fn tmp(name: &str) -> PathBuf {
@@ -26,6 +27,22 @@ fn config(root: &Path, text: &str) -> String {
     s(&write_file(root, "fast.toml", text)).to_string()
 }
 
+/// A new temporary directory ([`tmp`]) with `text` in its `fast.toml` ([`config`]): the
+/// directory and the configuration's path.
+fn tmp_config(name: &str, text: &str) -> (PathBuf, String) {
+    let root = tmp(name);
+    let cfg = config(&root, text);
+    (root, cfg)
+}
+
+/// [`tmp_config`], and the path of a run in the directory: the directory, the configuration's
+/// path and the run's.
+fn tmp_run(name: &str, text: &str) -> (PathBuf, String, PathBuf) {
+    let (root, cfg) = tmp_config(name, text);
+    let run = root.join("run");
+    (root, cfg, run)
+}
+
 /// [`FAST`] without periodic checkpoints: only the end of the budget or a stop writes one.
 fn no_periodic_checkpoint() -> String {
     FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000")
@@ -34,15 +51,9 @@ fn no_periodic_checkpoint() -> String {
 /// A new temporary directory with [`FAST`] in it and a run of it (seed 1) of `episodes` in
 /// `run`: the directory, the configuration's path and the run's.
 fn trained(name: &str, episodes: u64) -> (PathBuf, String, PathBuf) {
-    let root = tmp(name);
-    let cfg = config(&root, FAST);
-    let run = root.join("run");
+    let (root, cfg, run) = tmp_run(name, FAST);
     ok(&train(&cfg, 1, episodes, &run));
     (root, cfg, run)
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 /// One episode of `run`'s checkpoint, recorded to `gif`.
@@ -62,8 +73,7 @@ fn eval_gif(run: &Path, gif: &Path, extra: &[&str]) -> Output {
 
 #[test]
 fn nothing_a_user_types_loses_or_damages_data() {
-    let root = tmp("data");
-    let cfg = config(&root, FAST);
+    let (root, cfg) = tmp_config("data", FAST);
     let (a, b) = (root.join("a"), root.join("b"));
     ok(&train(&cfg, 1, 1, &a));
     ok(&train(&cfg, 2, 1, &b));
@@ -164,23 +174,25 @@ fn nothing_a_user_types_loses_or_damages_data() {
 
 #[test]
 fn the_configuration_says_what_runs() {
-    let root = tmp("config");
     // A mode sets its knobs; an explicit knob overrides them; 0 removes the episode cap.
-    let cfg = config(&root, &format!("{FAST}mode = \"nature\"\nnoop_max = 5\n"));
+    let (root, cfg) = tmp_config(
+        "config",
+        &format!("{FAST}mode = \"nature\"\nnoop_max = 5\n"),
+    );
     let run = root.join("nature");
     ok(&train(&cfg, 1, 1, &run));
-    let saved = std::fs::read_to_string(run.join("config.toml")).unwrap();
-    for line in [
-        "mode = \"nature\"",
-        "frame_skip_min = 4",
-        "frame_skip_max = 4",
-        "sticky_prob = 0.0",
-        "max_pool_last_two = true",
-        "noop_max = 5",
-        "max_episode_steps = 50",
-    ] {
-        assert!(saved.contains(line), "`{line}` in\n{saved}");
-    }
+    assert_saved_config(
+        &run,
+        &[
+            "mode = \"nature\"",
+            "frame_skip_min = 4",
+            "frame_skip_max = 4",
+            "sticky_prob = 0.0",
+            "max_pool_last_two = true",
+            "noop_max = 5",
+            "max_episode_steps = 50",
+        ],
+    );
     let parsed =
         invaders::dqn::Config::resolve(None, Some("[env]\nmode = \"v5\"\nmax_episode_steps = 0\n"))
             .unwrap();
@@ -318,27 +330,21 @@ fn no_input_panics_aborts_or_hangs() {
 /// with 130 after its runs have stopped.
 #[test]
 fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
-    let root = tmp("experiment-signals");
     // No periodic checkpoint: the one the test finds must be the stop's.
-    let cfg = config(&root, &no_periodic_checkpoint());
+    let (root, cfg) = tmp_config("experiment-signals", &no_periodic_checkpoint());
     let out = root.join("exp");
+    let flags = [
+        "--seeds",
+        "2",
+        "--jobs",
+        "1",
+        "--threads",
+        "1",
+        "--frames",
+        "100000000",
+    ];
     let child = bin()
-        .args([
-            "experiment",
-            "strong",
-            "--seeds",
-            "2",
-            "--jobs",
-            "1",
-            "--threads",
-            "1",
-            "--frames",
-            "100000000",
-            "--config",
-            &cfg,
-            "--out",
-            s(&out),
-        ])
+        .args(experiment_args("strong", &flags, &cfg, s(&out)))
         .process_group(0) // a terminal's foreground group, with the experiment as its leader
         .stderr(Stdio::piped())
         .spawn()
@@ -414,10 +420,8 @@ fn an_interrupted_experiment_stops_its_runs_and_starts_no_more() {
 
 #[test]
 fn an_interrupted_run_keeps_its_work() {
-    let root = tmp("signals");
     // No checkpoint until the end of the budget: SIGTERM must write one.
-    let cfg = config(&root, &no_periodic_checkpoint());
-    let run = root.join("run");
+    let (root, cfg, run) = tmp_run("signals", &no_periodic_checkpoint());
     let (mut child, mut lines) = spawn_train(&cfg, 4, 1_000_000, &run);
     wait_for_line(&mut lines, "ep 2 ");
     sigterm(&child);
@@ -671,8 +675,7 @@ fn an_output_file_is_replaced_whole_or_written_through_never_destroyed() {
 #[test]
 fn a_closed_or_failing_stream_costs_no_work() {
     use std::os::unix::process::ExitStatusExt;
-    let root = tmp("streams");
-    let cfg = config(&root, FAST);
+    let (root, cfg) = tmp_config("streams", FAST);
 
     // train with stderr a pipe nobody reads, and with stderr /dev/full.
     for (name, closed) in [("closed", true), ("full", false)] {
@@ -819,33 +822,15 @@ fn a_closed_or_failing_stream_costs_no_work() {
 /// it writes or trains anything (the arm's TOML is not rewritten).
 #[test]
 fn a_reused_experiment_folder_is_refused_under_another_configuration() {
-    let root = tmp("reuse");
-    let a = config(
-        &root,
-        "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n",
-    );
+    let (root, a) = tmp_config("reuse", TINY);
     let b_path = write_file(
         &root,
         "b.toml",
         "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 16\ngamma = 0.9\n",
     );
     let exp = root.join("exp");
-    let strong = |cfg: &str| {
-        invaders(&[
-            "experiment",
-            "strong",
-            "--seeds",
-            "1",
-            "--frames",
-            "400",
-            "--threads",
-            "1",
-            "--config",
-            cfg,
-            "--out",
-            s(&exp),
-        ])
-    };
+    let flags = ["--seeds", "1", "--frames", "400", "--threads", "1"];
+    let strong = |cfg: &str| invaders(&experiment_args("strong", &flags, cfg, s(&exp)));
     // Seed 1's run, trained under A (as a first `experiment strong --config A` leaves it).
     let run = exp.join("strong-seed1");
     ok(&invaders(&[
@@ -897,18 +882,12 @@ fn a_reused_experiment_folder_is_refused_under_another_configuration() {
         s(&pre.join("article-vanilla-seed0")),
     ]));
     fails_with(
-        &invaders(&[
-            "experiment",
+        &invaders(&experiment_args(
             "preprocessing",
-            "--episodes",
-            "1",
-            "--seeds",
-            "1",
-            "--config",
+            &["--episodes", "1", "--seeds", "1"],
             s(&b_path),
-            "--out",
             s(&pre),
-        ]),
+        )),
         &["article-vanilla-seed0", "`batch_size`"],
     );
     assert!(
@@ -1019,25 +998,13 @@ fn messages_say_what_is_so() {
 
     // `export` over an existing file suggests --force, and --force works.
     let model = root.join("model.safetensors");
-    ok(&invaders(&[
-        "export",
-        "--checkpoint",
-        s(&run),
-        "--out",
-        s(&model),
-    ]));
-    fails_with(
-        &invaders(&["export", "--checkpoint", s(&run), "--out", s(&model)]),
-        &["--force"],
-    );
-    ok(&invaders(&[
-        "export",
-        "--checkpoint",
-        s(&run),
-        "--out",
-        s(&model),
-        "--force",
-    ]));
+    let export = |extra: &[&str]| {
+        let args = ["export", "--checkpoint", s(&run), "--out", s(&model)];
+        invaders(&[&args, extra].concat())
+    };
+    ok(&export(&[]));
+    fails_with(&export(&[]), &["--force"]);
+    ok(&export(&["--force"]));
 
     // Inconsistent frame skips are reported with the values written.
     for (text, needle) in [

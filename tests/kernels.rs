@@ -8,12 +8,12 @@
 mod common;
 
 use common::{
-    assert_close, avx2_expected, avx512_expected, forward_backward_into, gamma, on_path,
-    padded_input, random_params, reference_dz, reference_forward, reference_grads,
+    assert_close, avx2_expected, avx512_expected, conv_and_dense_passes, forward_backward_into,
+    gamma, on_path, padded_input, reference_dz, reference_forward, reference_grads,
     reference_output, rng, same_on_1_2_3_threads, set_params, uniform, Square,
 };
 use invaders::layers::{Conv2d, Layer};
-use invaders::ops::plan::{self, Kernel, Product};
+use invaders::ops::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::cpu::Family;
 use invaders::tensor::{
     fill_iota, gather_gemm_portable, gemm, gemm_matrixmultiply, gemm_reference, pad_input,
@@ -50,6 +50,21 @@ fn assert_grads(
     assert_close("dx", layer.input_grad().data(), &dx, tol)?;
     assert_close("dw", layer.params()[0].grad.data(), &dw, tol)?;
     assert_close("db", layer.params()[1].grad.data(), &db, tol)
+}
+
+/// Runs `layer` (of `g`, weights `wt`, output pixels starting at `at`, just run forward on
+/// `xin`: `x`, or `x` inside its padding) backward with a `dY` of its output's shape drawn from
+/// `r`; returns the reference gradients `(dX, dW, db)` for `x` and that `dY`, past the ReLU if
+/// `relu` (its mask from the layer's own output: a fast kernel rounds differently from the
+/// reference).
+fn backward_ref(
+    layer: &mut Conv2d<f32>, g: &ConvGeom, (x, xin): (&Tensor<f32>, &Tensor<f32>),
+    wt: &Tensor<f32>, at: &[usize], relu: bool, r: &mut impl rand::Rng,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let dy = uniform::<f32>(layer.output().shape(), r);
+    let dz = reference_dz(dy.data(), layer.output().data(), at, g.cout, relu);
+    layer.backward(xin, &dy, true);
+    reference_grads(g, x.shape()[0], x.data(), wt.data(), &dz)
 }
 
 proptest! {
@@ -212,14 +227,101 @@ proptest! {
         let (y, at) = reference_output(&g, n, x.data(), wt.data(), bt.data(), border, relu);
         prop_assert_eq!(layer.output().shape(), &[n, hb, wb, cout][..]);
         assert_close("y", layer.output().data(), &y, 1e-5)?;
-        let dy = uniform::<f32>(&[n, hb, wb, cout], &mut r);
-        let dz = reference_dz(dy.data(), layer.output().data(), &at, cout, relu);
-        layer.backward(&x, &dy, true);
-        let (mut dx, dw, db) = reference_grads(&g, n, x.data(), wt.data(), &dz);
+        let (mut dx, dw, db) = backward_ref(&mut layer, &g, (&x, &x), &wt, &at, relu, &mut r);
         if in_border {
             ib.zero(&mut dx, n, h - 2, w - 2, cin);
         }
         assert_grads(&layer, (dx, dw, db), 1e-5)?;
+    }
+}
+
+/// A convolution of `g` over `n` images for the Winograd checks: its weights, bias, input and
+/// `dY`, drawn in that order from a generator of `seed`; the Winograd scratch space; the
+/// tolerance of the comparisons with the reference.
+struct WinogradCheck<T: Float> {
+    g: ConvGeom,
+    n: usize,
+    wt: Tensor<T>,
+    bt: Tensor<T>,
+    x: Tensor<T>,
+    dy: Tensor<T>,
+    scratch: WinogradScratch<T>,
+    tol: f64,
+}
+
+impl<T: Float> WinogradCheck<T> {
+    fn new(g: ConvGeom, n: usize, seed: u64, tol: f64) -> Self {
+        let mut r = rng(seed);
+        let wt = uniform::<T>(&[g.kh, g.kw, g.cin, g.cout], &mut r);
+        let bt = uniform::<T>(&[g.cout], &mut r);
+        let x = uniform::<T>(&[n, g.h, g.w, g.cin], &mut r);
+        let dy = uniform::<T>(&[n, g.oh, g.ow, g.cout], &mut r);
+        let scratch = WinogradScratch::default();
+        WinogradCheck {
+            g,
+            n,
+            wt,
+            bt,
+            x,
+            dy,
+            scratch,
+            tol,
+        }
+    }
+
+    /// [`winograd_conv`] forward by `kind` (`u` the filters transformed for it), with the bias
+    /// and the ReLU if `relu`, against the reference convolution; returns the shape it ran.
+    fn forward(
+        &mut self, kind: WinogradKind, u: &[T], relu: bool,
+    ) -> Result<WinogradShape, TestCaseError> {
+        let (g, n) = (&self.g, self.n);
+        let mut pixels = Vec::new();
+        fill_iota(&mut pixels, g.oh * g.ow, g.cout);
+        let shape = WinogradShape {
+            n,
+            h: g.h,
+            w: g.w,
+            ci: g.cin,
+            oh: g.oh,
+            ow: g.ow,
+            pad_top: g.pad_top,
+            pad_left: g.pad_left,
+            co: g.cout,
+            out_image: g.oh * g.ow * g.cout,
+            out_pieces: 1,
+            kind,
+        };
+        let (x, wt, bt) = (self.x.data(), self.wt.data(), self.bt.data());
+        let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * g.cout];
+        winograd_conv(
+            shape,
+            x,
+            u,
+            Some(bt),
+            relu,
+            &mut y,
+            &pixels,
+            &mut self.scratch,
+        );
+        let want = reference_forward(g, n, x, wt, bt, relu);
+        assert_close("y", &y, &want, self.tol)?;
+        Ok(shape)
+    }
+
+    /// The reference gradients `(dX, dW, db)` for `dY`.
+    fn reference_grads(&self) -> (Vec<T>, Vec<T>, Vec<T>) {
+        let (x, wt, dy) = (self.x.data(), self.wt.data(), self.dy.data());
+        reference_grads(&self.g, self.n, x, wt, dy)
+    }
+
+    /// [`winograd_wgrad`] over the forward `shape` adds the reference weight gradient `dw` to
+    /// what its output holds (ones, to start).
+    fn wgrad(&mut self, shape: WinogradShape, mut dw: Vec<T>) -> Result<(), TestCaseError> {
+        let mut dww = vec![T::one(); dw.len()];
+        let (x, dy) = (self.x.data(), self.dy.data());
+        winograd_wgrad(shape, x, dy, &mut dww, &mut self.scratch);
+        dw.iter_mut().for_each(|v| *v += T::one());
+        assert_close("dw", &dww, &dw, self.tol)
     }
 }
 
@@ -234,48 +336,14 @@ fn winograd_case<T: Float>(
 ) -> Result<(), TestCaseError> {
     let pad = if same { Padding::Same } else { Padding::Valid };
     let g = ConvGeom::new(h, w, ci, co, 3, 3, (1, 1), pad).unwrap();
-    let mut r = rng(seed);
-    let wt = uniform::<T>(&[3, 3, ci, co], &mut r);
-    let bt = uniform::<T>(&[co], &mut r);
-    let x = uniform::<T>(&[n, h, w, ci], &mut r);
-    let dy = uniform::<T>(&[n, g.oh, g.ow, co], &mut r);
-    let mut scratch = WinogradScratch::default();
+    let mut c = WinogradCheck::<T>::new(g, n, seed, tol);
     let mut u = Vec::new();
-    let mut pixels = Vec::new();
     // Forward: y = relu(b + conv(x, w)), over x read as zero outside the image.
-    winograd_filters(wt.data(), ci, co, false, &mut u);
-    fill_iota(&mut pixels, g.oh * g.ow, co);
-    let shape = WinogradShape {
-        n,
-        h,
-        w,
-        ci,
-        oh: g.oh,
-        ow: g.ow,
-        pad_top: g.pad_top,
-        pad_left: g.pad_left,
-        co,
-        out_image: g.oh * g.ow * co,
-        out_pieces: 1,
-        kind: WinogradKind::F2x3,
-    };
-    let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * co];
-    let bias = Some(bt.data());
-    winograd_conv(
-        shape,
-        x.data(),
-        &u,
-        bias,
-        relu,
-        &mut y,
-        &pixels,
-        &mut scratch,
-    );
-    let want = reference_forward(&g, n, x.data(), wt.data(), bt.data(), relu);
-    assert_close("y", &y, &want, tol)?;
-    let forward = shape;
+    winograd_filters(c.wt.data(), ci, co, false, &mut u);
+    let forward = c.forward(WinogradKind::F2x3, &u, relu)?;
     // Adjoint: dX[iy, ix] = Σ dY[iy − ky + pad, ix − kx + pad]·wᵀ, dY read at padding 2 − pad.
-    winograd_filters(wt.data(), ci, co, true, &mut u);
+    winograd_filters(c.wt.data(), ci, co, true, &mut u);
+    let mut pixels = Vec::new();
     fill_iota(&mut pixels, h * w, ci);
     let shape = WinogradShape {
         n,
@@ -294,21 +362,18 @@ fn winograd_case<T: Float>(
     let mut dx = vec![T::of(f64::NAN); n * h * w * ci];
     winograd_conv(
         shape,
-        dy.data(),
+        c.dy.data(),
         &u,
         None,
         false,
         &mut dx,
         &pixels,
-        &mut scratch,
+        &mut c.scratch,
     );
-    let (want, mut dw, _) = reference_grads(&g, n, x.data(), wt.data(), dy.data());
+    let (want, dw, _) = c.reference_grads();
     assert_close("dx", &dx, &want, tol)?;
     // Weight gradient (added to what `dw` holds: start from ones).
-    let mut dww = vec![T::one(); dw.len()];
-    winograd_wgrad(forward, x.data(), dy.data(), &mut dww, &mut scratch);
-    dw.iter_mut().for_each(|v| *v += T::one());
-    assert_close("dw", &dww, &dw, tol)
+    c.wgrad(forward, dw)
 }
 
 /// [`winograd_conv`] and [`winograd_wgrad`] by F(2×2, 2×2) over `s × s` blocks (a `2s × 2s`
@@ -321,56 +386,20 @@ fn winograd_s2d_case<T: Float>(
     s: usize, h: usize, w: usize, ci: usize, co: usize, n: usize, relu: bool, seed: u64, tol: f64,
 ) -> Result<(), TestCaseError> {
     let g = ConvGeom::new(h, w, ci, co, 2 * s, 2 * s, (s, s), Padding::Valid).unwrap();
-    let mut r = rng(seed);
-    let wt = uniform::<T>(&[2 * s, 2 * s, ci, co], &mut r);
-    let bt = uniform::<T>(&[co], &mut r);
-    let x = uniform::<T>(&[n, h, w, ci], &mut r);
+    let mut c = WinogradCheck::<T>::new(g, n, seed, tol);
     let mut u = Vec::new();
-    winograd_filters_s2d(wt.data(), s, ci, co, &mut u);
-    let mut pixels = Vec::new();
-    fill_iota(&mut pixels, g.oh * g.ow, co);
-    let shape = WinogradShape {
-        n,
-        h,
-        w,
-        ci,
-        oh: g.oh,
-        ow: g.ow,
-        pad_top: 0,
-        pad_left: 0,
-        co,
-        out_image: g.oh * g.ow * co,
-        out_pieces: 1,
-        kind: WinogradKind::S2d(s),
-    };
-    let mut y = vec![T::of(f64::NAN); n * g.oh * g.ow * co];
-    let mut scratch = WinogradScratch::default();
-    winograd_conv(
-        shape,
-        x.data(),
-        &u,
-        Some(bt.data()),
-        relu,
-        &mut y,
-        &pixels,
-        &mut scratch,
-    );
-    let want = reference_forward(&g, n, x.data(), wt.data(), bt.data(), relu);
-    assert_close("y", &y, &want, tol)?;
+    winograd_filters_s2d(c.wt.data(), s, ci, co, &mut u);
+    let shape = c.forward(WinogradKind::S2d(s), &u, relu)?;
     // Weight gradient (added to what `dw` holds: start from ones) against the reference's.
-    let dy = uniform::<T>(&[n, g.oh, g.ow, co], &mut r);
-    let (mut dx, mut dw, _) = reference_grads(&g, n, x.data(), wt.data(), dy.data());
-    let mut dww = vec![T::one(); dw.len()];
-    winograd_wgrad(shape, x.data(), dy.data(), &mut dww, &mut scratch);
-    dw.iter_mut().for_each(|v| *v += T::one());
-    assert_close("dw", &dww, &dw, tol)?;
+    let (mut dx, dw, _) = c.reference_grads();
+    c.wgrad(shape, dw)?;
     // Input gradient by the adjoint over blocks, F(2×2, 2×2) with blocks of one pixel: dY read
     // from one pixel above and to the left, into the blocks that tile s(OH+1) × s(OW+1), each
     // block's s² pixels a piece of `ci` channels. The first row and column are skipped (as a
     // border would be); they and the places past the blocks keep what they held.
     let (bh, bw) = (g.oh + 1, g.ow + 1);
     let mut wt2 = Vec::new();
-    winograd_filters_s2d_adjoint(wt.data(), s, ci, co, &mut wt2, &mut u);
+    winograd_filters_s2d_adjoint(c.wt.data(), s, ci, co, &mut wt2, &mut u);
     let mut pieces = Vec::new();
     for by in 0..bh {
         for bx in 0..bw {
@@ -399,16 +428,16 @@ fn winograd_s2d_case<T: Float>(
         kind: WinogradKind::S2d(1),
     };
     let held = T::of(7.0);
-    let mut dxw = vec![held; x.len()];
+    let mut dxw = vec![held; c.x.len()];
     winograd_conv(
         adjoint,
-        dy.data(),
+        c.dy.data(),
         &u,
         None,
         false,
         &mut dxw,
         &pieces,
-        &mut scratch,
+        &mut c.scratch,
     );
     for (p, v) in dx.chunks_exact_mut(ci).enumerate() {
         let (iy, ix) = (p / w % h, p % w);
@@ -492,13 +521,8 @@ proptest! {
         };
         layer.forward(&xin);
         let (y, at) = reference_output(&g, n, x.data(), wt.data(), bt.data(), border, true);
-        let (hb, wb) = border.around(g.oh, g.ow);
         assert_close("y", layer.output().data(), &y, 1e-5)?;
-        let dy = uniform::<f32>(&[n, hb, wb, cout], &mut r);
-        // The ReLU's mask from the layer's own output, as above.
-        let dz = reference_dz(dy.data(), layer.output().data(), &at, cout, true);
-        layer.backward(&xin, &dy, true);
-        let (mut dx, dw, db) = reference_grads(&g, n, x.data(), wt.data(), &dz);
+        let (mut dx, dw, db) = backward_ref(&mut layer, &g, (&x, &xin), &wt, &at, true, &mut r);
         if bordered {
             let mut dxp = Vec::new();
             pad_input(&g, n, &dx, &mut dxp);
@@ -652,21 +676,11 @@ fn batch_size_changes_are_consistent() {
 /// output element is summed in a fixed order whatever the split into rayon tasks.
 #[test]
 fn results_do_not_depend_on_thread_count() {
-    use invaders::layers::Dense;
     same_on_1_2_3_threads(|| {
         let mut r = rng(11);
-        let mut out = Vec::new();
         let g = ConvGeom::new(22, 20, 32, 64, 4, 4, (2, 2), Padding::Same).unwrap();
-        let mut conv = Conv2d::<f32>::new("c", g);
-        random_params(&mut conv, &mut r);
-        let x = uniform::<f32>(&[6, 22, 20, 32], &mut r);
-        let dy = uniform::<f32>(&[6, g.oh, g.ow, 64], &mut r);
-        forward_backward_into(&mut conv, &x, &dy, &mut out);
-        let mut dense = Dense::<f32>::new("d", 700, 130);
-        random_params(&mut dense, &mut r);
-        let x = uniform::<f32>(&[9, 700], &mut r);
-        let dy = uniform::<f32>(&[9, 130], &mut r);
-        forward_backward_into(&mut dense, &x, &dy, &mut out);
+        let conv = Conv2d::<f32>::new("c", g);
+        let mut out = conv_and_dense_passes(conv, 6, Precision::F32, &mut r);
         // Winograd, F(2×2, 3×3) (forward and input gradient) and F(2×2, 2×2) over 2×2
         // blocks (forward; the input gradient by phases for 13 rows, which the blocks do
         // not tile, by the adjoint over blocks for 12), over a batch of 9 (Winograd runs
@@ -674,10 +688,8 @@ fn results_do_not_depend_on_thread_count() {
         for (cin, k, s, h) in [(32, 3, 1, 13), (32, 4, 2, 13), (32, 4, 2, 12)] {
             let g = ConvGeom::new(h, 12, cin, 48, k, k, (s, s), Padding::Valid).unwrap();
             let mut conv = Conv2d::<f32>::new("w", g).with_winograd(true).with_relu();
-            random_params(&mut conv, &mut r);
-            let x = uniform::<f32>(&[9, h, 12, cin], &mut r);
-            let dy = uniform::<f32>(&[9, g.oh, g.ow, 48], &mut r);
-            forward_backward_into(&mut conv, &x, &dy, &mut out);
+            let (x, dy) = ([9, h, 12, cin], [9, g.oh, g.ow, 48]);
+            forward_backward_into(&mut conv, &x, &dy, &mut r, &mut out);
         }
         out
     });

@@ -313,16 +313,7 @@ impl Game for Scripted {
         if terminal {
             self.episode += 1;
         }
-        StepResult {
-            reward: self.reward,
-            terminal,
-            truncated: false,
-            lives: 1,
-            frames: 1,
-        }
-    }
-    fn last_two_frames(&self) -> (&[u8], &[u8]) {
-        (&self.frame, &self.frame)
+        common::toy_step(self.reward, terminal, false)
     }
     fn observation(&self) -> &[u8] {
         &self.frame
@@ -331,15 +322,17 @@ impl Game for Scripted {
 
 /// A small single-frame configuration that never trains and acts greedily.
 fn agent_config() -> Config {
-    let mut c = common::vanilla_config();
-    c.replay_capacity = 64;
-    c.batch_size = 2;
-    c.learning_starts = 1_000_000;
-    c.target_update = 1_000_000;
-    c.epsilon_start = 0.0;
-    c.epsilon_end = 0.0;
-    c.seed = 5;
+    let mut c = common::small_config(64, 2, 1_000_000, 1_000_000, 5);
+    (c.epsilon_start, c.epsilon_end) = (0.0, 0.0);
     c
+}
+
+/// An agent of [`agent_config`] changed by `set`, playing [`Scripted`] episodes of `lengths`
+/// with `reward` a step.
+fn scripted_agent(lengths: &[u32], reward: f32, set: impl FnOnce(&mut Config)) -> Agent<Scripted> {
+    let mut c = agent_config();
+    set(&mut c);
+    Agent::new(c, Scripted::new(lengths, reward))
 }
 
 /// Makes `net` prefer `action` whatever the state: every weight zero, dense2's bias one-hot.
@@ -367,9 +360,7 @@ fn same_networks<G: Game>(agent: &Agent<G>) -> bool {
 #[test]
 fn clipped_rewards_are_stored_clipped() {
     for (clip, stored) in [(true, 1.0), (false, 5.0)] {
-        let mut c = agent_config();
-        c.clip_rewards = clip;
-        let mut agent = Agent::new(c, Scripted::new(&[3], 5.0));
+        let mut agent = scripted_agent(&[3], 5.0, |c| c.clip_rewards = clip);
         let row = agent.play_episode().unwrap();
         assert_eq!(row.reward, 15.0, "the score is unclipped");
         let (_, _, rewards, flags) = agent.replay.parts();
@@ -386,11 +377,11 @@ fn clipped_rewards_are_stored_clipped() {
 /// Episodes of 9 and 1 steps end exactly there.
 #[test]
 fn the_target_network_is_refreshed_every_target_update_steps() {
-    let mut c = agent_config();
-    c.learning_starts = 4;
-    c.train_every = 1;
-    c.target_update = 10;
-    let mut agent = Agent::new(c, Scripted::new(&[9, 1], 0.5));
+    let mut agent = scripted_agent(&[9, 1], 0.5, |c| {
+        c.learning_starts = 4;
+        c.train_every = 1;
+        c.target_update = 10;
+    });
     assert!(same_networks(&agent), "the target starts as a copy");
     for (steps, equal) in [(9, false), (10, true), (19, false), (20, true)] {
         agent.play_episode().unwrap();
@@ -432,9 +423,9 @@ fn epsilon_follows_its_schedule_and_the_agent_uses_it() {
         "the row's ε is at the episode's end"
     );
     for (eps, both) in [(0.0, false), (1.0, true)] {
-        let mut c = agent_config();
-        (c.epsilon_start, c.epsilon_end) = (eps, eps);
-        let mut agent = Agent::new(c, Scripted::new(&[40], 0.0));
+        let mut agent = scripted_agent(&[40], 0.0, |c| {
+            (c.epsilon_start, c.epsilon_end) = (eps, eps)
+        });
         prefer(&mut agent.learner.online, 1);
         agent.play_episode().unwrap();
         let a = &agent.game.actions;
@@ -488,9 +479,7 @@ fn the_learning_rate_follows_its_schedule_and_adam_gets_it() {
 #[test]
 fn acting_with_the_target_network_uses_the_target() {
     for (switch, action) in [(false, 0), (true, 1)] {
-        let mut c = agent_config();
-        c.act_with_target_network = switch;
-        let mut agent = Agent::new(c, Scripted::new(&[5], 0.0));
+        let mut agent = scripted_agent(&[5], 0.0, |c| c.act_with_target_network = switch);
         prefer(&mut agent.learner.online, 0);
         prefer(&mut agent.learner.target, 1);
         agent.play_episode().unwrap();
@@ -507,9 +496,7 @@ fn acting_with_the_target_network_uses_the_target() {
 #[test]
 fn the_fake_terminal_transition_repeats_the_last_state() {
     for fake in [false, true] {
-        let mut c = agent_config();
-        c.fake_terminal_transition = fake;
-        let mut agent = Agent::new(c, Scripted::new(&[3], 2.0));
+        let mut agent = scripted_agent(&[3], 2.0, |c| c.fake_terminal_transition = fake);
         agent.play_episode().unwrap();
         // Entries: the first frame, the three steps' frames, and with the switch the repeat.
         assert_eq!(agent.replay.written(), 4 + fake as u64);

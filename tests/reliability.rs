@@ -29,6 +29,23 @@ fn write_config(root: &Path, extra: &str) -> String {
     p.to_str().unwrap().to_string()
 }
 
+/// A new temporary directory ([`tmp`]) with `extra` then [`FAST`] in its `config.toml`: the
+/// directory and the configuration's path.
+fn tmp_config(name: &str, extra: &str) -> (PathBuf, String) {
+    let root = tmp(name);
+    let cfg = write_config(&root, extra);
+    (root, cfg)
+}
+
+/// [`tmp_config`] and a new run of it ([`new_run`]) of `episodes` in `run`: the directory and
+/// the run's.
+fn trained(name: &str, extra: &str, episodes: u64) -> (PathBuf, PathBuf) {
+    let (root, cfg) = tmp_config(name, extra);
+    let run = root.join("run");
+    ok(&new_run(&cfg, &run, episodes));
+    (root, run)
+}
+
 /// A new run of `cfg` with seed 11 on one thread.
 fn new_run(cfg: &str, out: &Path, episodes: u64) -> Output {
     train(cfg, 11, episodes, out)
@@ -87,8 +104,7 @@ fn assert_same_run(a: &Path, b: &Path) {
 /// replay memory, generators, emulator, counters and metrics rows, bit for bit.
 #[test]
 fn resumed_run_matches_uninterrupted_run_exactly() {
-    let root = tmp("exact");
-    let cfg = write_config(&root, "");
+    let (root, cfg) = tmp_config("exact", "");
     let (straight, split) = (root.join("straight"), root.join("split"));
     ok(&new_run(&cfg, &straight, 6));
     ok(&new_run(&cfg, &split, 3));
@@ -118,10 +134,7 @@ fn resumed_run_matches_uninterrupted_run_exactly() {
 /// networks restored) with an empty memory, and no replay file is written.
 #[test]
 fn resume_without_replay_starts_an_empty_memory() {
-    let root = tmp("noreplay");
-    let cfg = write_config(&root, "checkpoint_replay = false\n");
-    let run = root.join("run");
-    ok(&new_run(&cfg, &run, 2));
+    let (root, run) = trained("noreplay", "checkpoint_replay = false\n", 2);
     ok(&resume(&run, 3));
     let (c, replay) = checkpoint::load_run(&run).unwrap();
     assert!(replay.is_none());
@@ -192,8 +205,7 @@ fn next_checkpoint(
 fn sigkill_at_random_moments_never_loses_the_run() {
     const EPISODES: u64 = 10;
     const KILLS: u32 = 3;
-    let root = tmp("kill");
-    let cfg = write_config(&root, "");
+    let (root, cfg) = tmp_config("kill", "");
     let (run, reference) = (root.join("run"), root.join("reference"));
     let mut rng = XorShift(0x9E37_79B9_7F4A_7C15);
     let mut kills = 0;
@@ -301,10 +313,7 @@ fn divergence_stops_the_run_and_keeps_the_last_good_checkpoint() {
 /// wrong preset on resume or eval.
 #[test]
 fn write_failure_keeps_the_previous_checkpoint() {
-    let root = tmp("blocked");
-    let cfg = write_config(&root, "");
-    let run = root.join("run");
-    ok(&new_run(&cfg, &run, 1));
+    let (root, run) = trained("blocked", "", 1);
     let before = std::fs::read(run.join(CHECKPOINT_FILE)).unwrap();
     let blocker = run.join(format!(".{CHECKPOINT_FILE}.tmp"));
     std::fs::create_dir(&blocker).unwrap();
@@ -380,8 +389,7 @@ impl Drop for Mount {
 /// previous checkpoint intact. Needs mount privileges; skipped (with a note) without them.
 #[test]
 fn full_disk_keeps_the_previous_checkpoint() {
-    let root = tmp("full");
-    let cfg = write_config(&root, "");
+    let (root, cfg) = tmp_config("full", "");
     let disk = root.join("disk");
     std::fs::create_dir(&disk).unwrap();
     // One checkpoint (14.5 MB) and its replay file (2 MB) fit; a second pair being written

@@ -11,10 +11,13 @@ pub trait Game {
     fn reset(&mut self);
     /// Plays one agent step.
     fn step(&mut self, action: usize) -> StepResult;
-    /// The last two raw (preprocessed) frames of the latest step, older first.
-    fn last_two_frames(&self) -> (&[u8], &[u8]);
     /// The observation of the latest step (the last frame, or a max-pool of the two).
     fn observation(&self) -> &[u8];
+    /// The last two raw (preprocessed) frames of the latest step, older first. A game that
+    /// does not flicker (the toy games of the tests) shows its observation twice.
+    fn last_two_frames(&self) -> (&[u8], &[u8]) {
+        (self.observation(), self.observation())
+    }
     /// Everything needed to continue the game bit-identically (for checkpoints), or `None` if
     /// this game cannot be saved (then a resumed run starts it afresh).
     fn save_state(&self) -> Option<Vec<u8>> {

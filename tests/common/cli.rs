@@ -3,6 +3,15 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+/// The path as text.
+pub fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// The experiments' tiny configuration: a small replay memory, learning from step 200.
+#[allow(dead_code)]
+pub const TINY: &str = "replay_capacity = 2000\nlearning_starts = 200\nbatch_size = 8\n";
+
 /// The binary, without a backtrace setting inherited from the test's environment.
 pub fn bin() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_invaders"));
@@ -44,6 +53,15 @@ pub fn fails_with(out: &Output, needles: &[&str]) -> String {
     err
 }
 
+/// Asserts that the run in `dir` saved a `config.toml` holding each of `lines`.
+#[allow(dead_code)]
+pub fn assert_saved_config(dir: &Path, lines: &[&str]) {
+    let saved = std::fs::read_to_string(dir.join("config.toml")).unwrap();
+    for line in lines {
+        assert!(saved.contains(line), "`{line}` in\n{saved}");
+    }
+}
+
 /// A new empty directory under the system's temporary one, named after the test process.
 pub fn tmp_dir(prefix: &str, name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("{prefix}-{}-{name}", std::process::id()));
@@ -67,6 +85,17 @@ pub fn tmp_with_file(prefix: &str, name: &str, file: &str, text: &str) -> (PathB
     let dir = tmp_dir(prefix, name);
     let path = write_file(&dir, file, text);
     (dir, path)
+}
+
+/// `invaders experiment kind flags… --config cfg --out out`, as arguments.
+#[allow(dead_code)]
+pub fn experiment_args<'a>(
+    kind: &'a str, flags: &[&'a str], cfg: &'a str, out: &'a str,
+) -> Vec<&'a str> {
+    let mut args = vec!["experiment", kind];
+    args.extend_from_slice(flags);
+    args.extend(["--config", cfg, "--out", out]);
+    args
 }
 
 /// The command `invaders train --config cfg --seed seed --threads 1 --episodes episodes --out
@@ -127,6 +156,49 @@ pub fn straight_and_resumed(
     run(&split, stop);
     ok(&resume(&split, total));
     (straight, split)
+}
+
+/// A run's checkpoint and replay memory.
+#[allow(dead_code)]
+pub type RunState = (invaders::dqn::checkpoint::Checkpoint, invaders::dqn::Replay);
+
+/// Two runs of the TOML `config` (written to `config.toml` in a new temporary directory of
+/// `prefix`) with seed 4 on one thread: 4 episodes straight, and 2 then resumed to 4
+/// ([`straight_and_resumed`]). Asserts that learning ran (over 20 train steps) and that both end
+/// with the same replay memory, online weights and metrics rows. Returns the directory, the
+/// straight run's, and both runs' checkpoints and replay memories (the straight run's first).
+#[allow(dead_code)]
+pub fn resumed_like_straight(prefix: &str, config: &str) -> (PathBuf, PathBuf, [RunState; 2]) {
+    let (root, cfg) = tmp_with_file(prefix, "resume", "config.toml", config);
+    let (straight, split) = straight_and_resumed(&root, &cfg, 4, 2, 4);
+    let load = |dir: &Path| {
+        let (c, replay) = invaders::dqn::checkpoint::load_run(dir).unwrap();
+        (c, replay.expect("replay saved"))
+    };
+    let ((ca, ra), (cb, rb)) = (load(&straight), load(&split));
+    assert!(ca.counters.train_steps > 20, "learning ran");
+    assert!(ra.parts() == rb.parts(), "replay memories");
+    assert_eq!(online_weights(&ca), online_weights(&cb), "online weights");
+    assert_eq!(
+        metrics_but_wall_time(&straight),
+        metrics_but_wall_time(&split)
+    );
+    (root, straight, [(ca, ra), (cb, rb)])
+}
+
+/// Runs `invaders eval --checkpoint path --episodes episodes --threads 1` to success; returns
+/// what it printed.
+#[allow(dead_code)]
+pub fn eval(path: &Path, episodes: &str) -> String {
+    ok(&invaders(&[
+        "eval",
+        "--checkpoint",
+        s(path),
+        "--episodes",
+        episodes,
+        "--threads",
+        "1",
+    ]))
 }
 
 /// A checkpoint's online weights, tensor by tensor.

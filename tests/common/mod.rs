@@ -3,7 +3,8 @@
 
 pub mod cli;
 
-use invaders::layers::Layer;
+use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::ops::plan::Precision;
 use invaders::tensor::cpu::{self, Family};
 use invaders::tensor::{
     conv2d_reference, conv2d_reference_backward, pad_input, Border, ConvGeom, Float, Padding,
@@ -377,16 +378,42 @@ pub fn random_params<T: Float>(
     (w, b)
 }
 
-/// Runs `layer` forward on `x` and backward with `dy`, and appends its output, input gradient
-/// and weight gradient to `out`.
+/// Gives `layer` random parameters ([`random_params`]), runs it forward on an `x` of `x_shape`
+/// and backward with a `dY` of `dy_shape` (uniform, drawn from `r` after the parameters), and
+/// appends its output, input gradient and weight gradient to `out`.
 pub fn forward_backward_into(
-    layer: &mut dyn Layer<f32>, x: &Tensor<f32>, dy: &Tensor<f32>, out: &mut Vec<f32>,
+    layer: &mut dyn Layer<f32>, x_shape: &[usize], dy_shape: &[usize], r: &mut impl Rng,
+    out: &mut Vec<f32>,
 ) {
-    layer.forward(x);
-    layer.backward(x, dy, true);
+    random_params(layer, r);
+    let x = uniform::<f32>(x_shape, r);
+    let dy = uniform::<f32>(dy_shape, r);
+    layer.forward(&x);
+    layer.backward(&x, &dy, true);
     out.extend_from_slice(layer.output().data());
     out.extend_from_slice(layer.input_grad().data());
     out.extend_from_slice(layer.params()[0].grad.data());
+}
+
+/// What [`forward_backward_into`] appends for `conv` on `n` images, then for a 700 → 130 dense
+/// layer on 9 rows, both at `precision`, drawing from `r`.
+pub fn conv_and_dense_passes(
+    mut conv: Conv2d<f32>, n: usize, precision: Precision, r: &mut impl Rng,
+) -> Vec<f32> {
+    let mut out = Vec::new();
+    let g = conv.geom;
+    conv.set_precision(precision);
+    forward_backward_into(
+        &mut conv,
+        &[n, g.h, g.w, g.cin],
+        &[n, g.oh, g.ow, g.cout],
+        r,
+        &mut out,
+    );
+    let mut dense = Dense::<f32>::new("d", 700, 130);
+    dense.set_precision(precision);
+    forward_backward_into(&mut dense, &[9, 700], &[9, 130], r, &mut out);
+    out
 }
 
 /// Asserts that `run` gives the same result on rayon pools of 1, 2 and 3 threads.
@@ -426,6 +453,32 @@ pub fn gamma(n: usize) -> f64 {
 pub fn vanilla_config() -> invaders::dqn::Config {
     let mut c = invaders::dqn::Config::preset(invaders::dqn::Preset::Article);
     c.pipeline = invaders::env::Pipeline::Vanilla;
+    c
+}
+
+/// A toy game's step: one life, one frame, and the given reward and ends.
+pub fn toy_step(reward: f32, terminal: bool, truncated: bool) -> invaders::env::StepResult {
+    invaders::env::StepResult {
+        reward,
+        terminal,
+        truncated,
+        lives: 1,
+        frames: 1,
+    }
+}
+
+/// [`vanilla_config`] cut down for a toy game: a replay memory of `replay_capacity` entries,
+/// batches of `batch_size`, learning from agent step `learning_starts`, the target network copied
+/// every `target_update` steps, and `seed`.
+pub fn small_config(
+    replay_capacity: usize, batch_size: usize, learning_starts: u64, target_update: u64, seed: u64,
+) -> invaders::dqn::Config {
+    let mut c = vanilla_config();
+    c.replay_capacity = replay_capacity;
+    c.batch_size = batch_size;
+    c.learning_starts = learning_starts;
+    c.target_update = target_update;
+    c.seed = seed;
     c
 }
 
