@@ -399,9 +399,13 @@ pub(super) struct RunSummary {
     pub(super) points: Vec<(f64, f64)>,
 }
 
+/// The summary of a finished run from its record and its `metrics.csv`, read up to the frames
+/// it was evaluated at: a run directory may have trained on since (a longer budget asked of the
+/// same run), and its later episodes are not the recorded network's.
 pub(super) fn summarize(run: &Finished) -> anyhow::Result<RunSummary> {
     let c = run.record.counters;
-    let points = read_frame_metrics(&run.metrics)?;
+    let mut points = read_frame_metrics(&run.metrics)?;
+    points.retain(|p| p.0 <= c.frames as f64);
     let tail = &points[points.len().saturating_sub(100)..];
     Ok(RunSummary {
         frames: c.frames,
@@ -410,4 +414,54 @@ pub(super) fn summarize(run: &Finished) -> anyhow::Result<RunSummary> {
         last100: tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64,
         points,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A run continued past its record (here: episodes at 100, 200, 300 frames, recorded at
+    /// 200) is summarised as it was recorded: its curve and last-100 mean stop at 200 frames.
+    #[test]
+    fn a_run_continued_past_its_record_is_summarised_as_recorded() {
+        let dir = std::env::temp_dir().join(format!("invaders-summarize-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let metrics = dir.join("metrics.csv");
+        std::fs::write(
+            &metrics,
+            "episode,emulator_frames,reward\n1,100,10\n2,200,30\n3,300,500\n",
+        )
+        .unwrap();
+        let counters = checkpoint::Counters {
+            episodes: 2,
+            agent_steps: 50,
+            frames: 200,
+            wall_seconds: 10.0,
+            ..Default::default()
+        };
+        let scores = Scores {
+            mean: 1.0,
+            std: 0.0,
+            min: 1.0,
+            max: 1.0,
+        };
+        let run = Finished {
+            record: Record {
+                preset: "strong".into(),
+                seed: 1,
+                overrides: String::new(),
+                protocol_episodes: 1,
+                own_game_episodes: None,
+                counters,
+                protocol: scores,
+                own_game: None,
+            },
+            metrics,
+        };
+        let s = summarize(&run).unwrap();
+        assert_eq!(s.points, vec![(100.0, 10.0), (200.0, 30.0)]);
+        assert_eq!(s.last100, 20.0);
+        assert_eq!((s.frames, s.steps_per_second), (200, 5.0));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
