@@ -150,7 +150,9 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         let mut protocol = Vec::new();
         for seed in 0..args.seeds {
             let run = finished.next().expect("a run per seed, in the jobs' order");
-            let points = read_metrics(&run.metrics)?;
+            // Up to the episodes it was evaluated at (its directory may have trained on since).
+            let mut points = read_metrics(&run.metrics)?;
+            points.retain(|p| p.0 <= run.record.counters.episodes as f64);
             let tail = &points[points.len().saturating_sub(100)..];
             last100.push(tail.iter().map(|p| p.1).sum::<f64>() / tail.len().max(1) as f64);
             let own = run.record.own_game.expect("evaluated in its own game");

@@ -123,7 +123,12 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         label: "strong".to_string(),
         seeds,
     }];
-    let title = format!("Space Invaders, strong preset: {} seed(s)", args.seeds);
+    // What the runs are: the preset, or the preset with the keys of `--config`.
+    let what = match &args.config {
+        Some(path) => format!("strong preset with {}", path.display()),
+        None => "strong preset".to_string(),
+    };
+    let title = format!("Space Invaders, {what}: {} seed(s)", args.seeds);
     plot_groups_frames(
         &groups,
         &references,
@@ -132,7 +137,7 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         &args.out.join("rewards.png"),
     )?;
     let table = format!(
-        "# The strong preset over {} seeds\n\nCommand: `{}`\n\nBudget: {} frames per run, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}.\n\n| seed | frames | wall hours | agent steps/s | training return, last 100 episodes | protocol score: mean ± std (min–max) |\n| --- | --- | --- | --- | --- | --- |\n{}\n\nMean protocol score over the seeds: {}. Figure: `rewards.png`.\n",
+        "# The {what} over {} seeds\n\nCommand: `{}`\n\nBudget: {} frames per run, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}.\n\n| seed | frames | wall hours | agent steps/s | training return, last 100 episodes | protocol score: mean ± std (min–max) |\n| --- | --- | --- | --- | --- | --- |\n{}\n\nMean protocol score over the seeds: {}. Figure: `rewards.png`.\n",
         args.seeds,
         command_line(),
         args.frames,
