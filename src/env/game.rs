@@ -13,8 +13,10 @@ pub trait Game {
     fn step(&mut self, action: usize) -> StepResult;
     /// The observation of the latest step (the last frame, or a max-pool of the two).
     fn observation(&self) -> &[u8];
-    /// The last two raw (preprocessed) frames of the latest step, older first. A game that
-    /// does not flicker (the toy games of the tests) shows its observation twice.
+    /// The last two raw (preprocessed) frames of the latest step, older first. The default,
+    /// the observation twice, is right only for a game whose observation is its last frame and
+    /// that does not flicker (the toy games of the tests); a game that composes its
+    /// observation from two frames, as [`SpaceInvaders`] does, returns the two.
     fn last_two_frames(&self) -> (&[u8], &[u8]) {
         (self.observation(), self.observation())
     }

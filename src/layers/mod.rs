@@ -57,9 +57,11 @@ impl<T: Float> Param<T> {
 pub struct Core<T> {
     /// The layer's name; parameters are named `{name}.{kind}`.
     pub name: String,
-    /// `y`, the output of the last forward pass (`[N, …]`, the layer's output shape).
+    /// `y`, the output of the last [`Layer::forward`] or [`Layer::infer`] (`[N, …]`, the layer's
+    /// output shape).
     pub y: Tensor<T>,
-    /// `dX = ∂L/∂x`, from the last backward pass that computed it (`x`'s shape).
+    /// `dX = ∂L/∂x` (`x`'s shape), from the last [`Layer::backward`] that computed it; a layer
+    /// may leave it empty after a backward pass that did not.
     pub dx: Tensor<T>,
 }
 

@@ -101,9 +101,10 @@ pub fn to_bytes(
     Ok(safetensors::serialize(tensors, &Some(meta))?)
 }
 
-/// The metadata every file of ours starts with (read back by [`header`]): its `format`, the `checksum` of its tensors
-/// ([`tensors_checksum`], as hex), the `config` it trained with (TOML) and its `counters` (JSON,
-/// with Adam's step count).
+/// The metadata a checkpoint and a model file start with (read back by [`header`]): the file's
+/// `format`, the `checksum` of its tensors ([`tensors_checksum`], as hex), the `config` it
+/// trained with (TOML) and its `counters` (JSON, with Adam's step count). A replay file has its
+/// own.
 pub(super) fn make_header(
     format: &str, tensors: &[(String, TensorView<'_>)], config: &Config, counters: &Counters,
     learner: &Learner,
