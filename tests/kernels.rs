@@ -521,6 +521,8 @@ proptest! {
         };
         layer.forward(&xin);
         let (y, at) = reference_output(&g, n, x.data(), wt.data(), bt.data(), border, true);
+        let (hb, wb) = border.around(g.oh, g.ow);
+        prop_assert_eq!(layer.output().shape(), &[n, hb, wb, cout][..]);
         assert_close("y", layer.output().data(), &y, 1e-5)?;
         let (mut dx, dw, db) = backward_ref(&mut layer, &g, (&x, &xin), &wt, &at, true, &mut r);
         if bordered {
