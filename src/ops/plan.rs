@@ -4,16 +4,21 @@
 //! implementation runs each product for their shape, batch, precision and this CPU, and then
 //! call it. Every threshold is a named constant here, with the measurement behind it. Nothing
 //! else in the library branches on the CPU: the kernels themselves only pick between their
-//! AVX-512 and portable loops by the one check in [`crate::tensor::cpu`].
+//! AVX-512, AVX2 and portable loops by the one check in [`crate::tensor::cpu`].
 //!
-//! | product | portable (f64, or no AVX-512) | f32 on AVX-512 |
+//! | product | portable (f64, or a CPU without AVX2 and FMA) | f32 on AVX2 and FMA, or AVX-512 |
 //! |---|---|---|
 //! | conv forward | [`Kernel::Im2col`] | [`Kernel::Winograd`] where the layer allows it and the batch is at least [`WINOGRAD_MIN_BATCH`], else [`Kernel::Gather`] |
 //! | conv weight gradient | [`Kernel::Im2col`] | as the forward |
 //! | conv input gradient | [`Kernel::Im2col`] | input read in place: [`Kernel::Winograd`] where its adjoint fits, else [`Kernel::Phases`]; a padded copy: [`Kernel::Scatter`] |
 //! | conv acting | [`Kernel::Background`] or [`Kernel::Sparse`] where the layer allows it and the input is sparse enough ([`BACKGROUND_MAX_DIFFERING`], [`sparse_share`]); else the forward | the same |
-//! | dense forward, backward | [`Kernel::Gemm`] | [`Kernel::Gather`] |
+//! | dense forward, backward | [`Kernel::Gemm`] | [`Kernel::Gather`] on AVX-512; [`Kernel::Gemm`] on AVX2 |
 //! | dense acting | [`Kernel::Sparse`] where allowed and sparse enough ([`dense_sparse_share`]); else the forward | the same |
+//!
+//! A run resumed where the same kernels run continues bit for bit. Where they differ it
+//! continues as a valid run, but not bit for bit: im2col + GEMM sums in another order than the
+//! gather GEMM and Winograd, a dense layer takes the gather GEMM on AVX-512 and faer's GEMM on
+//! AVX2, and faer picks its own SIMD by CPU.
 //!
 //! With [`Precision::Bf16`] on a CPU with AVX512-BF16 ([`bf16_runs`]), the training products
 //! take the bf16 gather GEMM ([`crate::tensor::GatherGemmBf16`]: operands rounded to bf16, sums
@@ -86,7 +91,7 @@ pub enum Kernel {
     Im2col,
     /// A plain GEMM (faer) on the layer's rows: a dense layer's portable path.
     Gemm,
-    /// The AVX-512 gather GEMM ([`crate::tensor::GatherGemm`]), reading the (padded) input
+    /// The gather GEMM ([`crate::tensor::GatherGemm`]; AVX-512 or AVX2), reading the (padded) input
     /// through offset tables: no im2col matrix is written.
     Gather,
     /// A convolution's input gradient for an input read in place, by one gather GEMM per stride

@@ -2,17 +2,20 @@
 //! one wrapper that compiles a loop for AVX-512.
 //!
 //! The hand-written kernels (the gather and scatter GEMMs, the Winograd transforms, the sparse
-//! and background products, the transposes) need AVX-512F and FMA. [`avx512`] says whether they
-//! may run: this CPU has both, and `INVADERS_NO_SIMD` is unset. That variable is the switch back
-//! to the portable code on an AVX-512 host (im2col + faer in the layers, the portable loops in
-//! the kernels), for A/B timing in one session and for testing the portable path there.
+//! and background products, the transposes) have AVX-512F and FMA loops; [`avx512`] says
+//! whether those run: this CPU has both, and `INVADERS_NO_SIMD` is unset. Where they do not,
+//! [`avx2`] says whether the AVX2 and FMA family runs (the gather and scatter GEMMs, Winograd's
+//! transforms and acting's sparse and background products; `INVADERS_NO_AVX512` makes an
+//! AVX-512 host run it), and everything else takes its portable loop. `INVADERS_NO_SIMD` is the
+//! switch back to the portable code on any host (im2col + faer in the layers, the portable loops
+//! in the kernels), for A/B timing in one session and for testing the portable path there.
 //! `INVADERS_NO_BF16` is the narrower switch: the AVX-512 kernels stay, AVX512-BF16 goes, as on
 //! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32. Both
 //! are read once, at the first call, so a process runs one way throughout.
 //!
 //! The kernels are selected by [`crate::ops::plan`]; nothing else asks the CPU.
 //!
-//! Each hand-written kernel family records which of its two loops ran ([`took`], read back by
+//! Each hand-written kernel family records which of its loops ran ([`took`], read back by
 //! [`paths`]), per thread, on the thread that called it: a test can then prove that the
 //! AVX-512 kernel it meant to check is the one that ran, and not the portable twin (or the
 //! reverse with `INVADERS_NO_SIMD=1`). The record is one thread-local increment per call.
@@ -27,9 +30,9 @@ pub struct Features {
     /// AVX-512 kernels run.
     pub avx512: bool,
     /// AVX2 and FMA where the AVX-512 kernels do not run, and `INVADERS_NO_SIMD` unset: the AVX2
-    /// family runs (the gather GEMM: a convolution's forward pass, weight gradient and input
-    /// gradient by phases; see [`crate::ops::plan`]). `INVADERS_NO_AVX512` makes an AVX-512
-    /// host run exactly this.
+    /// family runs (the gather and scatter GEMMs and Winograd for a convolution's training
+    /// products, the sparse and background products for acting; see [`crate::ops::plan`]).
+    /// `INVADERS_NO_AVX512` makes an AVX-512 host run exactly this.
     pub avx2: bool,
     /// That, AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later), and
     /// `INVADERS_NO_BF16` unset.
@@ -141,7 +144,8 @@ pub fn why_no_bf16() -> Option<String> {
     })
 }
 
-/// A kernel family that picks, call by call, between an AVX-512 loop and a portable one.
+/// A kernel family that picks, call by call, between an AVX-512 loop, an AVX2 one where it has
+/// one ([`path`]), and a portable one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Family {
     /// The gather GEMM ([`crate::tensor::Float::gather_gemm`]).

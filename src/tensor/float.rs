@@ -31,16 +31,17 @@ pub trait Float:
     /// Converts from `f64` (exact for `f64`, rounded for `f32`).
     fn of(x: f64) -> Self;
 
-    /// Whether [`Float::gather_gemm`] runs a SIMD kernel for this type on this CPU (f32 with
-    /// AVX-512F and FMA). The layers take their gather-GEMM formulation only then, and otherwise
-    /// keep im2col + faer, the generic path the f64 gradient checks exercise.
+    /// Whether the AVX-512 kernels run for this type on this CPU (f32 with AVX-512F and FMA,
+    /// [`crate::tensor::cpu::avx512`]). The dense layers take the gather GEMM, and the bf16
+    /// products may run, only then.
     fn simd() -> bool {
         false
     }
 
     /// Whether [`Float::gather_gemm`] runs a SIMD kernel for this type on this CPU: f32 with
-    /// AVX-512 ([`Float::simd`]) or with AVX2 and FMA, which has the gather GEMM and not the
-    /// other families ([`crate::tensor::cpu::avx2`]).
+    /// AVX-512 ([`Float::simd`]) or with AVX2 and FMA ([`crate::tensor::cpu::avx2`]). The
+    /// convolutions take their fast kernels (gather, Winograd, phases, scatter) only then, and
+    /// otherwise keep im2col + faer, the generic path the f64 gradient checks exercise.
     fn gather_simd() -> bool {
         false
     }
