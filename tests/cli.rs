@@ -6,7 +6,7 @@ mod common;
 
 use common::cli::{
     assert_saved_config, bin, experiment_args, invaders, ok, resume, s, tmp_dir, tmp_with_file,
-    train, TINY,
+    train, train_command, TINY,
 };
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -877,6 +877,33 @@ fn experiment_preprocessing_trains_evaluates_and_reports() {
         std::fs::read_to_string(out.join("results.md")).unwrap(),
         table
     );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// A checkpoint records the kernels its run's products ran on; a run resumed where other
+/// kernels run says that it continues, but not bit for bit, and one resumed where the same run
+/// says nothing.
+#[test]
+fn a_resume_on_other_kernels_says_so() {
+    let (root, cfg) = tmp_with("kernels", "tiny.toml", TINY);
+    let run = root.join("run");
+    ok(&train_command(cfg.to_str().unwrap(), 1, 2, &run)
+        .env("INVADERS_NO_SIMD", "1")
+        .output()
+        .unwrap());
+    let ckpt = invaders::dqn::checkpoint::load(&run.join("checkpoint.safetensors")).unwrap();
+    assert_eq!(ckpt.kernels.as_deref(), Some("portable"));
+    let here = invaders::ops::plan::kernels(invaders::ops::plan::Precision::F32);
+    let note = "not bit for bit";
+    let text = ok(&resume(&run, 3));
+    assert_eq!(text.contains(note), here != "portable", "{here}: {text}");
+    if here != "portable" {
+        assert!(text.contains("the portable kernels ran"), "{text}");
+    }
+    let ckpt = invaders::dqn::checkpoint::load(&run.join("checkpoint.safetensors")).unwrap();
+    assert_eq!(ckpt.kernels.as_deref(), Some(here));
+    let text = ok(&resume(&run, 4));
+    assert!(!text.contains(note), "{text}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

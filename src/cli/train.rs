@@ -210,6 +210,12 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     }
     super::note_precision(config.precision);
     if let Some((ckpt, _)) = &resumed {
+        let here = invaders::ops::plan::kernels(config.precision);
+        if let Some(then) = ckpt.kernels.as_deref().filter(|&k| k != here) {
+            say!(
+                "note: the checkpoint was written where the {then} kernels ran, and the {here} kernels run here: the run continues, but not bit for bit with one never stopped (docs/runs.md)"
+            );
+        }
         let c = &ckpt.counters;
         if c.episodes >= config.episodes || (config.max_frames > 0 && c.frames >= config.max_frames)
         {

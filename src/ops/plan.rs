@@ -60,6 +60,22 @@ pub fn bf16_runs(precision: Precision) -> bool {
     precision == Precision::Bf16 && crate::tensor::cpu::avx512_bf16()
 }
 
+/// The kernels this CPU runs training products with in `precision`, by name: `"avx512-bf16"`,
+/// `"avx512"`, `"avx2"` or `"portable"` (see the module documentation). A checkpoint records it,
+/// so that a run resumed where another name applies can say that it continues, but not bit for
+/// bit.
+pub fn kernels(precision: Precision) -> &'static str {
+    use crate::tensor::cpu::{path, Path};
+    if bf16_runs(precision) {
+        return "avx512-bf16";
+    }
+    match path() {
+        Path::Avx512 => "avx512",
+        Path::Avx2 => "avx2",
+        Path::Portable => "portable",
+    }
+}
+
 /// A product a layer computes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Product {

@@ -103,8 +103,8 @@ pub fn to_bytes(
 
 /// The metadata a checkpoint and a model file start with (read back by [`header`]): the file's
 /// `format`, the `checksum` of its tensors ([`tensors_checksum`], as hex), the `config` it
-/// trained with (TOML) and its `counters` (JSON, with Adam's step count). A replay file has its
-/// own.
+/// trained with (TOML), its `counters` (JSON, with Adam's step count) and the `kernels` its
+/// products ran on ([`crate::ops::plan::kernels`]). A replay file has its own.
 pub(super) fn make_header(
     format: &str, tensors: &[(String, TensorView<'_>)], config: &Config, counters: &Counters,
     learner: &Learner,
@@ -117,6 +117,10 @@ pub(super) fn make_header(
         ("checksum".to_string(), format!("{checksum:08x}")),
         ("config".to_string(), config.to_toml()),
         ("counters".to_string(), counters_json.to_string()),
+        (
+            "kernels".to_string(),
+            crate::ops::plan::kernels(config.precision).to_string(),
+        ),
     ]))
 }
 
@@ -238,6 +242,7 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         name if is_replay_name(name) => Some(name.to_string()),
         name => bail!("checkpoint names a bad replay file `{name}`"),
     };
+    let kernels = meta.get("kernels").cloned();
     let replay_checksum = match (format == FORMAT, &replay_file) {
         (true, Some(_)) => Some(parse_checksum(meta_get(&meta, "replay_checksum")?)?),
         _ => None,
@@ -316,6 +321,7 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         },
         replay_file,
         replay_checksum,
+        kernels,
     })
 }
 

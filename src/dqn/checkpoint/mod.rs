@@ -29,8 +29,10 @@
 //! `counters` (JSON: episodes, agent steps, emulator frames, train steps, Adam's step count, wall
 //! seconds), `rngs` (JSON: the agent's exploration and minibatch-sampling ChaCha8 generators as
 //! `{seed, stream, word_pos}`; ε is derived from the agent-step counter), `replay` (the
-//! replay file's name in the same directory, or empty) and `replay_checksum` (that file's
-//! `checksum`, or empty).
+//! replay file's name in the same directory, or empty), `replay_checksum` (that file's
+//! `checksum`, or empty) and `kernels` (the kernels the products ran on,
+//! [`crate::ops::plan::kernels`]: a run resumed where others run continues, but not bit for bit,
+//! and `train --resume` says so; absent in older checkpoints, which load as before).
 //!
 //! # `replay-E.safetensors` (format `invaders-replay-2`)
 //!
@@ -80,9 +82,10 @@
 //! # A model file (format `invaders-model-1`)
 //!
 //! What `invaders export` writes for sharing a trained player: the `online.*` tensors only (a few
-//! MB), with the metadata `format`, `config` and `counters` (with `adam_steps`). [`load_model`]
-//! reads it, or the online network of a checkpoint, for `eval`; it has no target network,
-//! optimizer state, random generators or game, so [`load`] refuses it for `--resume`.
+//! MB), with the metadata `format`, `checksum`, `config`, `counters` (with `adam_steps`) and
+//! `kernels`. [`load_model`] reads it, or the online network of a checkpoint, for `eval`; it
+//! has no target network, optimizer state, random generators or game, so [`load`] refuses it
+//! for `--resume`.
 //!
 //! # Loading
 //!
@@ -154,6 +157,10 @@ pub struct Checkpoint {
     pub replay_file: Option<String>,
     /// That replay file's checksum (none in checkpoints written before checksums).
     pub replay_checksum: Option<u32>,
+    /// The kernels the run's products ran on when it was written
+    /// ([`crate::ops::plan::kernels`]; none in older checkpoints). A run continues bit for bit
+    /// only where the same ones run.
+    pub kernels: Option<String>,
 }
 
 impl Checkpoint {
