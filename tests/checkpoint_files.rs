@@ -106,6 +106,16 @@ fn the_real_files_load() {
     let c = good();
     assert_eq!(c.config.preset, Preset::Article);
     assert!(c.agent.game.is_some());
+    assert_eq!(
+        c.kernels,
+        Some(invaders::ops::plan::kernels(c.config.precision))
+    );
+    // A checkpoint written before the kernels were recorded loads, without them.
+    let mut old = Owned::parse(&files().0);
+    old.meta.remove("kernels");
+    let old = checkpoint::from_bytes(&old.bytes()).unwrap();
+    assert_eq!(old.kernels, None);
+    assert_eq!(old.counters.episodes, c.counters.episodes);
     let r = checkpoint::replay_from_bytes(&files().1, &c).unwrap();
     assert_eq!(r.written(), 41);
 }

@@ -211,9 +211,9 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     super::note_precision(config.precision);
     if let Some((ckpt, _)) = &resumed {
         let here = invaders::ops::plan::kernels(config.precision);
-        if let Some(then) = ckpt.kernels.as_deref().filter(|&k| k != here) {
+        if let Some(then) = ckpt.kernels.as_deref().filter(|&k| k != here.as_str()) {
             say!(
-                "note: the checkpoint was written where the {then} kernels ran, and the {here} kernels run here: the run continues, but not bit for bit with one never stopped (docs/runs.md)"
+                "note: the checkpoint was written where the kernels `{then}` ran, and `{here}` run here: the run continues, but not bit for bit with one never stopped (docs/runs.md)"
             );
         }
         let c = &ckpt.counters;

@@ -15,10 +15,13 @@
 //! | dense forward, backward | [`Kernel::Gemm`] | [`Kernel::Gather`] on AVX-512; [`Kernel::Gemm`] on AVX2 |
 //! | dense acting | [`Kernel::Sparse`] where allowed and sparse enough ([`dense_sparse_share`]); else the forward | the same |
 //!
-//! A run resumed where the same kernels run continues bit for bit. Where they differ it
-//! continues as a valid run, but not bit for bit: im2col + GEMM sums in another order than the
-//! gather GEMM and Winograd, a dense layer takes the gather GEMM on AVX-512 and faer's GEMM on
-//! AVX2, and faer picks its own SIMD by CPU.
+//! [`kernels`] names what runs here: this crate's family and the instruction set of faer's
+//! GEMM (which faer picks from the CPU itself); a checkpoint records it. A run resumed where the
+//! name is the same continues bit for bit (with the same thread count). Where it differs the run
+//! continues as a valid run, but not bit for bit, and `train --resume` says so: im2col + GEMM
+//! sums in another order than the gather GEMM and Winograd, a dense layer takes the gather GEMM
+//! on AVX-512 and faer's GEMM on AVX2, and faer's AVX-512 and AVX2 kernels are different code,
+//! not promised to sum alike.
 //!
 //! With [`Precision::Bf16`] on a CPU with AVX512-BF16 ([`bf16_runs`]), the training products
 //! take the bf16 gather GEMM ([`crate::tensor::GatherGemmBf16`]: operands rounded to bf16, sums
@@ -60,19 +63,28 @@ pub fn bf16_runs(precision: Precision) -> bool {
     precision == Precision::Bf16 && crate::tensor::cpu::avx512_bf16()
 }
 
-/// The kernels this CPU runs training products with in `precision`, by name: `"avx512-bf16"`,
-/// `"avx512"`, `"avx2"` or `"portable"` (see the module documentation). A checkpoint records it,
-/// so that a run resumed where another name applies can say that it continues, but not bit for
-/// bit.
-pub fn kernels(precision: Precision) -> &'static str {
-    use crate::tensor::cpu::{path, Path};
-    if bf16_runs(precision) {
-        return "avx512-bf16";
-    }
-    match path() {
+/// The kernels this CPU runs training products with in `precision`, by name: this crate's
+/// family, `"avx512-bf16"`, `"avx512"`, `"avx2"` or `"portable"`, and, where faer's GEMM takes
+/// another instruction set than that family's ([`crate::tensor::cpu::faer_path`]: a family
+/// switched off by `INVADERS_NO_AVX512` or `INVADERS_NO_SIMD`), faer's after it, as in
+/// `"portable, faer avx2"`. A checkpoint records it, so that a run resumed where another name
+/// applies can say that it continues, but not bit for bit.
+pub fn kernels(precision: Precision) -> String {
+    use crate::tensor::cpu::{faer_path, path, Path};
+    let name = |p: Path| match p {
         Path::Avx512 => "avx512",
         Path::Avx2 => "avx2",
         Path::Portable => "portable",
+    };
+    let ours = if bf16_runs(precision) {
+        "avx512-bf16"
+    } else {
+        name(path())
+    };
+    if faer_path() == path() {
+        ours.to_string()
+    } else {
+        format!("{ours}, faer {}", name(faer_path()))
     }
 }
 
@@ -363,7 +375,8 @@ mod tests {
     use crate::tensor::{Padding, Tensor};
 
     /// The layer records what it ran: f64 always takes im2col (what the gradient checks test);
-    /// f32 takes the plan's AVX-512 kernels where the CPU has them, the gather GEMM on AVX2.
+    /// f32 takes the plan's fast kernels (Winograd, gather, scatter) where the CPU has AVX-512 or
+    /// AVX2 and FMA, else im2col.
     #[test]
     fn the_layer_reports_the_kernel_it_ran() {
         let g = ConvGeom::new(10, 10, 32, 16, 3, 3, (1, 1), Padding::Valid).unwrap();

@@ -3,15 +3,17 @@
 //!
 //! The hand-written kernels (the gather and scatter GEMMs, the Winograd transforms, the sparse
 //! and background products, the transposes) have AVX-512F and FMA loops; [`avx512`] says
-//! whether those run: this CPU has both, and `INVADERS_NO_SIMD` is unset. Where they do not,
-//! [`avx2`] says whether the AVX2 and FMA family runs (the gather and scatter GEMMs, Winograd's
-//! transforms and acting's sparse and background products; `INVADERS_NO_AVX512` makes an
-//! AVX-512 host run it), and everything else takes its portable loop. `INVADERS_NO_SIMD` is the
+//! whether those run: this CPU has both, and neither `INVADERS_NO_SIMD` nor
+//! `INVADERS_NO_AVX512` is set. Where they do not, [`avx2`] says whether the AVX2 and FMA family
+//! runs (the gather and scatter GEMMs, Winograd's transforms and, where their shapes allow,
+//! acting's sparse and background products; `INVADERS_NO_AVX512` makes an AVX-512 host run it),
+//! and everything else takes its portable loop. faer's GEMM checks the CPU itself
+//! ([`faer_path`]). `INVADERS_NO_SIMD` is the
 //! switch back to the portable code on any host (im2col + faer in the layers, the portable loops
 //! in the kernels), for A/B timing in one session and for testing the portable path there.
 //! `INVADERS_NO_BF16` is the narrower switch: the AVX-512 kernels stay, AVX512-BF16 goes, as on
-//! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32. Both
-//! are read once, at the first call, so a process runs one way throughout.
+//! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32. The
+//! three are read once, at the first call, so a process runs one way throughout.
 //!
 //! The kernels are selected by [`crate::ops::plan`]; nothing else asks the CPU.
 //!
@@ -31,8 +33,9 @@ pub struct Features {
     pub avx512: bool,
     /// AVX2 and FMA where the AVX-512 kernels do not run, and `INVADERS_NO_SIMD` unset: the AVX2
     /// family runs (the gather and scatter GEMMs and Winograd for a convolution's training
-    /// products, the sparse and background products for acting; see [`crate::ops::plan`]).
-    /// `INVADERS_NO_AVX512` makes an AVX-512 host run exactly this.
+    /// products, the sparse and background products for acting where their shapes allow; see
+    /// [`crate::ops::plan`]). `INVADERS_NO_AVX512` makes an AVX-512 host run this family (faer's
+    /// GEMM keeps its AVX-512 kernels there, [`faer_path`]).
     pub avx2: bool,
     /// That, AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later), and
     /// `INVADERS_NO_BF16` unset.
@@ -83,6 +86,22 @@ pub fn features() -> Features {
     })
 }
 
+/// The instruction set faer's GEMM takes on this CPU (im2col's products, the dense layers off
+/// AVX-512, the quantile embedding): faer checks the CPU itself (AVX-512F, else AVX2 and FMA,
+/// else neither), so `INVADERS_NO_SIMD` and `INVADERS_NO_AVX512` do not reach it.
+pub fn faer_path() -> Path {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if is_x86_feature_detected!("avx512f") {
+            return Path::Avx512;
+        }
+        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+            return Path::Avx2;
+        }
+    }
+    Path::Portable
+}
+
 /// Whether the AVX2 family runs (see [`Features::avx2`]).
 #[inline]
 pub fn avx2() -> bool {
@@ -103,7 +122,7 @@ pub fn avx512() -> bool {
 }
 
 /// Why the AVX-512 kernels do not run on this host, or `None` if they do: the missing CPU
-/// feature (`avx512f`, `fma`), another architecture, or `INVADERS_NO_SIMD`.
+/// feature (`avx512f`, `fma`), another architecture, `INVADERS_NO_SIMD` or `INVADERS_NO_AVX512`.
 pub fn why_portable() -> Option<String> {
     if avx512() {
         return None;

@@ -53,8 +53,8 @@ pub trait Float:
         gather_gemm_portable(g)
     }
 
-    /// The scatter GEMM of [`crate::tensor::ScatterGemm`]: SIMD where [`Float::simd`], else the
-    /// portable loops.
+    /// The scatter GEMM of [`crate::tensor::ScatterGemm`]: the SIMD kernel where
+    /// [`Float::gather_simd`] (AVX-512 or AVX2), else the portable loops.
     fn scatter_gemm(g: ScatterGemm<'_, Self>) {
         took(Family::Scatter, false);
         scatter_gemm_portable(g)

@@ -97,14 +97,18 @@ pub fn to_bytes(
             "replay_checksum".to_string(),
             replay.map(|r| format!("{:08x}", r.1)).unwrap_or_default(),
         ),
+        (
+            "kernels".to_string(),
+            crate::ops::plan::kernels(config.precision),
+        ),
     ]);
     Ok(safetensors::serialize(tensors, &Some(meta))?)
 }
 
 /// The metadata a checkpoint and a model file start with (read back by [`header`]): the file's
 /// `format`, the `checksum` of its tensors ([`tensors_checksum`], as hex), the `config` it
-/// trained with (TOML), its `counters` (JSON, with Adam's step count) and the `kernels` its
-/// products ran on ([`crate::ops::plan::kernels`]). A replay file has its own.
+/// trained with (TOML) and its `counters` (JSON, with Adam's step count). A replay file has its
+/// own.
 pub(super) fn make_header(
     format: &str, tensors: &[(String, TensorView<'_>)], config: &Config, counters: &Counters,
     learner: &Learner,
@@ -117,10 +121,6 @@ pub(super) fn make_header(
         ("checksum".to_string(), format!("{checksum:08x}")),
         ("config".to_string(), config.to_toml()),
         ("counters".to_string(), counters_json.to_string()),
-        (
-            "kernels".to_string(),
-            crate::ops::plan::kernels(config.precision).to_string(),
-        ),
     ]))
 }
 

@@ -82,10 +82,9 @@
 //! # A model file (format `invaders-model-1`)
 //!
 //! What `invaders export` writes for sharing a trained player: the `online.*` tensors only (a few
-//! MB), with the metadata `format`, `checksum`, `config`, `counters` (with `adam_steps`) and
-//! `kernels`. [`load_model`] reads it, or the online network of a checkpoint, for `eval`; it
-//! has no target network, optimizer state, random generators or game, so [`load`] refuses it
-//! for `--resume`.
+//! MB), with the metadata `format`, `checksum`, `config` and `counters` (with `adam_steps`).
+//! [`load_model`] reads it, or the online network of a checkpoint, for `eval`; it has no target
+//! network, optimizer state, random generators or game, so [`load`] refuses it for `--resume`.
 //!
 //! # Loading
 //!
