@@ -8,9 +8,9 @@
 //! runs (the gather and scatter GEMMs, Winograd's transforms and, where their shapes allow,
 //! acting's sparse and background products; `INVADERS_NO_AVX512` makes an AVX-512 host run it),
 //! and everything else takes its portable loop. faer's GEMM checks the CPU itself
-//! ([`faer_path`]). `INVADERS_NO_SIMD` is the
-//! switch back to the portable code on any host (im2col + faer in the layers, the portable loops
-//! in the kernels), for A/B timing in one session and for testing the portable path there.
+//! ([`faer_path`]). `INVADERS_NO_SIMD` is the switch back to the portable code on any host
+//! (im2col + faer in the layers, the portable loops in the kernels), for A/B timing in one
+//! session and for testing the portable path there.
 //! `INVADERS_NO_BF16` is the narrower switch: the AVX-512 kernels stay, AVX512-BF16 goes, as on
 //! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32. The
 //! three are read once, at the first call, so a process runs one way throughout.
@@ -88,18 +88,14 @@ pub fn features() -> Features {
 
 /// The instruction set faer's GEMM takes on this CPU (im2col's products, the dense layers off
 /// AVX-512, the quantile embedding): faer checks the CPU itself (AVX-512F, else AVX2 and FMA,
-/// else neither), so `INVADERS_NO_SIMD` and `INVADERS_NO_AVX512` do not reach it.
+/// else neither; here by the crate's own feature test, whose FMA every AVX-512F CPU has), so
+/// `INVADERS_NO_SIMD` and `INVADERS_NO_AVX512` do not reach it.
 pub fn faer_path() -> Path {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if is_x86_feature_detected!("avx512f") {
-            return Path::Avx512;
-        }
-        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-            return Path::Avx2;
-        }
+    match detect() {
+        Features { avx512: true, .. } => Path::Avx512,
+        Features { avx2: true, .. } => Path::Avx2,
+        _ => Path::Portable,
     }
-    Path::Portable
 }
 
 /// Whether the AVX2 family runs (see [`Features::avx2`]).
