@@ -428,23 +428,12 @@ impl<T: Float> Chunk<'_, T> {
                     let (at, bias, relu) = (&at[..], self.bias, self.relu);
                     match path {
                         #[cfg(target_arch = "x86_64")]
-                        Path::Avx512 => {
-                            let bias = bias.map(bytemuck::cast_slice::<T, f32>);
-                            let (mt32, img32) = (
-                                bytemuck::cast_slice::<T, f32>(mt),
-                                bytemuck::cast_slice_mut::<T, f32>(img),
-                            );
-                            // SAFETY: AVX-512F, T = f32 and `len` a multiple of 16 checked
-                            // (`Transforms::choose`); `mt` holds places·co values, the bias
-                            // `co`, each destination `len` inside the image (checked on entry).
-                            unsafe {
-                                if places == 16 {
-                                    avx512::output_tile(mt32, len, bias, relu, img32, at)
-                                } else {
-                                    avx512::output_tile9(mt32, len, bias, relu, img32, at)
-                                }
-                            }
-                        }
+                        // SAFETY: AVX-512F, T = f32 and `len` a multiple of 16 checked
+                        // (`Transforms::choose`); `mt` holds places·co values, the bias `co`,
+                        // each destination `len` inside the image (checked on entry).
+                        Path::Avx512 => unsafe {
+                            avx512::output_tile(mt, len, bias, relu, img, at, places)
+                        },
                         // SAFETY: chosen only where the CPU runs AVX2 and FMA.
                         #[cfg(target_arch = "x86_64")]
                         Path::Avx2 => unsafe {

@@ -156,23 +156,11 @@ pub(super) fn input_tile_any<T: Float>(
 ) {
     match path {
         #[cfg(target_arch = "x86_64")]
-        Path::Avx512 => {
-            let (places, seg, blk) = (s.places(), s.seg(), s.kind.block());
-            let img32 = bytemuck::cast_slice::<T, f32>(img);
-            let z32 = bytemuck::cast_slice::<T, f32>(zeros);
-            let v32 = bytemuck::cast_slice_mut::<T, f32>(v);
-            // SAFETY: `Transforms::choose` checked AVX-512F, that T is f32 and that `seg` is a
-            // multiple of 16; every start is a block row of `seg` values inside the image
-            // (checked where the table is built), `zeros` holds `seg`, `v` reaches place
-            // `places − 1` (the callers' slices run to the end of their block).
-            unsafe {
-                if places == 16 {
-                    avx512::input_tile(img32, z32, starts, v32, stride, blk, seg)
-                } else {
-                    avx512::input_tile9(img32, z32, starts, v32, stride, blk, seg)
-                }
-            }
-        }
+        // SAFETY: `Transforms::choose` checked AVX-512F, that T is f32 and that `seg` is a
+        // multiple of 16; every start is a block row of `seg` values inside the image (checked
+        // where the table is built), `zeros` holds `seg`, `v` reaches place `places − 1` (the
+        // callers' slices run to the end of their block).
+        Path::Avx512 => unsafe { avx512::input_tile(s, img, zeros, starts, v, stride) },
         // SAFETY: `Transforms::choose` chose AVX2 only where the CPU runs AVX2 and FMA.
         #[cfg(target_arch = "x86_64")]
         Path::Avx2 => unsafe {
@@ -262,8 +250,9 @@ pub(super) fn output_tile<T: Float, const P: usize>(
 /// Which loops a call's transforms run: chosen once per [`winograd_conv`] or
 /// [`winograd_wgrad`], on the calling thread, where it is recorded ([`took_path`]); every task
 /// of the call follows it. For f32 on AVX-512 the intrinsics of [`avx512`], for whole vectors
-/// only; for f32 on AVX2 the portable loops compiled for AVX2 and FMA
-/// ([`crate::tensor::x86_64::winograd_avx2`]); otherwise the portable loops. All three do the same
+/// only; for f32 on AVX2 those of [`crate::tensor::x86_64::winograd_avx2`] (8 channels a
+/// register; the portable loops compiled for AVX2 and FMA where a row is not whole vectors);
+/// otherwise the portable loops. All three do the same
 /// operations in the same order. The unsafe calls rely on these paths, so they are set only by
 /// [`Transforms::choose`].
 #[derive(Clone, Copy, Debug)]

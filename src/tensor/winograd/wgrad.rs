@@ -145,23 +145,13 @@ pub(super) fn output_adjoint<T: Float>(s: &WinogradShape, dz: &[T], m: &mut [T],
                 t += 1;
                 match path {
                     #[cfg(target_arch = "x86_64")]
-                    Path::Avx512 => {
-                        let (img32, mt32) = (
-                            bytemuck::cast_slice::<T, f32>(img),
-                            bytemuck::cast_slice_mut::<T, f32>(mt),
-                        );
-                        // SAFETY: AVX-512F, T = f32 and `co` a multiple of 16 checked
-                        // (`Transforms::choose`); every `Some` output holds `co` values inside
-                        // the image; `mt` reaches the last place of this tile (`t` is below
-                        // the chunk's tile count, `stride / co`).
-                        unsafe {
-                            if places == 16 {
-                                avx512::adjoint_tile(img32, at, mt32, stride, co)
-                            } else {
-                                avx512::adjoint_tile9(img32, at, mt32, stride, co)
-                            }
-                        }
-                    }
+                    // SAFETY: AVX-512F, T = f32 and `co` a multiple of 16 checked
+                    // (`Transforms::choose`); every `Some` output holds `co` values inside the
+                    // image; `mt` reaches the last place of this tile (`t` is below the chunk's
+                    // tile count, `stride / co`).
+                    Path::Avx512 => unsafe {
+                        avx512::adjoint_tile(img, at, mt, stride, co, places)
+                    },
                     // SAFETY: chosen only where the CPU runs AVX2 and FMA.
                     #[cfg(target_arch = "x86_64")]
                     Path::Avx2 => unsafe {

@@ -17,3 +17,29 @@ pub(crate) mod sparse_avx512;
 pub(crate) mod transpose_avx512;
 pub(crate) mod winograd_avx2;
 pub(crate) mod winograd_avx512;
+
+use crate::tensor::Float;
+
+/// A slice of `T` known to be `f32` (the f32-only kernels take the generic slices of their
+/// callers), as `f32`.
+fn cast<T: Float>(s: &[T]) -> &[f32] {
+    bytemuck::cast_slice(s)
+}
+
+/// [`cast`] for a mutable slice.
+fn cast_mut<T: Float>(s: &mut [T]) -> &mut [f32] {
+    bytemuck::cast_slice_mut(s)
+}
+
+/// Where a Winograd tile's input for position `k`, block row `dy`, starts: in the image, or
+/// the zeros outside it (both Winograd families).
+///
+/// # Safety
+/// Every `Some` offset must be inside `img`.
+#[inline(always)]
+unsafe fn row(img: &[f32], zeros: &[f32], at: Option<usize>) -> *const f32 {
+    match at {
+        Some(o) => img.as_ptr().add(o),
+        None => zeros.as_ptr(),
+    }
+}

@@ -3,19 +3,12 @@
 //! only, then the output's bias and ReLU), so their bits. Rows whose channel count is not a
 //! multiple of 8 take the portable loops compiled for AVX2.
 
+use super::{cast, cast_mut, row};
 use crate::tensor::winograd::{
     adjoint_tile_portable, input_tile_portable, output_tile_portable, WinogradShape,
 };
 use crate::tensor::Float;
 use std::arch::x86_64::*;
-
-fn cast<T: Float>(s: &[T]) -> &[f32] {
-    bytemuck::cast_slice(s)
-}
-
-fn cast_mut<T: Float>(s: &mut [T]) -> &mut [f32] {
-    bytemuck::cast_slice_mut(s)
-}
 
 /// [`input_tile_portable`] for AVX2 and FMA.
 ///
@@ -76,19 +69,6 @@ pub(crate) unsafe fn adjoint_tile<T: Float>(
         adjoint_tile_v::<16>(img, at, mt, stride, co, adjoint_transform16)
     } else {
         adjoint_tile_v::<9>(img, at, mt, stride, co, adjoint_transform9)
-    }
-}
-
-/// Where a tile's input for position `k`, block row `dy`, starts: in the image, or the
-/// zeros outside it.
-///
-/// # Safety
-/// Every `Some` offset must be inside `img`.
-#[inline(always)]
-unsafe fn row(img: &[f32], zeros: &[f32], at: Option<usize>) -> *const f32 {
-    match at {
-        Some(o) => img.as_ptr().add(o),
-        None => zeros.as_ptr(),
     }
 }
 
