@@ -19,8 +19,9 @@
 //! GEMM (which faer picks from the CPU itself); a checkpoint records it. A run resumed where the
 //! name is the same continues bit for bit (with the same thread count). Where it differs the run
 //! continues as a valid run, but not bit for bit, and `train --resume` says so: im2col + GEMM
-//! sums in another order than the gather GEMM and Winograd, and a dense layer takes the gather
-//! GEMM on AVX-512 and faer's GEMM on AVX2.
+//! sums in another order than the gather GEMM and Winograd, a dense layer takes the gather GEMM
+//! on AVX-512 and faer's GEMM on AVX2, and faer's AVX-512 and AVX2 kernels are different code,
+//! not promised to sum alike.
 //!
 //! With [`Precision::Bf16`] on a CPU with AVX512-BF16 ([`bf16_runs`]), the training products
 //! take the bf16 gather GEMM ([`crate::tensor::GatherGemmBf16`]: operands rounded to bf16, sums
@@ -64,8 +65,9 @@ pub fn bf16_runs(precision: Precision) -> bool {
 
 /// The kernels this CPU runs training products with in `precision`, by name: this crate's
 /// family, `"avx512-bf16"`, `"avx512"`, `"avx2"` or `"portable"`, and, where faer's GEMM takes
-/// another instruction set than that family's ([`crate::tensor::cpu::faer_path`]: AVX2 at
-/// most), faer's after it, as in `"avx512, faer avx2"` or `"portable, faer avx2"`. A checkpoint records it, so that a run resumed where another name
+/// another instruction set than that family's ([`crate::tensor::cpu::faer_path`]: a family
+/// switched off by `INVADERS_NO_AVX512` or `INVADERS_NO_SIMD`), faer's after it, as in
+/// `"portable, faer avx2"`. A checkpoint records it, so that a run resumed where another name
 /// applies can say that it continues, but not bit for bit.
 pub fn kernels(precision: Precision) -> String {
     use crate::tensor::cpu::{faer_path, path, Path};

@@ -35,7 +35,7 @@ pub struct Features {
     /// family runs (the gather and scatter GEMMs and Winograd for a convolution's training
     /// products, the sparse and background products for acting where their shapes allow; see
     /// [`crate::ops::plan`]). `INVADERS_NO_AVX512` makes an AVX-512 host run this family (faer's
-    /// GEMM takes AVX2 on every host, [`faer_path`]).
+    /// GEMM keeps its AVX-512 kernels there, [`faer_path`]).
     pub avx2: bool,
     /// That, AVX512-BF16 (`vdpbf16ps`: AMD Zen 4 and 5, Intel Cooper Lake and later), and
     /// `INVADERS_NO_BF16` unset.
@@ -87,16 +87,14 @@ pub fn features() -> Features {
 }
 
 /// The instruction set faer's GEMM takes on this CPU (im2col's products, the dense layers off
-/// AVX-512, the quantile embedding): AVX2 and FMA where the CPU has them, AVX-512 hosts
-/// included, else neither. faer checks the CPU itself, so `INVADERS_NO_SIMD` and
-/// `INVADERS_NO_AVX512` do not reach it; and its AVX-512 kernels (in the `gemm`, `nano-gemm`
-/// and `pulp` crates) are compiled only under their `nightly` feature, which this crate leaves
-/// off (faer's default features are off in `Cargo.toml`), so AVX2 is the most it takes.
+/// AVX-512, the quantile embedding): faer checks the CPU itself (AVX-512F, else AVX2 and FMA,
+/// else neither; here by the crate's own feature test, whose FMA every AVX-512F CPU has), so
+/// `INVADERS_NO_SIMD` and `INVADERS_NO_AVX512` do not reach it.
 pub fn faer_path() -> Path {
-    if detect().avx2 {
-        Path::Avx2
-    } else {
-        Path::Portable
+    match detect() {
+        Features { avx512: true, .. } => Path::Avx512,
+        Features { avx2: true, .. } => Path::Avx2,
+        _ => Path::Portable,
     }
 }
 

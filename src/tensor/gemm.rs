@@ -131,8 +131,8 @@ pub fn gemm_reference<T: Float>(
     }
 }
 
-/// The same product by faer (its own packed kernels, AVX2 and FMA at most here
-/// ([`crate::tensor::cpu::faer_path`]), parallel over rayon's threads). `beta` must be 0 or 1.
+/// The same product by faer (its own packed, AVX-512-capable kernels, parallel over rayon's
+/// threads). `beta` must be 0 or 1.
 #[allow(clippy::too_many_arguments)]
 pub fn gemm_faer<T: Float>(
     opa: Op, opb: Op, m: usize, n: usize, k: usize, alpha: T, a: &[T], b: &[T], beta: T,
