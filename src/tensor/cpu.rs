@@ -89,7 +89,9 @@ pub fn features() -> Features {
 /// The instruction set faer's GEMM takes on this CPU (im2col's products, the dense layers off
 /// AVX-512, the quantile embedding): faer checks the CPU itself (AVX-512F, else AVX2 and FMA,
 /// else neither; here by the crate's own feature test, whose FMA every AVX-512F CPU has), so
-/// `INVADERS_NO_SIMD` and `INVADERS_NO_AVX512` do not reach it.
+/// `INVADERS_NO_SIMD` and `INVADERS_NO_AVX512` do not reach it. That is the kernel of its
+/// products above 16³ multiply-adds (the `private-gemm-x86` crate); smaller ones take the
+/// `nano-gemm` and `gemm` crates, which stop at AVX2 without their `nightly` feature.
 pub fn faer_path() -> Path {
     match detect() {
         Features { avx512: true, .. } => Path::Avx512,

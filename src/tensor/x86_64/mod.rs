@@ -21,13 +21,16 @@ pub(crate) mod winograd_avx512;
 use crate::tensor::Float;
 
 /// A slice of `T` known to be `f32` (the f32-only kernels take the generic slices of their
-/// callers), as `f32`.
+/// callers), as `f32`. `T` must be `f32`: a slice of `f64` would be read as twice as many
+/// halves.
 fn cast<T: Float>(s: &[T]) -> &[f32] {
+    debug_assert!(size_of::<T>() == 4, "an f32 kernel given another type");
     bytemuck::cast_slice(s)
 }
 
 /// [`cast`] for a mutable slice.
 fn cast_mut<T: Float>(s: &mut [T]) -> &mut [f32] {
+    debug_assert!(size_of::<T>() == 4, "an f32 kernel given another type");
     bytemuck::cast_slice_mut(s)
 }
 
