@@ -190,7 +190,10 @@ fn train_by_frames() {
         json["kernels"]["conv_forward"].is_string(),
         "each product's kernel: {text}"
     );
-    // A weights-only model file times acting too (the shipped player's network).
+    // A weights-only model file times acting too (the shipped player's network); a config of
+    // one's own is timed from the preset `--preset` names, which the report says.
+    let own = root.join("own.toml");
+    std::fs::write(&own, "precision = \"f32\"\n").unwrap();
     let text = ok(&invaders(&[
         "bench",
         "--threads",
@@ -200,6 +203,10 @@ fn train_by_frames() {
         "--json",
         "--checkpoint",
         SHIPPED_MODEL,
+        "--config",
+        s(&own),
+        "--preset",
+        "strong",
     ]));
     let json: serde_json::Value = serde_json::from_str(text.trim()).expect(&text);
     let v = json["act_checkpoint_ms"].as_f64().unwrap_or(-1.0);
@@ -207,6 +214,10 @@ fn train_by_frames() {
         v > 0.0 && v.is_finite(),
         "act_checkpoint_ms with a model file: {text}"
     );
+    assert_eq!(json["config_preset"], "strong", "{text}");
+    assert_eq!(json["config_batch_size"], 32, "{text}");
+    let v = json["config_train_step_ms"].as_f64().unwrap_or(-1.0);
+    assert!(v > 0.0 && v.is_finite(), "config_train_step_ms: {text}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

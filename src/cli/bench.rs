@@ -42,12 +42,16 @@ pub struct BenchArgs {
     /// initialised one. A trained network's activations are mostly zeros, which acting skips.
     #[arg(long, value_name = "PATH")]
     checkpoint: Option<PathBuf>,
-    /// Also time a configuration of your own (a TOML file as `train --config` takes, its
-    /// `preset` key naming the preset it starts from): its train step at its batch size and its
-    /// end-to-end agent steps per second (`--precision` applies to it too). For choosing
-    /// settings by their cost (an implicit quantile head's fractions, `hidden`, …).
+    /// Also time a configuration of your own (a TOML file as `train --config` takes): its train
+    /// step at its batch size and its end-to-end agent steps per second (`--precision` applies
+    /// to it too); the report names the preset and batch it resolved to. For choosing settings
+    /// by their cost (an implicit quantile head's fractions, `hidden`, …).
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
+    /// The preset `--config` starts from, as for `train`: this, else the file's `preset` key,
+    /// else `article`.
+    #[arg(long, value_enum, requires = "config")]
+    preset: Option<Preset>,
 }
 
 fn median(mut xs: Vec<f64>) -> f64 {
@@ -74,7 +78,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     };
     let own = match &args.config {
         Some(p) => Some(Config::resolve(
-            None,
+            args.preset,
             Some(&super::guard::read_text(p, "config file")?),
         )?),
         None => None,
@@ -228,6 +232,8 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "agent_steps_per_s": agent_steps_per_s,
                 "strong_agent_steps_per_s": strong_steps_per_s,
                 "config": args.config,
+                "config_preset": own.as_ref().map(|c| c.preset.name()),
+                "config_batch_size": own.as_ref().map(|c| c.batch_size),
                 "config_train_step_ms": own_figures.map(|f| f.0),
                 "config_agent_steps_per_s": own_figures.map(|f| f.1),
                 "env_share_of_training": env_share,
@@ -248,10 +254,12 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         out!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
         out!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
         out!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
-        if let (Some((ms, sps)), Some(p)) = (own_figures, &args.config) {
+        if let (Some((ms, sps)), Some(p), Some(c)) = (own_figures, &args.config, &own) {
             out!(
-                "{}: train step {ms:.2} ms, {sps:.1} agent steps/s",
-                p.display()
+                "{} (preset {}, batch {}): train step {ms:.2} ms, {sps:.1} agent steps/s",
+                p.display(),
+                c.preset.name(),
+                c.batch_size
             );
         }
     }
