@@ -25,6 +25,9 @@
 //!   another crate's, and is not checked.
 //!
 //! A renamed file or function fails the test with the Markdown file and the stale reference.
+//!
+//! And the configuration files under `docs/` and `models/` are ones `--config` accepts
+//! ([`every_shipped_config_file_resolves`]).
 
 use std::collections::BTreeSet;
 use std::path::{Component, Path, PathBuf};
@@ -402,4 +405,42 @@ fn the_checker_catches_renamed_files_and_functions() {
         let errors = stale_references(doc, text, &sources);
         assert!(errors.is_empty(), "{text}: {errors:?}");
     }
+}
+
+/// Every `.toml` file `path` holds, recursively, relative to the root, but the experiment
+/// records' `result.toml` (scores and counters, not a configuration).
+fn toml_files(path: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(root().join(path)).expect("readable folder") {
+        let name = path.join(entry.expect("readable entry").file_name());
+        if root().join(&name).is_dir() {
+            toml_files(&name, out);
+        } else if name.extension().is_some_and(|e| e == "toml")
+            && name.file_name().is_some_and(|n| n != "result.toml")
+        {
+            out.push(name);
+        }
+    }
+}
+
+/// The configuration files the repository ships (lever files, experiment records, the shipped
+/// model's) are ones `--config` accepts: a misspelt key or an out-of-range value in a committed
+/// file fails here, not hours into someone's run. A file that names no preset is resolved on
+/// `strong`, as `invaders experiment strong --config FILE` applies it; a record names its own.
+#[test]
+fn every_shipped_config_file_resolves() {
+    use invaders::dqn::{Config, Preset};
+    let mut files = Vec::new();
+    toml_files(Path::new("docs"), &mut files);
+    toml_files(Path::new("models"), &mut files);
+    let mut errors = Vec::new();
+    for f in &files {
+        let text = std::fs::read_to_string(root().join(f)).expect("readable");
+        let named = text.lines().any(|l| l.trim_start().starts_with("preset"));
+        let preset = (!named).then_some(Preset::Strong);
+        if let Err(e) = Config::resolve(preset, Some(&text)) {
+            errors.push(format!("{}: {e:#}", f.display()));
+        }
+    }
+    assert!(files.len() >= 10, "config files found: {files:?}");
+    assert!(errors.is_empty(), "{}", errors.join("\n"));
 }
