@@ -115,6 +115,15 @@ fn iqn_with_munchausen_learns_a_toy_corridor() {
     });
 }
 
+/// With layer normalisation before each ReLU (`layer_norm`) the agent learns the corridor too.
+#[test]
+fn layer_norm_learns_a_toy_corridor() {
+    learns(|c| {
+        c.precision = Precision::F32;
+        c.layer_norm = true;
+    });
+}
+
 /// An agent of [`toy_config`] changed by `set` learns the corridor.
 fn learns(set: impl FnOnce(&mut Config)) {
     let mut config = toy_config();

@@ -17,7 +17,9 @@ use common::*;
 use invaders::dqn::{qnet, Head, Iqn, IqnMerge};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::loss::{huber, mse, quantile_huber, quantile_huber_at};
-use invaders::layers::{Conv2d, Dense, Dueling, Flatten, Layer, QuantileEmbedding, Relu};
+use invaders::layers::{
+    Conv2d, Dense, Dueling, Flatten, Layer, LayerNorm, QuantileEmbedding, Relu,
+};
 use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
 use proptest::prelude::*;
 
@@ -91,6 +93,61 @@ proptest! {
         let x = uniform_away_from_zero(&[n, h, w, c], 1e-3, &mut r);
         let dy = uniform(&[n, h, w, c], &mut r);
         check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
+    /// Layer normalisation over `[H, W, C]` samples (or the same features flat), with and without
+    /// the fused ReLU and an output border. The maths is smooth but not linear: a central
+    /// difference errs by about `H²·∂³S/6`, which grows as `1/σ³`, so samples whose features
+    /// spread less than σ = 0.2 are redrawn (at the 1e-7 tolerance), as are cases with a
+    /// pre-activation within 1e-3 of the ReLU's kink.
+    #[test]
+    fn layer_norm_gradients(
+        h in 1usize..5, w in 1usize..5, c in 1usize..4, n in 1usize..=3, flat in any::<bool>(),
+        relu in any::<bool>(), border in (0usize..3, 0usize..3, 0usize..3, 0usize..3),
+        seed in any::<u64>(),
+    ) {
+        let f = h * w * c;
+        prop_assume!(f >= 2);
+        let shape = if flat { vec![f] } else { vec![h, w, c] };
+        let (top, bottom, left, right) = border;
+        let border = if flat { Border::default() } else { Border { top, bottom, left, right } };
+        let mut r = rng(seed ^ 1);
+        let x: Tensor<f64> = uniform(&[&[n][..], &shape[..]].concat(), &mut r);
+        for sample in x.data().chunks(f) {
+            let mean = sample.iter().sum::<f64>() / f as f64;
+            let var = sample.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / f as f64;
+            prop_assume!(var.sqrt() > 0.2);
+        }
+        // The pre-activations, from the same parameters without the ReLU and the border.
+        let mut plain = LayerNorm::<f64>::new("ln", &shape);
+        randomise(&mut plain, seed);
+        plain.forward(&x);
+        if relu {
+            prop_assume!(plain.output().data().iter().all(|z| z.abs() > 1e-3));
+        }
+        let mut layer = LayerNorm::<f64>::new("ln", &shape).with_border(border);
+        if relu {
+            layer = layer.with_relu();
+        }
+        randomise(&mut layer, seed);
+        let out = if flat { vec![n, f] } else {
+            let (hb, wb) = border.around(h, w);
+            vec![n, hb, wb, c]
+        };
+        let dy = uniform(&out, &mut r);
+        check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+        // With γ = 1, β = 0 and no ReLU, each sample's output has mean 0 and variance
+        // σ²/(σ² + ε).
+        let mut unit = LayerNorm::<f64>::new("ln", &shape);
+        unit.forward(&x);
+        for (y, x) in unit.output().data().chunks(f).zip(x.data().chunks(f)) {
+            let mean = y.iter().sum::<f64>() / f as f64;
+            let var = y.iter().map(|v| v * v).sum::<f64>() / f as f64;
+            let xm = x.iter().sum::<f64>() / f as f64;
+            let xv = x.iter().map(|v| (v - xm) * (v - xm)).sum::<f64>() / f as f64;
+            prop_assert!(mean.abs() < 1e-12, "mean {mean}");
+            prop_assert!((var - xv / (xv + 1e-5)).abs() < 1e-12, "variance {var} for σ² {xv}");
+        }
     }
 
     /// The dueling head: `x = [V, A_1..A_A]`, `Q_a = V + A_a − mean A`.
@@ -289,6 +346,7 @@ fn dueling_qnet_gradients() {
         dueling: true,
         atoms: 1,
         iqn: None,
+        layer_norm: false,
     });
 }
 
@@ -300,6 +358,20 @@ fn dueling_quantile_qnet_gradients() {
         dueling: true,
         atoms: 3,
         iqn: None,
+        layer_norm: false,
+    });
+}
+
+/// The same with layer normalisation before each ReLU (`layer_norm = true`): conv1 and conv2
+/// hand their border to the normalisation after them, dueling.
+#[test]
+fn layer_norm_qnet_gradients() {
+    qnet_gradients(Head {
+        hidden: 24,
+        dueling: true,
+        atoms: 1,
+        iqn: None,
+        layer_norm: true,
     });
 }
 
@@ -318,6 +390,7 @@ fn iqn_hidden_qnet_gradients() {
             target_samples: 3,
             policy_samples: 3,
         }),
+        layer_norm: false,
     });
 }
 
@@ -335,6 +408,7 @@ fn iqn_features_qnet_gradients() {
             target_samples: 2,
             policy_samples: 2,
         }),
+        layer_norm: false,
     });
 }
 

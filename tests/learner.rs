@@ -541,6 +541,7 @@ fn quantile_learner(double: bool, online: [f32; 6], target: [f32; 6]) -> Learner
         dueling: false,
         atoms: 2,
         iqn: None,
+        layer_norm: false,
     };
     constant_learner(head, double, &online, &target)
 }
@@ -590,6 +591,7 @@ fn iqn_learner(double: bool, online: [f32; 3], target: [f32; 3]) -> Learner {
             target_samples: 3,
             policy_samples: 2,
         }),
+        layer_norm: false,
     };
     constant_learner(head, double, &online, &target)
 }

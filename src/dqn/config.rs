@@ -184,6 +184,11 @@ pub struct Config {
     /// A dueling head: Q = V + A − mean A ([`crate::layers::Dueling`]).
     #[serde(default)]
     pub dueling: bool,
+    /// Layer normalisation ([`crate::layers::LayerNorm`]) of each convolution's and dense1's
+    /// pre-activations, before their ReLU (PQN's placement, Gallici et al. 2024); off in every
+    /// preset.
+    #[serde(default)]
+    pub layer_norm: bool,
     /// An implicit quantile head (IQN, Dabney et al. 2018) trained at this many random fractions
     /// `τ` per state (`N`), with the quantile Huber loss (then `loss` is not used); 0: none.
     /// ([`super::Iqn`].)
@@ -290,6 +295,7 @@ impl Config {
             hidden: ARTICLE_HIDDEN,
             quantiles: 0,
             dueling: false,
+            layer_norm: false,
             iqn_samples: 0,
             iqn_target_samples: iqn_samples_default(),
             iqn_policy_samples: iqn_samples_default(),

@@ -2,7 +2,7 @@
 
 use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
-use crate::layers::{Conv2d, Dense, Dueling, QuantileEmbedding, Relu, Sequential};
+use crate::layers::{Conv2d, Dense, Dueling, LayerNorm, QuantileEmbedding, Relu, Sequential};
 use crate::ops::plan;
 use crate::tensor::{Border, ConvGeom, Float, Tensor};
 use rand::Rng;
@@ -54,6 +54,8 @@ pub struct Head {
     /// An implicit quantile head (IQN): each state evaluated at quantile fractions `τ`, one
     /// output row `[A]` per fraction ([`Iqn`]).
     pub iqn: Option<Iqn>,
+    /// A [`LayerNorm`] before each convolution's and dense1's ReLU.
+    pub layer_norm: bool,
 }
 
 /// An implicit quantile network's settings (Dabney et al. 2018): where the cosine embedding of
@@ -95,6 +97,7 @@ impl Head {
         dueling: false,
         atoms: 1,
         iqn: None,
+        layer_norm: false,
     };
 
     /// The head a configuration asks for.
@@ -104,6 +107,7 @@ impl Head {
             dueling: config.dueling,
             atoms: config.atoms(),
             iqn: config.iqn(),
+            layer_norm: config.layer_norm,
         }
     }
 
@@ -137,7 +141,9 @@ pub fn midpoints(k: usize, batch: usize) -> Vec<f64> {
 /// 128) and `head.atoms` outputs per action (1; a quantile head's `N`), and a dueling head if
 /// `head.dueling`: dense2 then has `(1 + n_actions)·atoms` outputs, the state value and one
 /// advantage per action, which [`Dueling`] combines into `n_actions·atoms` outputs
-/// (`Q = V + A − mean A`, atom by atom).
+/// (`Q = V + A − mean A`, atom by atom). With `head.layer_norm`, a [`LayerNorm`] normalises
+/// each convolution's and dense1's pre-activations (`ln1` to `ln4`) and applies their ReLU,
+/// writing the border the convolution would otherwise have written.
 pub fn qnet<T: Float>(
     input: [usize; 3], n_actions: usize, head: Head, init: &VarianceScaling, rng: &mut impl Rng,
 ) -> Sequential<T> {
@@ -165,19 +171,27 @@ pub fn qnet<T: Float>(
             let (valid, padding) = g.as_valid();
             Conv2d::new(&name, valid).with_input_border(padding)
         };
-        if let Some(next) = same.get(i + 1) {
-            conv = conv.with_border(next.as_valid().1);
-        }
+        let border = same
+            .get(i + 1)
+            .map(|next| next.as_valid().1)
+            .unwrap_or_default();
         // Winograd where the plan says it pays: conv2 (F(2×2, 2×2) over 2×2 blocks) and conv3
         // (F(2×2, 3×3)), not conv1 (4 input channels).
         // conv2 and conv3 read a ReLU's output: acting skips its zeros. conv1 reads frames:
         // acting skips their background.
-        net.push(
-            conv.with_relu()
-                .with_winograd(plan::winograd_pays(g))
-                .with_sparse_inference(i > 0)
-                .with_background_inference(i == 0),
-        );
+        conv = conv
+            .with_winograd(plan::winograd_pays(g))
+            .with_sparse_inference(i > 0)
+            .with_background_inference(i == 0);
+        if head.layer_norm {
+            // The normalisation takes the ReLU and the border the convolution would have
+            // written.
+            net.push(conv);
+            let ln = LayerNorm::new(&format!("ln{}", i + 1), &[g.oh, g.ow, g.cout]);
+            net.push(ln.with_relu().with_border(border));
+        } else {
+            net.push(conv.with_relu().with_border(border));
+        }
     }
     // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
     let flat = net.output_len();
@@ -186,6 +200,7 @@ pub fn qnet<T: Float>(
         dueling,
         atoms,
         iqn,
+        layer_norm,
     } = head;
     if let Some(Iqn {
         embedding,
@@ -196,7 +211,11 @@ pub fn qnet<T: Float>(
         net.push(QuantileEmbedding::new("iqn", embedding, flat));
     }
     net.push(Dense::new("dense1", flat, hidden).with_sparse_inference(true));
-    net.push(Relu::new("relu4", &[hidden]));
+    if layer_norm {
+        net.push(LayerNorm::new("ln4", &[hidden]).with_relu());
+    } else {
+        net.push(Relu::new("relu4", &[hidden]));
+    }
     if let Some(Iqn {
         embedding,
         merge: IqnMerge::Hidden,
