@@ -1,17 +1,13 @@
 //! Layer normalisation (Ba, Kiros & Hinton 2016), with an optional fused ReLU and zero border.
 
 use super::{Core, Layer, Param};
+use crate::ops::lanes::{dot, sum};
 use crate::ops::vectorized;
 use crate::tensor::{Border, Float, Tensor};
 use rayon::prelude::*;
 
 /// Added to the variance: keeps `1/σ` finite for a sample whose features are all equal.
 const EPS: f64 = 1e-5;
-
-/// Lanes of the per-sample sums: lane `l` takes elements `l, l + 16, …`, then the lanes are
-/// added pairwise. One fixed order on every machine (so any thread count gives the same bits),
-/// and one that vectorises, where one running sum would be a chain of dependent additions.
-const L: usize = 16;
 
 /// Normalises each sample's `F` features to mean 0 and variance 1, then scales and shifts
 /// them feature by feature (PyTorch's `nn.LayerNorm(shape)`: the statistics over the whole
@@ -91,68 +87,19 @@ impl<T: Float> LayerNorm<T> {
         self.shape.iter().product()
     }
 
-    /// The sample's `[H, W, C]` (only called with a border).
-    fn hwc(&self) -> (usize, usize, usize) {
-        (self.shape[0], self.shape[1], self.shape[2])
-    }
-}
-
-/// `Σ_i v_i` in [`L`] lanes added pairwise.
-#[inline(always)]
-fn lane_sum<T: Float>(v: &[T]) -> T {
-    let mut lanes = [T::zero(); L];
-    let mut rows = v.chunks_exact(L);
-    for row in &mut rows {
-        for (s, &x) in lanes.iter_mut().zip(row) {
-            *s += x;
+    /// The sample's elements as contiguous runs `(start unbordered, start in the output,
+    /// length)`: all `F` at once without a border, else one run per image row inside it.
+    fn runs(&self) -> Vec<(usize, usize, usize)> {
+        let b = self.border;
+        if b.is_none() {
+            return vec![(0, 0, self.features())];
         }
+        let (h, w, c) = (self.shape[0], self.shape[1], self.shape[2]);
+        let (_, wb) = b.around(h, w);
+        (0..h)
+            .map(|y| (y * w * c, ((b.top + y) * wb + b.left) * c, w * c))
+            .collect()
     }
-    for (s, &x) in lanes.iter_mut().zip(rows.remainder()) {
-        *s += x;
-    }
-    fold(lanes)
-}
-
-/// `Σ_i a_i·b_i` in [`L`] lanes added pairwise.
-#[inline(always)]
-fn lane_dot<T: Float>(a: &[T], b: &[T]) -> T {
-    let mut lanes = [T::zero(); L];
-    let (mut ra, mut rb) = (a.chunks_exact(L), b.chunks_exact(L));
-    for (ra, rb) in (&mut ra).zip(&mut rb) {
-        for ((s, &x), &y) in lanes.iter_mut().zip(ra).zip(rb) {
-            *s += x * y;
-        }
-    }
-    for ((s, &x), &y) in lanes.iter_mut().zip(ra.remainder()).zip(rb.remainder()) {
-        *s += x * y;
-    }
-    fold(lanes)
-}
-
-/// Adds the lanes pairwise: `L/2` sums of pairs, then `L/4`, … down to one.
-#[inline(always)]
-fn fold<T: Float>(mut lanes: [T; L]) -> T {
-    let mut width = L;
-    while width > 1 {
-        width /= 2;
-        for i in 0..width {
-            let upper = lanes[i + width];
-            lanes[i] += upper;
-        }
-    }
-    lanes[0]
-}
-
-/// The sample's elements as contiguous runs `(start unbordered, start in the output, length)`:
-/// one run of all `f` without a border, else one per image row of a bordered `[h, w, c]` image.
-fn runs(border: &Border, (h, w, c): (usize, usize, usize), f: usize) -> Vec<(usize, usize, usize)> {
-    if border.is_none() {
-        return vec![(0, 0, f)];
-    }
-    let (_, wb) = border.around(h, w);
-    (0..h)
-        .map(|y| (y * w * c, ((border.top + y) * wb + border.left) * c, w * c))
-        .collect()
 }
 
 impl<T: Float> Layer<T> for LayerNorm<T> {
@@ -164,12 +111,13 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
         if self.border.is_none() {
             return self.shape.clone();
         }
-        let (h, w, c) = self.hwc();
+        let (h, w, c) = (self.shape[0], self.shape[1], self.shape[2]);
         let (hb, wb) = self.border.around(h, w);
         vec![hb, wb, c]
     }
 
-    /// `y = act(γ ⊙ x̂ + β)`, sample by sample; keeps `x̂` and `r` for backward.
+    /// `y = act(γ ⊙ x̂ + β)`, sample by sample (its sums in [`crate::ops::lanes`]: the same
+    /// bits at any thread count); keeps `x̂` and `r` for backward.
     fn forward(&mut self, x: &Tensor<T>) {
         let f = self.features();
         let n = x.len() / f;
@@ -187,13 +135,11 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
         self.core.y.set_shape(&shape);
         self.xhat.resize(n * f, T::zero());
         self.rstd.resize(n, T::zero());
-        let (relu, border) = (self.relu, self.border);
-        let hwc = if border.is_none() {
-            (0, 0, 0)
-        } else {
-            self.hwc()
-        };
-        let runs = runs(&border, hwc, f);
+        let (relu, runs) = (self.relu, self.runs());
+        if !self.border.is_none() {
+            let (h, w, c) = (self.shape[0], self.shape[1], self.shape[2]);
+            self.border.zero(self.core.y.data_mut(), n, h, w, c);
+        }
         let [gain, bias] = &self.params;
         let (gain, bias) = (gain.value.data(), bias.value.data());
         let inv_f = T::of(1.0 / f as f64);
@@ -204,16 +150,15 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
             .zip(self.xhat.par_chunks_mut(f).zip(self.rstd.par_iter_mut()))
             .for_each(|((y, x), (xhat, rstd))| {
                 vectorized(|| {
-                    let mean = lane_sum(x) * inv_f;
+                    let mean = sum(x) * inv_f;
                     for (h, &x) in xhat.iter_mut().zip(x) {
                         *h = x - mean;
                     }
-                    let r = T::one() / (lane_dot(xhat, xhat) * inv_f + eps).sqrt();
+                    let r = T::one() / (dot(xhat, xhat) * inv_f + eps).sqrt();
                     *rstd = r;
                     for h in xhat.iter_mut() {
                         *h *= r;
                     }
-                    border.zero(y, 1, hwc.0, hwc.1, hwc.2);
                     for &(i, o, len) in &runs {
                         let y = &mut y[o..o + len];
                         let (h, g, b) = (&xhat[i..i + len], &gain[i..i + len], &bias[i..i + len]);
@@ -236,13 +181,7 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
             "{}: upstream gradient",
             self.core.name
         );
-        let (relu, border) = (self.relu, self.border);
-        let hwc = if border.is_none() {
-            (0, 0, 0)
-        } else {
-            self.hwc()
-        };
-        let runs = runs(&border, hwc, f);
+        let (relu, runs) = (self.relu, self.runs());
         // dz = the interior of dY, times [y > 0] with a ReLU.
         self.dz.resize(n * f, T::zero());
         self.dz
@@ -299,8 +238,8 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
                     for (g, &gamma) in g.iter_mut().zip(gain) {
                         *g *= gamma;
                     }
-                    let mean_g = lane_sum(g) * inv_f;
-                    let mean_gx = lane_dot(g, xhat) * inv_f;
+                    let mean_g = sum(g) * inv_f;
+                    let mean_gx = dot(g, xhat) * inv_f;
                     for ((dx, &g), &h) in dx.iter_mut().zip(g.iter()).zip(xhat) {
                         *dx = r * (g - mean_g - h * mean_gx);
                     }

@@ -16,9 +16,11 @@
 //! | dense forward, acting, `dW`, `dX` | [`DenseOps::forward`], [`DenseOps::infer`], [`DenseOps::weight_grad`], [`DenseOps::input_grad`] |
 //! | small plain products (quantile embedding) | [`gemm`] |
 //! | element-wise loops (ReLU) | [`vectorized`] |
+//! | sums over a sample or a gradient (layer normalisation, the gradient's norm) | [`lanes`] |
 
 mod conv;
 mod dense;
+pub mod lanes;
 pub mod plan;
 
 pub use conv::{ConvOps, ConvSpec};

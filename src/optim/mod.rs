@@ -10,38 +10,21 @@ pub use adam::Adam;
 pub use sgd::Sgd;
 
 use crate::layers::{Param, Sequential};
+use crate::ops::lanes::Lanes;
 use crate::tensor::{vectorized, Float};
 
 /// The global L2 norm of all gradients: `sqrt(Σ_p Σ_i g_p[i]²)`.
 ///
-/// Summed in 16 lanes (lane `l` takes each gradient's elements `l, l + 16, …`), which are then
-/// added pairwise: one fixed order on every machine, and vectorisable, where one running sum
+/// Summed in [`crate::ops::lanes`] (lane `l` takes each gradient's elements `l, l + 16, …`, then the lanes
+/// are added pairwise): one fixed order on every machine, and vectorisable, where one running sum
 /// would be a chain of a million dependent additions (about 2 ms per train step).
 pub fn global_grad_norm<'a, T: Float>(params: impl Iterator<Item = &'a Param<T>>) -> T {
-    const L: usize = 16;
-    let mut lanes = [T::zero(); L];
+    let mut lanes = Lanes::default();
     for p in params {
-        vectorized(|| {
-            let mut rows = p.grad.data().chunks_exact(L);
-            for row in &mut rows {
-                for (s, &g) in lanes.iter_mut().zip(row) {
-                    *s += g * g;
-                }
-            }
-            for (s, &g) in lanes.iter_mut().zip(rows.remainder()) {
-                *s += g * g;
-            }
-        });
+        let g = p.grad.data();
+        vectorized(|| lanes.add_products(g, g));
     }
-    let mut width = L;
-    while width > 1 {
-        width /= 2;
-        for i in 0..width {
-            let upper = lanes[i + width];
-            lanes[i] += upper;
-        }
-    }
-    lanes[0].sqrt()
+    lanes.total().sqrt()
 }
 
 /// Clipping by global norm (`tf.clip_by_global_norm`): if the global norm `‖g‖` of the network's
