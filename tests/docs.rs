@@ -425,7 +425,8 @@ fn toml_files(path: &Path, out: &mut Vec<PathBuf>) {
 /// The configuration files the repository ships (lever files, experiment records, the shipped
 /// model's) are ones `--config` accepts: a misspelt key or an out-of-range value in a committed
 /// file fails here, not hours into someone's run. A file that names no preset is resolved on
-/// `strong`, as `invaders experiment strong --config FILE` applies it; a record names its own.
+/// `strong`, as `invaders experiment strong --config FILE` applies the lever files (the others
+/// that name none set only keys every preset takes); a record names its own.
 #[test]
 fn every_shipped_config_file_resolves() {
     use invaders::dqn::{Config, Preset};
