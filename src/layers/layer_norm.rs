@@ -22,8 +22,9 @@ const EPS: f64 = 1e-5;
 /// `act` is the identity or, [`LayerNorm::with_relu`], `max(·, 0)`; [`LayerNorm::with_border`]
 /// writes the output of a `[H, W, C]` sample inside a zero border, as [`super::Conv2d`] does
 /// for the convolution after it. Where a ReLU follows a layer, normalising its pre-activations
-/// keeps their scale fixed however the weights below grow: Lyle et al. (2023) and PQN (Gallici
-/// et al. 2024) find this keeps a value network able to keep learning late in training.
+/// keeps their scale fixed however the weights below grow. Lyle et al. (2023) find that it keeps
+/// a network trainable as its targets keep changing (plasticity); PQN (Gallici et al. 2024)
+/// relies on it for stable TD learning (CleanRL's PQN normalises as this layer does).
 ///
 /// Backward, with `dz_i = dY_i·[y_i > 0]` (the interior of `dY`; no mask without a ReLU):
 /// ```text
