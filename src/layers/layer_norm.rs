@@ -41,6 +41,10 @@ pub struct LayerNorm<T> {
     params: [Param<T>; 2],
     relu: bool,
     border: Border,
+    /// The sample's elements as contiguous runs `(start unbordered, start in the output,
+    /// length)`: all `F` at once without a border, else one run per image row inside it. Set
+    /// with the border, so no pass allocates it.
+    runs: Vec<(usize, usize, usize)>,
     /// `x̂` of the last forward pass, `[N, F]`, unbordered.
     xhat: Vec<T>,
     /// `r = 1/sqrt(σ² + ε)` of each sample of the last forward pass.
@@ -60,6 +64,7 @@ impl<T: Float> LayerNorm<T> {
             params: [gain, Param::zeros(format!("{name}.bias"), shape)],
             relu: false,
             border: Border::default(),
+            runs: vec![(0, 0, shape.iter().product())],
             xhat: Vec::new(),
             rstd: Vec::new(),
             dz: Vec::new(),
@@ -80,26 +85,19 @@ impl<T: Float> LayerNorm<T> {
             self.core.name
         );
         self.border = border;
+        if !border.is_none() {
+            let (h, w, c) = (self.shape[0], self.shape[1], self.shape[2]);
+            let (_, wb) = border.around(h, w);
+            self.runs = (0..h)
+                .map(|y| (y * w * c, ((border.top + y) * wb + border.left) * c, w * c))
+                .collect();
+        }
         self
     }
 
     /// Features per sample, `F`.
     fn features(&self) -> usize {
         self.shape.iter().product()
-    }
-
-    /// The sample's elements as contiguous runs `(start unbordered, start in the output,
-    /// length)`: all `F` at once without a border, else one run per image row inside it.
-    fn runs(&self) -> Vec<(usize, usize, usize)> {
-        let b = self.border;
-        if b.is_none() {
-            return vec![(0, 0, self.features())];
-        }
-        let (h, w, c) = (self.shape[0], self.shape[1], self.shape[2]);
-        let (_, wb) = b.around(h, w);
-        (0..h)
-            .map(|y| (y * w * c, ((b.top + y) * wb + b.left) * c, w * c))
-            .collect()
     }
 }
 
@@ -136,7 +134,7 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
         self.core.y.set_shape(&shape);
         self.xhat.resize(n * f, T::zero());
         self.rstd.resize(n, T::zero());
-        let (relu, runs) = (self.relu, self.runs());
+        let (relu, runs) = (self.relu, &self.runs);
         if !self.border.is_none() {
             let (h, w, c) = (self.shape[0], self.shape[1], self.shape[2]);
             self.border.zero(self.core.y.data_mut(), n, h, w, c);
@@ -160,7 +158,7 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
                     for h in xhat.iter_mut() {
                         *h *= r;
                     }
-                    for &(i, o, len) in &runs {
+                    for &(i, o, len) in runs {
                         let y = &mut y[o..o + len];
                         let (h, g, b) = (&xhat[i..i + len], &gain[i..i + len], &bias[i..i + len]);
                         for (((y, &h), &g), &b) in y.iter_mut().zip(h).zip(g).zip(b) {
@@ -182,7 +180,7 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
             "{}: upstream gradient",
             self.core.name
         );
-        let (relu, runs) = (self.relu, self.runs());
+        let (relu, runs) = (self.relu, &self.runs);
         // dz = the interior of dY, times [y > 0] with a ReLU.
         self.dz.resize(n * f, T::zero());
         self.dz
@@ -191,7 +189,7 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
             .zip(self.core.y.data().par_chunks(per_out))
             .for_each(|((dz, dy), y)| {
                 vectorized(|| {
-                    for &(i, o, len) in &runs {
+                    for &(i, o, len) in runs {
                         let (dz, dy, y) = (&mut dz[i..i + len], &dy[o..o + len], &y[o..o + len]);
                         for ((dz, &d), &y) in dz.iter_mut().zip(dy).zip(y) {
                             *dz = if relu && y <= T::zero() { T::zero() } else { d };
