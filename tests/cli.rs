@@ -313,6 +313,68 @@ fn train_eval_resume_plot() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// `returns` reads each run at equal frames (the last `--window` episodes up to them), a group
+/// as mean (min–max), and leaves a cell empty where a run has not trained that far.
+#[test]
+fn returns_tabulates_runs_at_equal_frames() {
+    let root = tmp("returns");
+    let header = "episode,agent_steps,emulator_frames,reward,length,epsilon,mean_loss,mean_max_q,wall_seconds";
+    // Run a: episode i ends at 1 000·i frames with reward i (10 episodes); run b: reward 10·i,
+    // 6 episodes.
+    for (name, episodes, scale) in [("a", 10, 1), ("b", 6, 10)] {
+        let rows: String = (1..=episodes)
+            .map(|i| {
+                format!(
+                    "{i},{},{},{},250,0.01,0.1,1.0,1.0\n",
+                    250 * i,
+                    1000 * i,
+                    scale * i
+                )
+            })
+            .collect();
+        std::fs::create_dir_all(root.join(name)).unwrap();
+        std::fs::write(
+            root.join(name).join("metrics.csv"),
+            format!("{header}\n{rows}"),
+        )
+        .unwrap();
+    }
+    let (a, b) = (root.join("a"), root.join("b"));
+    let group = format!("both={},{}", s(&a), s(&b));
+    let table = ok(&invaders(&[
+        "returns",
+        "--window",
+        "3",
+        "--at",
+        "0.005M,9000",
+        "--group",
+        &group,
+        s(&b),
+    ]));
+    assert_eq!(row(&table, "0.005 M"), "| 0.005 M | 22 (4–40) | 40 |");
+    assert_eq!(row(&table, "0.009 M"), "| 0.009 M | 8 [1 of 2] |  |");
+    assert_eq!(
+        row(&table, "end (last 3)"),
+        "| end (last 3) | 29.5 (9.0–50.0) | 50.0 |"
+    );
+    assert_eq!(
+        row(&table, "frames at the end"),
+        "| frames at the end | 10000, 6000 | 6000 |"
+    );
+    for (args, needle) in [
+        (
+            vec!["returns", s(&a), "--at", "half"],
+            "`half` is not a number of frames",
+        ),
+        (vec!["returns", s(&a), "--window", "0"], "--window"),
+        (vec!["returns", "--group", "nolabel"], "LABEL=DIR"),
+        (vec!["returns", s(&root)], "metrics.csv"),
+    ] {
+        fails_with(&invaders(&args), needle);
+    }
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 #[test]
 fn bad_inputs_give_clear_errors() {
     let root = tmp("bad");

@@ -27,6 +27,7 @@ mod export;
 mod figures;
 mod guard;
 mod plot;
+mod returns;
 mod show;
 pub mod streams;
 mod train;
@@ -52,6 +53,8 @@ pub enum Command {
     Export(export::ExportArgs),
     /// Draw the reward curves of one or more runs on one figure.
     Plot(plot::PlotArgs),
+    /// Print runs' training return at equal emulator frames, as a markdown table.
+    Returns(returns::ReturnsArgs),
     /// Time the train step, acting, the emulator and end-to-end training.
     Bench(bench::BenchArgs),
     /// Draw what the network sees: a raw screen, its preprocessing, and each pipeline's stack.
@@ -113,6 +116,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(&args),
         Command::Export(args) => export::run(&args),
         Command::Plot(args) => plot::run(&args),
+        Command::Returns(args) => returns::run(&args),
         Command::Bench(args) => bench::run(&args),
         Command::ShowPreprocessing(args) => show::run(&args),
         Command::Experiment(e) => experiment::run(&e),

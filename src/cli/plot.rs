@@ -90,27 +90,14 @@ fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
     let mut groups = Vec::new();
     let mut inputs = Vec::new();
     for spec in &args.group {
-        let Some((label, dirs)) = spec.split_once('=') else {
-            bail!("--group takes LABEL=DIR,DIR,...; got `{spec}`");
-        };
-        let dirs: Vec<PathBuf> = dirs
-            .split(',')
-            .filter(|d| !d.is_empty())
-            .map(PathBuf::from)
-            .collect();
-        if label.is_empty() || dirs.is_empty() {
-            bail!("--group takes LABEL=DIR,DIR,...; got `{spec}`");
-        }
+        let (label, dirs) = parse_group(spec)?;
         let mut seeds = Vec::new();
         for d in &dirs {
             let csv = d.join("metrics.csv");
             seeds.push(read_frame_metrics(&csv)?);
             inputs.push(csv);
         }
-        groups.push(Group {
-            label: label.to_string(),
-            seeds,
-        });
+        groups.push(Group { label, seeds });
     }
     if let Some(r) = &args.reference {
         inputs.push(r.clone());
@@ -125,4 +112,19 @@ fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot draw {}", args.out.display()))?;
     out!("wrote {}", args.out.display());
     Ok(())
+}
+
+/// `--group LABEL=DIR,DIR,...`: the label and the run directories.
+pub(super) fn parse_group(spec: &str) -> anyhow::Result<(String, Vec<PathBuf>)> {
+    let bad = || anyhow::anyhow!("--group takes LABEL=DIR,DIR,...; got `{spec}`");
+    let (label, dirs) = spec.split_once('=').ok_or_else(bad)?;
+    let dirs: Vec<PathBuf> = dirs
+        .split(',')
+        .filter(|d| !d.is_empty())
+        .map(PathBuf::from)
+        .collect();
+    if label.is_empty() || dirs.is_empty() {
+        return Err(bad());
+    }
+    Ok((label.to_string(), dirs))
 }
