@@ -4,8 +4,10 @@
 //! at or before frame `f` (the episodes' rewards in `metrics.csv`, played at the run's ε, 0.01
 //! for `strong` from its 100 000th agent step). A run that has not trained to `f` frames, or has
 //! fewer than `window` episodes by then, has no value there: its cell is empty. The `end` row is
-//! the last `window` episodes of the whole run. The tables of training return in
-//! docs/strong.md are this command's output.
+//! the last `window` episodes of the whole run. A row whose frames or reward is not a finite
+//! number is left out, with a warning ([`read_frame_metrics`]), so the window reaches one episode
+//! further back. The tables of training return in docs/strong.md come from this command
+//! (reformatted).
 
 use std::path::PathBuf;
 
@@ -36,15 +38,23 @@ pub struct ReturnsArgs {
 /// `500000`, `0.5M` or `0.5m`: a positive whole number of frames.
 fn parse_frames(text: &str) -> Result<u64, String> {
     let bad = || format!("`{text}` is not a number of frames (say 500000 or 0.5M)");
-    let (number, scale) = match text.strip_suffix(['M', 'm']) {
-        Some(n) => (n, 1e6),
-        None => (text, 1.0),
+    let frames = match text.strip_suffix(['M', 'm']) {
+        // Millions: read as `{n}e6`, so the decimal is rounded once (1.001M is 1 001 000, where
+        // 1.001 × 1e6 in binary would fall just short of it).
+        Some(n) if !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit() || b == b'.') => {
+            let value = format!("{n}e6").parse::<f64>().map_err(|_| bad())?;
+            if value.fract() != 0.0 || value > (1u64 << 53) as f64 {
+                return Err(bad());
+            }
+            value as u64
+        }
+        Some(_) => return Err(bad()),
+        None => text.parse::<u64>().map_err(|_| bad())?,
     };
-    let value = number.trim().parse::<f64>().map_err(|_| bad())? * scale;
-    if !(value.is_finite() && value >= 1.0 && value <= u64::MAX as f64) || value.fract() != 0.0 {
-        return Err(bad());
+    if frames == 0 {
+        return Err(format!("`{text}`: the frames must be at least 1"));
     }
-    Ok(value as u64)
+    Ok(frames)
 }
 
 /// One column: a run, or a group of runs summarised by mean (min–max).
@@ -99,10 +109,12 @@ pub fn run(args: &ReturnsArgs) -> anyhow::Result<()> {
     let read = |dir: &PathBuf| {
         let episodes = read_frame_metrics(&dir.join("metrics.csv"))?;
         // Rows are appended as episodes end, so frames only grow; a file edited by hand might not.
-        if episodes.windows(2).any(|w| w[1].0 < w[0].0) {
+        if let Some(i) = episodes.windows(2).position(|w| w[1].0 < w[0].0) {
             return Err(anyhow!(
-                "{}: emulator_frames falls somewhere: not a run's metrics in the order played",
-                dir.join("metrics.csv").display()
+                "{}: emulator_frames falls after data row {}: not a run's metrics in the order \
+                 played",
+                dir.join("metrics.csv").display(),
+                i + 1
             ));
         }
         Ok(episodes)
@@ -121,7 +133,11 @@ pub fn run(args: &ReturnsArgs) -> anyhow::Result<()> {
     }
 
     let row = |first: String, cells: Vec<String>| format!("| {first} | {} |", cells.join(" | "));
-    let labels = columns.iter().map(|c| c.label.clone()).collect();
+    // A `|` in a label would end its cell.
+    let labels = columns
+        .iter()
+        .map(|c| c.label.replace('|', "\\|"))
+        .collect();
     out!("{}", row("frames".into(), labels));
     out!("{}", row("---".into(), vec!["---".into(); columns.len()]));
     let at = |frames: Option<u64>, decimals: usize| -> Vec<String> {
@@ -164,7 +180,22 @@ mod tests {
         assert_eq!(parse_frames("500000"), Ok(500_000));
         assert_eq!(parse_frames("0.5M"), Ok(500_000));
         assert_eq!(parse_frames("1.25m"), Ok(1_250_000));
-        for bad in ["", "M", "-1", "0", "0.5", "1e400", "nan", "1.5x"] {
+        assert_eq!(parse_frames("1.001M"), Ok(1_001_000));
+        assert_eq!(parse_frames("9007199254740993"), Ok(9_007_199_254_740_993));
+        for bad in [
+            "",
+            "M",
+            "-1",
+            "0",
+            "0M",
+            "0.5",
+            "0.0000001M",
+            "1e3M",
+            "1e400",
+            "nan",
+            "1.5x",
+            "-1M",
+        ] {
             assert!(parse_frames(bad).is_err(), "{bad} accepted");
         }
     }
