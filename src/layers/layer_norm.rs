@@ -85,13 +85,15 @@ impl<T: Float> LayerNorm<T> {
             self.core.name
         );
         self.border = border;
-        if !border.is_none() {
+        self.runs = if border.is_none() {
+            vec![(0, 0, self.features())]
+        } else {
             let (h, w, c) = (self.shape[0], self.shape[1], self.shape[2]);
             let (_, wb) = border.around(h, w);
-            self.runs = (0..h)
+            (0..h)
                 .map(|y| (y * w * c, ((border.top + y) * wb + border.left) * c, w * c))
-                .collect();
-        }
+                .collect()
+        };
         self
     }
 
