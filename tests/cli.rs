@@ -122,7 +122,11 @@ fn bench_in_bf16_says_which_kernels_ran() {
         let json: serde_json::Value = serde_json::from_str(stdout.trim()).expect(&stdout);
         // The child inherits this process's environment, so this process's check applies to it.
         let runs = cpu::avx512_bf16() && !no_bf16;
-        let family = if runs { "avx512-bf16" } else { f32_family() };
+        let family = match (runs, cpu::amx()) {
+            (true, true) => "amx-bf16",
+            (true, false) => "avx512-bf16",
+            _ => f32_family(),
+        };
         assert_eq!(json["kernel_family"], family, "{stdout}");
         assert_eq!(json["precision"], "bf16", "{stdout}");
         let conv = json["kernels"]["conv_forward"].as_str().unwrap_or_default();

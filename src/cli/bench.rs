@@ -108,7 +108,9 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     }
     // What ran: the kernel family, and the kernel of each product (the last layer's to run it).
     let bf16_calls = cpu::paths(Family::Bf16).since(bf16_before);
-    let family = if bf16_calls.avx512 > 0 {
+    let family = if bf16_calls.amx > 0 {
+        "amx-bf16"
+    } else if bf16_calls.avx512 > 0 {
         "avx512-bf16"
     } else if cpu::avx512() {
         "avx512-f32"

@@ -64,7 +64,8 @@ pub fn bf16_runs(precision: Precision) -> bool {
 }
 
 /// The kernels this CPU runs training products with in `precision`, by name: this crate's
-/// family, `"avx512-bf16"`, `"avx512"`, `"avx2"` or `"portable"`, and, where faer's GEMM takes
+/// family, `"amx-bf16"` (the bf16 gather GEMM on AMX tiles), `"avx512-bf16"`, `"avx512"`,
+/// `"avx2"` or `"portable"`, and, where faer's GEMM takes
 /// another instruction set than that family's ([`crate::tensor::cpu::faer_path`]: a family
 /// switched off by `INVADERS_NO_AVX512` or `INVADERS_NO_SIMD`), faer's after it, as in
 /// `"portable, faer avx2"`. A checkpoint records it, so that a run resumed where another name
@@ -75,8 +76,11 @@ pub fn kernels(precision: Precision) -> String {
         Path::Avx512 => "avx512",
         Path::Avx2 => "avx2",
         Path::Portable => "portable",
+        Path::Amx => "amx",
     };
-    let ours = if bf16_runs(precision) {
+    let ours = if bf16_runs(precision) && crate::tensor::cpu::amx() {
+        "amx-bf16"
+    } else if bf16_runs(precision) {
         "avx512-bf16"
     } else {
         name(path())

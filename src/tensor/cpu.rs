@@ -12,8 +12,11 @@
 //! (im2col + faer in the layers, the portable loops in the kernels), for A/B timing in one
 //! session and for testing the portable path there.
 //! `INVADERS_NO_BF16` is the narrower switch: the AVX-512 kernels stay, AVX512-BF16 goes, as on
-//! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32. The
-//! three are read once, at the first call, so a process runs one way throughout.
+//! an AVX-512 CPU without it (Intel Skylake-SP to Ice Lake), so bf16 asked for runs in f32.
+//! Where AVX512-BF16 runs and the CPU has AMX tiles as well (Intel Sapphire Rapids and later),
+//! the bf16 gather GEMM runs on the tiles ([`amx`]); `INVADERS_NO_AMX` keeps it on
+//! `vdpbf16ps`, as on a CPU without them. The four are read once, at the first call, so a
+//! process runs one way throughout.
 //!
 //! The kernels are selected by [`crate::ops::plan`]; nothing else asks the CPU.
 //!
@@ -42,10 +45,14 @@ pub struct Features {
     pub avx512_bf16: bool,
     /// Whether `INVADERS_NO_BF16` turned AVX512-BF16 off on a CPU that runs it.
     pub bf16_switched_off: bool,
+    /// That AVX512-BF16 runs, the CPU has AMX's tiles and their bf16 product (AMX-TILE,
+    /// AMX-BF16), the operating system saves them with a thread's state and let this process
+    /// use them, and `INVADERS_NO_AMX` is unset: the bf16 gather GEMM runs on the tiles.
+    pub amx: bool,
 }
 
 /// What this CPU has, whatever the environment says: AVX-512F and FMA, AVX2 and FMA,
-/// AVX512-BF16 (nothing off x86-64).
+/// AVX512-BF16, AMX's tiles turned on by the operating system (nothing off x86-64).
 fn detect() -> Features {
     #[cfg(target_arch = "x86_64")]
     let (avx512, avx2, avx512_bf16) = {
@@ -63,7 +70,60 @@ fn detect() -> Features {
         avx2,
         avx512_bf16,
         bf16_switched_off: false,
+        amx: amx_on_cpu(),
     }
+}
+
+/// Whether this CPU has AMX-TILE and AMX-BF16 (CPUID leaf 7: EDX bits 24 and 22) and the
+/// operating system has turned the tile state on (XCR0 bits 17 and 18). Not whether this
+/// process may use it: [`amx_permitted`].
+fn amx_on_cpu() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{__cpuid, __cpuid_count};
+        let (max, osxsave) = (__cpuid(0).eax, __cpuid(1).ecx & (1 << 27) != 0);
+        if max < 7 || !osxsave {
+            return false;
+        }
+        // Leaf 7 exists where leaf 0 says so.
+        let edx = __cpuid_count(7, 0).edx;
+        if edx & (1 << 24) == 0 || edx & (1 << 22) == 0 {
+            return false;
+        }
+        let (lo, _hi): (u32, u32);
+        // SAFETY: XGETBV with ECX = 0 runs where CPUID says the OS has XSAVE on (OSXSAVE).
+        unsafe {
+            std::arch::asm!("xgetbv", in("ecx") 0, out("eax") lo, out("edx") _hi,
+                options(nomem, nostack, preserves_flags));
+        }
+        lo & (0b11 << 17) == 0b11 << 17
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// Asks Linux to let this process use AMX's tile data (`arch_prctl(ARCH_REQ_XCOMP_PERM,
+/// XFEATURE_XTILEDATA)`, since Linux 5.16): without it the first tile instruction kills the
+/// process. Granted once for the whole process; `false` where refused or not Linux.
+fn amx_permitted() -> bool {
+    #[cfg(all(target_arch = "x86_64", target_os = "linux"))]
+    {
+        const SYS_ARCH_PRCTL: i64 = 158;
+        const ARCH_REQ_XCOMP_PERM: i64 = 0x1023;
+        const XFEATURE_XTILEDATA: i64 = 18;
+        let ret: i64;
+        // SAFETY: the arch_prctl system call with these arguments only changes which state
+        // the kernel saves for this process; it reads and writes no memory of ours.
+        unsafe {
+            std::arch::asm!("syscall",
+                inlateout("rax") SYS_ARCH_PRCTL => ret,
+                in("rdi") ARCH_REQ_XCOMP_PERM, in("rsi") XFEATURE_XTILEDATA,
+                out("rcx") _, out("r11") _, options(nostack));
+        }
+        ret == 0
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_os = "linux")))]
+    false
 }
 
 /// The features of this CPU (detected on the first call, then cached).
@@ -77,11 +137,14 @@ pub fn features() -> Features {
         let avx2 = !avx512 && has.avx2 && simd;
         let bf16 = avx512 && has.avx512_bf16;
         let off = std::env::var_os("INVADERS_NO_BF16").is_some();
+        let no_amx = std::env::var_os("INVADERS_NO_AMX").is_some();
+        let amx = bf16 && !off && has.amx && !no_amx && amx_permitted();
         Features {
             avx512,
             avx2,
             avx512_bf16: bf16 && !off,
             bf16_switched_off: bf16 && off,
+            amx,
         }
     })
 }
@@ -111,6 +174,12 @@ pub fn avx2() -> bool {
 #[inline]
 pub fn avx512_bf16() -> bool {
     features().avx512_bf16
+}
+
+/// Whether the bf16 gather GEMM runs on AMX tiles (see [`Features::amx`]).
+#[inline]
+pub fn amx() -> bool {
+    features().amx
 }
 
 /// Whether the AVX-512 kernels run (see the module documentation).
@@ -185,7 +254,8 @@ pub enum Family {
     Background,
     /// [`crate::tensor::transpose`].
     Transpose,
-    /// The bf16 products ([`crate::tensor::bf16`]): AVX512-BF16's `vdpbf16ps`, or the rounded
+    /// The bf16 products ([`crate::tensor::bf16`]): AVX512-BF16's `vdpbf16ps` (recorded as the
+    /// AVX-512 loop), AMX's `tdpbf16ps` for the gather GEMM ([`Path::Amx`]), or the rounded
     /// operands multiplied in f32.
     Bf16,
 }
@@ -201,6 +271,8 @@ pub struct Paths {
     pub portable: u64,
     /// Calls that ran the AVX2 loop.
     pub avx2: u64,
+    /// Calls that ran on AMX tiles (the bf16 gather GEMM only).
+    pub amx: u64,
 }
 
 impl Paths {
@@ -210,6 +282,7 @@ impl Paths {
             avx512: self.avx512 - before.avx512,
             portable: self.portable - before.portable,
             avx2: self.avx2 - before.avx2,
+            amx: self.amx - before.amx,
         }
     }
 }
@@ -223,6 +296,8 @@ pub enum Path {
     Portable = 1,
     /// The AVX2 and FMA loop.
     Avx2 = 2,
+    /// AMX's tiles (the bf16 gather GEMM; [`amx`]). [`path`] never returns it.
+    Amx = 3,
 }
 
 /// The loop a family with AVX-512, AVX2 and portable loops runs here.
@@ -237,10 +312,7 @@ pub fn path() -> Path {
 }
 
 thread_local! {
-    static TAKEN: [[Cell<u64>; 3]; FAMILIES] = const {
-        [const { [const { Cell::new(0) }, const { Cell::new(0) }, const { Cell::new(0) }] };
-            FAMILIES]
-    };
+    static TAKEN: [[Cell<u64>; 4]; FAMILIES] = const { [const { [const { Cell::new(0) }; 4] }; FAMILIES] };
 }
 
 /// Records that a call of `family` runs its AVX-512 loop (`avx512`) or its portable one, on
@@ -265,11 +337,12 @@ pub fn took_path(family: Family, path: Path) -> Path {
 /// How many calls of `family` ran each loop on this thread so far.
 pub fn paths(family: Family) -> Paths {
     TAKEN.with(|t| {
-        let [a, p, v] = &t[family as usize];
+        let [a, p, v, m] = &t[family as usize];
         Paths {
             avx512: a.get(),
             portable: p.get(),
             avx2: v.get(),
+            amx: m.get(),
         }
     })
 }

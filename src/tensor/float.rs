@@ -135,6 +135,7 @@ impl Float for f32 {
             Path::Avx512 => super::x86_64::gather_avx512::gather_gemm(g),
             Path::Avx2 => super::x86_64::gather_avx2::gather_gemm(g),
             Path::Portable => gather_gemm_portable(g),
+            Path::Amx => unreachable!("cpu::path never picks AMX"),
         }
     }
     #[cfg(target_arch = "x86_64")]
@@ -145,6 +146,7 @@ impl Float for f32 {
             // SAFETY: `cpu::path` chose AVX2 only where the CPU runs AVX2 and FMA.
             Path::Avx2 => unsafe { super::x86_64::scatter_avx2::scatter_gemm(g) },
             Path::Portable => scatter_gemm_portable(g),
+            Path::Amx => unreachable!("cpu::path never picks AMX"),
         }
     }
     unsafe fn gemm_raw(

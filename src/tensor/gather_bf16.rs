@@ -21,11 +21,14 @@
 //! in the order `vdpbf16ps` does (the odd element's first, each addition rounded to f32), so on
 //! data without subnormals the AVX512-BF16 kernel matches it bit for bit, and every element of
 //! `C` is summed in the order `u = 0, 1, …` whatever the tiling and the thread count.
+//! On a CPU with AMX tiles the product runs on them instead (`x86_64/gather_bf16_amx.rs`):
+//! sixteen pairs at a time, in the hardware's own order within each sixteen, so its bits differ
+//! from the oracle's; it is held to the same error bound.
 //! The layers never run the portable loop for speed: without AVX512-BF16 the plan keeps f32
 //! ([`crate::ops::plan`]).
 
 use super::bf16::{from_bf16, to_bf16};
-use super::cpu::{avx512_twin, took, Family};
+use super::cpu::{avx512_twin, took, took_path, Family, Path};
 use super::gather::{portable_rows, GatherGemm};
 
 /// The operands of one bf16 gather GEMM (see the module documentation): [`GatherGemm`] with
@@ -62,9 +65,15 @@ pub fn gather_gemm_bf16_portable(g: GatherGemmBf16<'_>) {
     });
 }
 
-/// The bf16 gather GEMM: AVX512-BF16 where the CPU has it, else the portable loops. Recorded
-/// as [`Family::Bf16`].
+/// The bf16 gather GEMM: on AMX tiles where the CPU has them ([`super::cpu::amx`]), else
+/// AVX512-BF16 where it has that, else the portable loops. Recorded as [`Family::Bf16`]
+/// ([`Path::Amx`] for the tiles).
 pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
+    #[cfg(target_arch = "x86_64")]
+    if super::cpu::amx() {
+        took_path(Family::Bf16, Path::Amx);
+        return amx::gather_gemm_bf16(g);
+    }
     #[cfg(target_arch = "x86_64")]
     if took(Family::Bf16, super::cpu::avx512_bf16()) {
         return avx512::gather_gemm_bf16(g);
@@ -252,6 +261,8 @@ pub fn pair_steps(q: &[usize], pairs: &mut Vec<usize>) -> bool {
     true
 }
 
+#[cfg(target_arch = "x86_64")]
+use super::x86_64::gather_bf16_amx as amx;
 #[cfg(target_arch = "x86_64")]
 use super::x86_64::gather_bf16_avx512 as avx512;
 

@@ -283,14 +283,15 @@ pub fn on_exactly<R>(family: Family, expected: cpu::Path, what: &str, f: impl Fn
     let out = f();
     let p = cpu::paths(family).since(before);
     assert!(
-        p.avx512 + p.portable + p.avx2 > 0,
+        p.avx512 + p.portable + p.avx2 + p.amx > 0,
         "{what}: no {family:?} kernel ran"
     );
-    let ran = (p.avx512 > 0, p.avx2 > 0, p.portable > 0);
+    let ran = (p.avx512 > 0, p.avx2 > 0, p.portable > 0, p.amx > 0);
     let want = (
         expected == cpu::Path::Avx512,
         expected == cpu::Path::Avx2,
         expected == cpu::Path::Portable,
+        expected == cpu::Path::Amx,
     );
     assert_eq!(
         ran, want,

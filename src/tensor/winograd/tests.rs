@@ -48,6 +48,7 @@ fn once(path: Path) -> cpu::Paths {
         avx512: u64::from(path == Path::Avx512),
         portable: u64::from(path == Path::Portable),
         avx2: u64::from(path == Path::Avx2),
+        amx: 0,
     }
 }
 

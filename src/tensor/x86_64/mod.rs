@@ -1,5 +1,6 @@
 //! The x86-64 kernels, one file per family and instruction set: the AVX-512 families
-//! (`*_avx512.rs`; AVX512-BF16 in `bf16_avx512.rs` and `gather_bf16_avx512.rs`) and the AVX2
+//! (`*_avx512.rs`; AVX512-BF16 in `bf16_avx512.rs` and `gather_bf16_avx512.rs`, AMX tiles in
+//! `gather_bf16_amx.rs`) and the AVX2
 //! and FMA family (`*_avx2.rs`) for CPUs without AVX-512 (or with it switched off by
 //! `INVADERS_NO_AVX512`). `crate::tensor::cpu` says which runs; each kernel's portable twin is
 //! in its family's module one level up (`gather.rs`, `winograd/`, …), and the tests check
@@ -11,6 +12,7 @@ pub(crate) mod background_avx512;
 pub(crate) mod bf16_avx512;
 pub(crate) mod gather_avx2;
 pub(crate) mod gather_avx512;
+pub(crate) mod gather_bf16_amx;
 pub(crate) mod gather_bf16_avx512;
 pub(crate) mod scatter_avx2;
 pub(crate) mod sparse_avx512;
