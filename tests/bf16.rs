@@ -211,7 +211,14 @@ struct Case {
 impl Case {
     fn draw(rows: usize, pairs: usize, n: usize, seed: u64) -> Case {
         let mut r = rng(seed);
-        let p: Vec<usize> = (0..rows).map(|i| i * 3 + r.random_range(0..4)).collect();
+        // Row offsets: scattered, or one pair apart (a weight gradient's rows: the patch's
+        // elements, one pair word each, which AMX's kernel reads across the rows).
+        let p: Vec<usize> = if r.random_range(0..2) == 1 {
+            let first = r.random_range(0..4);
+            (0..rows).map(|i| first + 2 * i).collect()
+        } else {
+            (0..rows).map(|i| i * 3 + r.random_range(0..4)).collect()
+        };
         // Pair offsets: runs of consecutive pairs with gaps, as a convolution's patch rows (runs
         // of 16 and 32 as a pixel's channels in conv2 and conv3: whole rows of an AMX tile).
         let run = [5, 16, 32][r.random_range(0..3)];

@@ -12,9 +12,11 @@
 //! Eight tile registers of 1 KiB: `tmm0`–`tmm3` hold a 16 × 64 panel of `C`, `tmm4` the block
 //! of `A`, `tmm5` and `tmm6` blocks of `B` (two, so that one loads while the other is used).
 //! For each 16-row block of `C` and each 64-column panel the kernel runs over the reduction 16
-//! pairs at a time: it copies the rows' pairs into a 1 KiB buffer (one 64-byte copy a row where
-//! the 16 pairs lie next to each other, as in a convolution's forward pass, where a pixel's
-//! channels are contiguous; one pair at a time otherwise), loads it as the `A` tile, and adds
+//! pairs at a time: it copies the rows' pairs into a 1 KiB buffer ([`pack_a`]: one 64-byte
+//! load a row where a row's 16 pairs lie next to each other, as in a convolution's forward
+//! pass, where a pixel's channels are contiguous; one a step, transposed in registers, where a
+//! step's 16 rows do, as in the weight gradients; a gather a row otherwise), loads it as the
+//! `A` tile, and adds
 //! its product with each of the panel's `B` tiles (loaded in place where whole, from a
 //! zero-padded copy at the edges). `C` is loaded once and stored once per block and panel.
 //!
@@ -34,6 +36,7 @@
 use crate::tensor::gather::{row_start, rows_per_task, Init};
 use crate::tensor::gather_bf16::GatherGemmBf16;
 use crate::tensor::x86_64::gather_avx512::{split_tasks, Dest};
+use crate::tensor::x86_64::transpose_avx512::block;
 use std::arch::asm;
 use std::arch::x86_64::*;
 
@@ -150,43 +153,83 @@ struct Operands<'a> {
     relu: bool,
 }
 
+/// How the pairs of one `A` block lie in memory, which decides how [`pack_a`] copies them.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Layout {
+    /// A row's pairs next to each other (`q` steps by one pair): one 64-byte load a row (a
+    /// convolution's forward pass and input gradient, where a pixel's channels are contiguous).
+    Rows,
+    /// A step's pairs next to each other across the rows (`p` steps by one pair): one 64-byte
+    /// load a step, the 16 × 16 block then transposed in registers (the weight gradients, whose
+    /// rows are the patch's elements and whose steps are output pixels).
+    Columns,
+    /// Neither: one 16-lane gather a row, where `q` fits 32-bit offsets.
+    Gather,
+    /// Neither, and `q` too large for a gather's offsets: pair by pair.
+    Scalar,
+}
+
+/// Whether each offset is one pair (two `u16`) past the one before.
+fn pair_run(v: &[usize]) -> bool {
+    v.windows(2).all(|w| w[1].wrapping_sub(w[0]) == 2)
+}
+
 /// Copies the `A` block of rows `p` (at most 16) and pairs `q` (at most 16) into `dst`, a row
-/// of 16 pair words per row of `C`, zero past the last pair: one masked 64-byte load a row where
-/// the pairs lie next to each other, one 16-lane gather a row otherwise (`idx`: `q` as 32-bit
-/// offsets, `None` where one does not fit, and then pair by pair).
+/// of 16 pair words per row of `C`, zero past the last pair and (for [`Layout::Columns`]) past
+/// the last row, as `layout` says ([`Layout::Rows`] only where `q` is a run).
 ///
 /// # Safety
 /// AVX-512F; every pair `a[p[i] + q[k]..][..2]` readable.
 #[target_feature(enable = "avx512f")]
 #[inline]
-unsafe fn pack_a(a: *const u16, p: &[usize], q: &[usize], wide: bool, dst: &mut [u32; TM * TK]) {
+unsafe fn pack_a(
+    a: *const u16, p: &[usize], q: &[usize], layout: Layout, dst: &mut [u32; TM * TK],
+) {
     let kb = q.len();
     let mask: __mmask16 = ((1u32 << kb) - 1) as __mmask16;
-    let run = q.windows(2).all(|w| w[1].wrapping_sub(w[0]) == 2);
     let out = dst.as_mut_ptr() as *mut __m512i;
-    if run {
-        for (i, &pi) in p.iter().enumerate() {
-            let v = _mm512_maskz_loadu_epi32(mask, a.add(pi + q[0]) as *const i32);
-            _mm512_store_si512(out.add(i), v);
-        }
-    } else if wide {
-        let mut offsets = [0i32; TK];
-        for (o, &qk) in offsets.iter_mut().zip(q) {
-            *o = qk as i32;
-        }
-        let idx = _mm512_loadu_si512(offsets.as_ptr() as *const __m512i);
-        for (i, &pi) in p.iter().enumerate() {
-            let base = a.add(pi) as *const i32;
-            let v = _mm512_mask_i32gather_epi32::<2>(_mm512_setzero_si512(), mask, idx, base);
-            _mm512_store_si512(out.add(i), v);
-        }
-    } else {
-        for (i, &pi) in p.iter().enumerate() {
-            let row = &mut dst[i * TK..][..TK];
-            for (o, &qk) in row.iter_mut().zip(q) {
-                *o = (a.add(pi + qk) as *const u32).read_unaligned();
+    match layout {
+        Layout::Rows => {
+            for (i, &pi) in p.iter().enumerate() {
+                let v = _mm512_maskz_loadu_epi32(mask, a.add(pi + q[0]) as *const i32);
+                _mm512_store_si512(out.add(i), v);
             }
-            row[kb..].fill(0);
+        }
+        Layout::Columns => {
+            let rows: __mmask16 = ((1u32 << p.len()) - 1) as __mmask16;
+            let cols: [__m512; TK] = std::array::from_fn(|k| {
+                if k < kb {
+                    let at = a.add(p[0] + q[k]) as *const i32;
+                    _mm512_castsi512_ps(_mm512_maskz_loadu_epi32(rows, at))
+                } else {
+                    _mm512_setzero_ps()
+                }
+            });
+            // Shuffles move bits: a pair word comes out as it went in.
+            for (i, v) in block(cols).into_iter().enumerate() {
+                _mm512_store_si512(out.add(i), _mm512_castps_si512(v));
+            }
+        }
+        Layout::Gather => {
+            let mut offsets = [0i32; TK];
+            for (o, &qk) in offsets.iter_mut().zip(q) {
+                *o = qk as i32;
+            }
+            let idx = _mm512_loadu_si512(offsets.as_ptr() as *const __m512i);
+            for (i, &pi) in p.iter().enumerate() {
+                let base = a.add(pi) as *const i32;
+                let v = _mm512_mask_i32gather_epi32::<2>(_mm512_setzero_si512(), mask, idx, base);
+                _mm512_store_si512(out.add(i), v);
+            }
+        }
+        Layout::Scalar => {
+            for (i, &pi) in p.iter().enumerate() {
+                let row = &mut dst[i * TK..][..TK];
+                for (o, &qk) in row.iter_mut().zip(q) {
+                    *o = (a.add(pi + qk) as *const u32).read_unaligned();
+                }
+                row[kb..].fill(0);
+            }
         }
     }
 }
@@ -221,6 +264,7 @@ unsafe fn task(op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest<'_>, init:
         let tiles = cols.div_ceil(TN);
         for r0 in (0..nr).step_by(TM) {
             let h = (nr - r0).min(TM);
+            let columns = pair_run(&p[r0..r0 + h]);
             // The panel's starting values.
             match init {
                 Init::Zero => {
@@ -247,7 +291,17 @@ unsafe fn task(op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest<'_>, init:
             }
             for u0 in (0..pairs).step_by(TK) {
                 let kb = (pairs - u0).min(TK);
-                pack_a(a.as_ptr(), &p[r0..r0 + h], &q[u0..u0 + kb], wide, &mut s.a);
+                let qb = &q[u0..u0 + kb];
+                let layout = if pair_run(qb) {
+                    Layout::Rows
+                } else if columns {
+                    Layout::Columns
+                } else if wide {
+                    Layout::Gather
+                } else {
+                    Layout::Scalar
+                };
+                pack_a(a.as_ptr(), &p[r0..r0 + h], qb, layout, &mut s.a);
                 load::<4>(s.a.as_ptr() as *const u8, TK * 4);
                 for t in 0..tiles {
                     let j = j0 + t * TN;

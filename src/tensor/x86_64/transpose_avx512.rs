@@ -9,7 +9,7 @@ use std::arch::x86_64::*;
 /// `shuffle_f32x4` gather a column's four 4-row pieces.
 #[target_feature(enable = "avx512f")]
 #[inline]
-fn block(r: [__m512; 16]) -> [__m512; 16] {
+pub(crate) fn block(r: [__m512; 16]) -> [__m512; 16] {
     let z = _mm512_setzero_ps();
     // t[2i], t[2i + 1]: rows 2i and 2i + 1 interleaved (low and high pairs of each lane).
     let mut t = [z; 16];
