@@ -10,6 +10,8 @@
 #
 # SCRIPTS names the reference scripts to run (default: all four), e.g. SCRIPTS="tf_step
 # torch_step" for a shorter series once the bf16 ones are known to be far behind.
+# Ours runs in f32, bf16 and auto (what a run resolves to here) and, on a CPU with AMX tiles,
+# bf16 under INVADERS_NO_AMX=1 as well (the vdpbf16ps kernel; series H).
 # ISA=avx2 times what a CPU without AVX-512 runs, on any host: ours under INVADERS_NO_AVX512=1
 # (in f32: bf16 needs AVX512-BF16),
 # the frameworks under ONEDNN_MAX_CPU_ISA=AVX2 (TensorFlow and PyTorch) and
@@ -29,6 +31,7 @@ if [ "$ISA" = avx2 ]; then
 fi
 {
   date
+  echo "binary: $(git rev-parse --short HEAD 2>/dev/null)"
   echo "ISA=$ISA"
   lscpu | grep -E "Model name|^CPU\(s\)|Thread|CPU family|^Model:"
   grep -o -w -E "avx2|avx512f|avx512_bf16|amx_tile|amx_bf16" /proc/cpuinfo | sort -u | tr '\n' ' '
@@ -44,11 +47,14 @@ fi
 for r in $(seq 1 "$ROUNDS"); do
   for t in 1 2; do
     # Under ISA=avx2 ours has no bf16 kernels (they need AVX512-BF16): f32 only.
-    precisions="f32 bf16"
+    precisions="f32 bf16 auto"
     [ "$ISA" = avx2 ] && precisions=f32
     for p in $precisions; do
       echo "round $r ours-$p threads=$t $(env "${OURS_ENV[@]}" $BIN bench --json --threads "$t" --precision $p --steps 30 ${CKPT:+--checkpoint "$CKPT"} 2>/dev/null)" >> "$OUT"
     done
+    if [ "$ISA" != avx2 ] && grep -q -w amx_bf16 /proc/cpuinfo; then
+      echo "round $r ours-bf16-noamx threads=$t $(INVADERS_NO_AMX=1 $BIN bench --json --threads "$t" --precision bf16 --steps 30 ${CKPT:+--checkpoint "$CKPT"} 2>/dev/null)" >> "$OUT"
+    fi
     for script in ${SCRIPTS:-tf_step tf_step_bf16 torch_step torch_step_bf16}; do
       echo "round $r $(env "${PY_ENV[@]}" $PY "$B/$script.py" "$t" 30 2>/dev/null | tail -1)" >> "$OUT"
     done
