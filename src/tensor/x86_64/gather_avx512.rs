@@ -557,24 +557,11 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
     }
     // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
     let mr = tile_rows(g.n);
-    let rpt = rows_per_task(rows, g.q.len(), g.n, mr);
-    let tasks = rows.div_ceil(rpt);
-    let end = g.row_start(rows - 1) + g.n;
-    let (c_rows, ldc) = (g.c_rows, g.ldc);
-    let start = move |t: usize| row_start(c_rows, ldc, t * rpt);
-    let run = |t: usize, cc: &mut [f32], base: usize| {
-        let r0 = t * rpt;
-        let pr = &g.p[r0..(r0 + rpt).min(rows)];
+    let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
         let init = match g.init {
             Init::Zero => Start::Zero,
             Init::Accumulate => Start::Load,
             Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-        };
-        let dest = Dest {
-            c_rows,
-            ldc,
-            r0,
-            base,
         };
         // SAFETY: AVX-512F checked above; `check` proved every `a`, `b` and bias index in
         // bounds, and this task's rows of C lie inside `cc` (rows increase and the next
@@ -595,7 +582,39 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
             )
         }
     };
-    split_tasks(&mut g.c[..end], 0, 0, tasks, &start, &run);
+    let (steps, n) = (g.q.len(), g.n);
+    split_rows(g.c, g.p, g.c_rows, g.ldc, n, steps, mr, &leaf);
+}
+
+/// What [`split_rows`] runs for each task: its rows of `p`, its part of `C`, where they go.
+pub(crate) type Leaf<'a> = dyn Fn(&[usize], &mut [f32], Dest<'_>) + Sync + 'a;
+
+/// Splits the rows of a gather GEMM's `C` (row `r` at [`row_start`]`(c_rows, ldc, r)`, `n`
+/// wide) into rayon tasks of [`rows_per_task`]`(p.len(), steps, n, mr)` rows, a size that depends
+/// only on the shape, and runs `leaf(rows, part, dest)` for each: `rows` the task's slice of
+/// `p`, `part` its rows' span of `c` (no other task's rows in it), `dest` where each of its rows
+/// starts in `part`. Every gather kernel on x86-64 splits its work so (`p` not empty, `n` > 0).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn split_rows(
+    c: &mut [f32], p: &[usize], c_rows: Option<&[usize]>, ldc: usize, n: usize, steps: usize,
+    mr: usize, leaf: &Leaf<'_>,
+) {
+    let rows = p.len();
+    let rpt = rows_per_task(rows, steps, n, mr);
+    let tasks = rows.div_ceil(rpt);
+    let end = row_start(c_rows, ldc, rows - 1) + n;
+    let start = move |t: usize| row_start(c_rows, ldc, t * rpt);
+    let run = |t: usize, cc: &mut [f32], base: usize| {
+        let r0 = t * rpt;
+        let dest = Dest {
+            c_rows,
+            ldc,
+            r0,
+            base,
+        };
+        leaf(&p[r0..(r0 + rpt).min(rows)], cc, dest)
+    };
+    split_tasks(&mut c[..end], 0, 0, tasks, &start, &run);
 }
 
 /// Runs tasks `t0..t1` on their disjoint parts of `c` (which starts at index `base` of the

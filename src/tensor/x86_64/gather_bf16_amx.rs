@@ -33,9 +33,10 @@
 //! (`tilerelease`) at its end, on the thread that runs it; the operating system saves them with
 //! the thread's state once the process has asked for that ([`crate::tensor::cpu`] does, once).
 
-use crate::tensor::gather::{row_start, rows_per_task, Init};
+use crate::tensor::gather::Init;
 use crate::tensor::gather_bf16::GatherGemmBf16;
-use crate::tensor::x86_64::gather_avx512::{split_tasks, Dest};
+use crate::tensor::x86_64::gather_avx512::{split_rows, Dest};
+use crate::tensor::x86_64::gather_bf16_avx512::Operands;
 use crate::tensor::x86_64::transpose_avx512::block;
 use std::arch::asm;
 use std::arch::x86_64::*;
@@ -140,17 +141,6 @@ macro_rules! on_tile {
             _ => $f::<3 $($(, $g)*)?>,
         }
     };
-}
-
-/// The operands every task reads.
-#[derive(Clone, Copy)]
-struct Operands<'a> {
-    a: &'a [u16],
-    q: &'a [usize],
-    b: &'a [u16],
-    ldb: usize,
-    n: usize,
-    relu: bool,
 }
 
 /// How the pairs of one `A` block lie in memory, which decides how [`pack_a`] copies them.
@@ -357,34 +347,16 @@ pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
     if rows == 0 || g.n == 0 {
         return;
     }
-    let rpt = rows_per_task(rows, 2 * g.q.len(), g.n, TM);
-    let tasks = rows.div_ceil(rpt);
-    let (c_rows, ldc) = (g.c_rows, g.ldc);
-    let end = row_start(c_rows, ldc, rows - 1) + g.n;
-    let start = move |t: usize| row_start(c_rows, ldc, t * rpt);
-    let op = Operands {
-        a: g.a,
-        q: g.q,
-        b: g.b,
-        ldb: g.ldb,
-        n: g.n,
-        relu: g.relu,
-    };
-    let (p, init) = (g.p, g.init);
-    let run = |t: usize, cc: &mut [f32], base: usize| {
-        let r0 = t * rpt;
-        let pr = &p[r0..(r0 + rpt).min(rows)];
-        let dest = Dest {
-            c_rows,
-            ldc,
-            r0,
-            base,
-        };
+    let op = Operands::of(&g);
+    let init = g.init;
+    let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
         // SAFETY: AMX checked above (with the permission to use it); `check` proved every `a`,
         // `b` and bias index in bounds, and this task's rows of C lie inside `cc` (rows
         // increase and the next task's part starts where its first row does), which no other
         // task touches.
         unsafe { task(op, pr, cc.as_mut_ptr(), dest, init) }
     };
-    split_tasks(&mut g.c[..end], 0, 0, tasks, &start, &run);
+    // `q` counts pairs: two reduction steps each.
+    let steps = 2 * g.q.len();
+    split_rows(g.c, g.p, g.c_rows, g.ldc, g.n, steps, TM, &leaf);
 }

@@ -6,7 +6,7 @@
 use crate::tensor::gather::Init;
 use crate::tensor::gather_bf16::GatherGemmBf16;
 use crate::tensor::x86_64::gather_avx512::{
-    by_height, by_panel, panel_masks, split_tasks, tile_rows, Dest,
+    by_height, by_panel, panel_masks, split_rows, tile_rows, Dest,
 };
 use std::arch::x86_64::*;
 
@@ -18,15 +18,29 @@ use std::arch::x86_64::*;
 /// with 256.
 const TP: usize = 256;
 
-/// The operands every task reads.
+/// The operands every task of a bf16 gather GEMM reads (this kernel's and the AMX one's).
 #[derive(Clone, Copy)]
-struct Operands<'a> {
-    a: &'a [u16],
-    q: &'a [usize],
-    b: &'a [u16],
-    ldb: usize,
-    n: usize,
-    relu: bool,
+pub(crate) struct Operands<'a> {
+    pub(crate) a: &'a [u16],
+    pub(crate) q: &'a [usize],
+    pub(crate) b: &'a [u16],
+    pub(crate) ldb: usize,
+    pub(crate) n: usize,
+    pub(crate) relu: bool,
+}
+
+impl<'a> Operands<'a> {
+    /// The operands of `g`.
+    pub(crate) fn of(g: &GatherGemmBf16<'a>) -> Self {
+        Operands {
+            a: g.a,
+            q: g.q,
+            b: g.b,
+            ldb: g.ldb,
+            n: g.n,
+            relu: g.relu,
+        }
+    }
 }
 
 #[derive(Clone, Copy)]
@@ -194,30 +208,9 @@ pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
         return;
     }
     let mr = tile_rows(g.n);
-    // `q` counts pairs: two reduction steps each.
-    let rpt = crate::tensor::gather::rows_per_task(rows, 2 * g.q.len(), g.n, mr);
-    let tasks = rows.div_ceil(rpt);
-    let (c_rows, ldc) = (g.c_rows, g.ldc);
-    let end = crate::tensor::gather::row_start(c_rows, ldc, rows - 1) + g.n;
-    let start = move |t: usize| crate::tensor::gather::row_start(c_rows, ldc, t * rpt);
-    let op = Operands {
-        a: g.a,
-        q: g.q,
-        b: g.b,
-        ldb: g.ldb,
-        n: g.n,
-        relu: g.relu,
-    };
-    let (p, init) = (g.p, g.init);
-    let run = |t: usize, cc: &mut [f32], base: usize| {
-        let r0 = t * rpt;
-        let pr = &p[r0..(r0 + rpt).min(rows)];
-        let dest = Dest {
-            c_rows,
-            ldc,
-            r0,
-            base,
-        };
+    let op = Operands::of(&g);
+    let init = g.init;
+    let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
         let st = match init {
             Init::Zero => Start::Zero,
             Init::Accumulate => Start::Load,
@@ -228,5 +221,7 @@ pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
         // task's part starts where its first row does), which no other task touches.
         unsafe { task(mr, op, pr, cc.as_mut_ptr(), dest, st) }
     };
-    split_tasks(&mut g.c[..end], 0, 0, tasks, &start, &run);
+    // `q` counts pairs: two reduction steps each.
+    let steps = 2 * g.q.len();
+    split_rows(g.c, g.p, g.c_rows, g.ldc, g.n, steps, mr, &leaf);
 }
