@@ -43,10 +43,11 @@ fn bf16_expected() -> bool {
     on
 }
 
-/// Whether this host should run the bf16 gather GEMM on AMX tiles: the AVX512-BF16 loops run
-/// ([`bf16_expected`]), the CPU has AMX-TILE and AMX-BF16 (CPUID leaf 7, EDX bits 24 and 22),
-/// and `INVADERS_NO_AMX` is unset. (Where the operating system withholds the tiles the library
-/// keeps `vdpbf16ps`; this check then fails loudly rather than test the other kernel unawares.)
+/// Whether this host runs the bf16 gather GEMM on AMX tiles: only where the AVX512-BF16 loops
+/// run ([`bf16_expected`]), the CPU has AMX-TILE and AMX-BF16 (CPUID leaf 7, EDX bits 24 and
+/// 22) and `INVADERS_NO_AMX` is unset; there the library also needs the operating system's
+/// consent (XCR0, Linux's `arch_prctl` permission), which an older kernel, a VM or a sandbox
+/// may withhold, and then keeps `vdpbf16ps` (said once).
 fn amx_expected() -> bool {
     #[cfg(target_arch = "x86_64")]
     let has = {
@@ -55,12 +56,15 @@ fn amx_expected() -> bool {
     };
     #[cfg(not(target_arch = "x86_64"))]
     let has = false;
-    let on = bf16_expected() && has && std::env::var_os("INVADERS_NO_AMX").is_none();
-    assert_eq!(
-        invaders::tensor::cpu::amx(),
-        on,
-        "the library's AMX check disagrees"
-    );
+    let could = bf16_expected() && has && std::env::var_os("INVADERS_NO_AMX").is_none();
+    let on = invaders::tensor::cpu::amx();
+    assert!(could || !on, "the library runs AMX tiles where it must not");
+    if could && !on {
+        static NOTE: std::sync::Once = std::sync::Once::new();
+        NOTE.call_once(|| {
+            eprintln!("note: the CPU has AMX but the OS withholds the tiles: vdpbf16ps is tested")
+        });
+    }
     on
 }
 
@@ -336,11 +340,14 @@ proptest! {
     }
 }
 
-/// The same bits on 1, 2 and 3 threads (each element summed in pair order, whatever the split).
+/// The same bits on 1, 2 and 3 threads (each element summed in pair order, whatever the split),
+/// for rows scattered and rows one pair apart (the AMX kernel reads those two ways).
 #[test]
 fn gather_gemm_bf16_is_the_same_on_any_thread_count() {
-    let case = Case::draw(301, 600, 70, 5);
-    same_on_1_2_3_threads(|| case.run(gather_gemm_bf16));
+    for seed in 5..9 {
+        let case = Case::draw(301, 600, 70, seed);
+        same_on_1_2_3_threads(|| case.run(gather_gemm_bf16));
+    }
 }
 
 /// `|got − want| ≤ bound` element by element, naming the first that fails.

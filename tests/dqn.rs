@@ -101,6 +101,11 @@ fn dqn_learns_a_toy_corridor_in_bf16() {
         invaders::tensor::cpu::avx512_bf16(),
         "bf16 kernels ran: {ran:?}"
     );
+    assert_eq!(
+        ran.amx > 0,
+        invaders::tensor::cpu::amx(),
+        "AMX tiles ran: {ran:?}"
+    );
 }
 
 /// An implicit quantile head (8 fractions in the loss and for the target, 8 midpoints for Q)

@@ -593,7 +593,8 @@ pub(crate) type Leaf<'a> = dyn Fn(&[usize], &mut [f32], Dest<'_>) + Sync + 'a;
 /// wide) into rayon tasks of [`rows_per_task`]`(p.len(), steps, n, mr)` rows, a size that depends
 /// only on the shape, and runs `leaf(rows, part, dest)` for each: `rows` the task's slice of
 /// `p`, `part` its rows' span of `c` (no other task's rows in it), `dest` where each of its rows
-/// starts in `part`. Every gather kernel on x86-64 splits its work so (`p` not empty, `n` > 0).
+/// starts in `part`. The AVX-512 gather kernels (f32, AVX512-BF16, AMX) split their work so
+/// (`p` not empty, `n` > 0).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn split_rows(
     c: &mut [f32], p: &[usize], c_rows: Option<&[usize]>, ldc: usize, n: usize, steps: usize,

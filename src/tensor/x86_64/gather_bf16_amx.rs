@@ -360,3 +360,66 @@ pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
     let steps = 2 * g.q.len();
     split_rows(g.c, g.p, g.c_rows, g.ldc, g.n, steps, TM, &leaf);
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Packs the block of `A` at rows `p` and steps `q` the way `layout` says.
+    fn packed(a: &[u16], p: &[usize], q: &[usize], layout: Layout) -> [u32; TM * TK] {
+        let mut dst = Scratch {
+            a: [0xDEAD_BEEF; TM * TK],
+            b: [0; TK * TN],
+            c: [0.0; TM * PANEL],
+        };
+        // SAFETY: AVX-512F checked by the caller; the offsets stay inside `a` (below).
+        unsafe { pack_a(a.as_ptr(), p, q, layout, &mut dst.a) };
+        dst.a
+    }
+
+    /// Every way of packing an `A` block gives the same words, that of its definition: row `i`,
+    /// step `k` the pair at `a[p[i] + q[k]]`, zero past the last step; full and partial blocks,
+    /// steps one pair apart or scattered. (The AMX kernel only runs on CPUs with AMX; its packing
+    /// needs AVX-512F alone, so any AVX-512 host checks it here.)
+    #[test]
+    fn every_layout_packs_the_same_block() {
+        if !crate::tensor::cpu::avx512() {
+            return;
+        }
+        let mut r = rand::rngs::StdRng::seed_from_u64(3);
+        let a: Vec<u16> = (0..4096).map(|_| r.random()).collect();
+        for (h, kb) in [(16, 16), (16, 5), (7, 16), (1, 1), (3, 11)] {
+            let first = r.random_range(0..40);
+            let p: Vec<usize> = (0..h).map(|i| first + 2 * i).collect();
+            let start = r.random_range(0..1000);
+            let run: Vec<usize> = (0..kb).map(|k| start + 2 * k).collect();
+            let scattered: Vec<usize> = (0..kb).map(|k| start + 2 * k + 6 * (k / 3)).collect();
+            for q in [&run, &scattered] {
+                let mut want = [0u32; TM * TK];
+                for (i, &pi) in p.iter().enumerate() {
+                    for (k, &qk) in q.iter().enumerate() {
+                        let at = pi + qk;
+                        want[i * TK + k] = u32::from(a[at]) | u32::from(a[at + 1]) << 16;
+                    }
+                }
+                let mut layouts = vec![Layout::Columns, Layout::Gather, Layout::Scalar];
+                if pair_run(q) {
+                    layouts.push(Layout::Rows);
+                }
+                for layout in layouts {
+                    let got = packed(&a, &p, q, layout);
+                    // Rows past `h` are the buffer's own (never stored), but for `Columns`,
+                    // which writes all 16 (zeros).
+                    let rows = if layout == Layout::Columns { TM } else { h };
+                    assert_eq!(
+                        got[..rows * TK],
+                        want[..rows * TK],
+                        "h {h}, kb {kb}, run {}",
+                        pair_run(q)
+                    );
+                }
+            }
+        }
+    }
+}
