@@ -8,6 +8,7 @@ use common::cli::{
     assert_saved_config, bin, experiment_args, invaders, ok, resume, s, tmp_dir, tmp_with_file,
     train, train_command, TINY,
 };
+use invaders::dqn::checkpoint;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -685,6 +686,88 @@ fn experiment_strong_trains_evaluates_and_reports() {
     std::fs::write(&kept, &text[..text.find('\n').unwrap() + 8]).unwrap();
     ok(&run_owned(&args));
     assert_eq!(std::fs::read_to_string(&kept).unwrap(), text);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// `experiment strong --keep` where a run's directory is gone (another machine) but its record
+/// folder holds a snapshot (as `train --snapshot` writes while the run trains): a damaged
+/// snapshot is refused, saying what to do; a good one continues the run, which then trains to
+/// its budget, is evaluated and recorded with the frames where it continued, its curve whole,
+/// and the snapshot now its final network.
+#[test]
+fn experiment_continues_a_run_from_its_kept_snapshot() {
+    let (root, cfg, out) = tiny_experiment(
+        "experiment-snapshot",
+        &format!("{TINY}checkpoint_every = 1\n"),
+    );
+    let keep = root.join("keep");
+    let snap = keep.join("strong-seed1/snapshot");
+    // The run on the machine that was lost: 1000 frames, snapshots into the record folder.
+    let lost = root.join("lost");
+    ok(&invaders(&[
+        "train",
+        "--preset",
+        "strong",
+        "--seed",
+        "1",
+        "--config",
+        s(&cfg),
+        "--frames",
+        "1000",
+        "--threads",
+        "1",
+        "--out",
+        s(&lost),
+        "--snapshot",
+        s(&snap),
+    ]));
+    let before = checkpoint::load(&snap.join(checkpoint::CHECKPOINT_FILE)).unwrap();
+    assert!(before.snapshot);
+    // One episode more than the lost run trained (its budget ended with its first episode).
+    let budget = (before.counters.frames + 1).to_string();
+    let flags = [
+        "--seeds",
+        "1",
+        "--frames",
+        &budget,
+        "--threads",
+        "1",
+        "--keep",
+        s(&keep),
+    ];
+    let args = experiment_args("strong", &flags, s(&cfg), s(&out));
+    // A damaged snapshot: refused before anything trains.
+    let file = snap.join(checkpoint::CHECKPOINT_FILE);
+    let good = std::fs::read(&file).unwrap();
+    let mut bad = good.clone();
+    let last = bad.len() - 1;
+    bad[last] ^= 1;
+    std::fs::write(&file, &bad).unwrap();
+    fails_with(&invaders(&args), "snapshot cannot be used; delete");
+    assert!(!out.join("strong-seed1/checkpoint.safetensors").exists());
+    std::fs::write(&file, &good).unwrap();
+    let said = ok(&invaders(&args));
+    assert!(said.contains("continued from its snapshot"), "{said}");
+    let log = std::fs::read_to_string(out.join("strong-seed1.log")).unwrap();
+    assert!(log.contains("holds a snapshot"), "{log}");
+    let record = std::fs::read_to_string(keep.join("strong-seed1/result.toml")).unwrap();
+    let at = before.counters.frames;
+    assert!(
+        record.contains(&format!("continued_from_snapshot = [{at}]")),
+        "{record}"
+    );
+    let rows = |p: &Path| -> Vec<String> {
+        std::fs::read_to_string(p.join("metrics.csv"))
+            .unwrap()
+            .lines()
+            .map(|l| l.rsplit_once(',').unwrap().0.to_string())
+            .collect()
+    };
+    let (first, whole) = (rows(&lost), rows(&keep.join("strong-seed1")));
+    assert!(whole.len() > first.len());
+    assert_eq!(whole[..first.len()], first[..]);
+    let after = checkpoint::load(&snap.join(checkpoint::CHECKPOINT_FILE)).unwrap();
+    assert!(after.snapshot && after.counters.frames > before.counters.frames);
     let _ = std::fs::remove_dir_all(&root);
 }
 

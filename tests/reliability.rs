@@ -147,6 +147,103 @@ fn resume_without_replay_starts_an_empty_memory() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// `train --snapshot`: after each checkpoint a snapshot (the online network, counters,
+/// generators and emulator; no target network, Adam moments or replay memory) with the run's
+/// `config.toml` and `metrics.csv`. Copied to another directory (another machine), it continues
+/// the run: the note says so, `continued.csv` records where, learning waits for the memory to
+/// refill and then goes on. A snapshot folder that is the run directory is refused.
+#[test]
+fn a_snapshot_continues_the_run_elsewhere() {
+    let (root, cfg) = tmp_config("snapshot", "");
+    let (run, snap) = (root.join("run"), root.join("snap"));
+    let out = train_command(&cfg, 11, 3, &run)
+        .args(["--snapshot", snap.to_str().unwrap()])
+        .output()
+        .unwrap();
+    ok(&out);
+    let names = |d: &Path| -> Vec<String> {
+        let mut n: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        n.sort();
+        n
+    };
+    assert_eq!(
+        names(&snap),
+        ["checkpoint.safetensors", "config.toml", "metrics.csv"]
+    );
+    let full = checkpoint::load(&run.join(CHECKPOINT_FILE)).unwrap();
+    let small = checkpoint::load(&snap.join(CHECKPOINT_FILE)).unwrap();
+    assert!(small.snapshot && !full.snapshot);
+    assert!(full.learner.adam.t > 0, "learning ran");
+    assert_eq!(small.counters, full.counters);
+    assert_eq!(small.replay_file, None);
+    let weights = |n: &invaders::layers::Sequential<f32>| -> Vec<Vec<f32>> {
+        n.params().map(|p| p.value.data().to_vec()).collect()
+    };
+    assert_eq!(
+        weights(&small.learner.online),
+        weights(&full.learner.online)
+    );
+    assert_eq!(
+        weights(&small.learner.target),
+        weights(&full.learner.online)
+    );
+    assert_eq!((small.learner.adam.t, small.learner.adam.m.len()), (0, 0));
+    assert_eq!(small.agent.game, full.agent.game);
+    let bytes = |d: &Path| std::fs::read(d.join(CHECKPOINT_FILE)).unwrap();
+    let tensors = |b: &[u8]| SafeTensors::deserialize(b).unwrap().len();
+    let params = full.learner.online.params().count();
+    assert_eq!(tensors(&bytes(&run)), 4 * params + 3);
+    assert_eq!(tensors(&bytes(&snap)), params + 3);
+    for f in ["metrics.csv", "config.toml"] {
+        assert_eq!(
+            std::fs::read(run.join(f)).unwrap(),
+            std::fs::read(snap.join(f)).unwrap(),
+            "{f}"
+        );
+    }
+    // Another machine: the snapshot alone, continued.
+    let moved = root.join("moved");
+    std::fs::create_dir_all(&moved).unwrap();
+    for f in names(&snap) {
+        std::fs::copy(snap.join(&f), moved.join(&f)).unwrap();
+    }
+    let said = ok(&resume(&moved, 6));
+    assert!(said.contains("holds a snapshot"), "{said}");
+    let c = &full.counters;
+    assert_eq!(
+        std::fs::read_to_string(moved.join("continued.csv")).unwrap(),
+        format!(
+            "episode,agent_steps,frames\n{},{},{}\n",
+            c.episodes, c.agent_steps, c.frames
+        )
+    );
+    let after = checkpoint::load(&moved.join(CHECKPOINT_FILE)).unwrap();
+    assert!(!after.snapshot, "a full checkpoint again");
+    assert_eq!(after.counters.episodes, 6);
+    assert!(
+        after.counters.train_steps > c.train_steps,
+        "learning went on"
+    );
+    // It waited for `learning_starts` (40) entries, about 39 agent steps, not for a batch (8).
+    let since = after.counters.agent_steps - c.agent_steps;
+    let every = after.config.train_every;
+    assert!(after.counters.train_steps - c.train_steps <= (since - 38) / every + 1);
+    assert_eq!(rows(&moved)[..3], rows(&run)[..3]);
+    assert_eq!(rows(&moved).len(), 6);
+    fails_with(
+        &train_command(&cfg, 11, 1, &root.join("same"))
+            .args(["--snapshot", root.join("same").to_str().unwrap()])
+            .output()
+            .unwrap(),
+        &["is the run directory"],
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 /// A tiny seeded generator for kill times (no dependency on the library's).
 struct XorShift(u64);
 impl XorShift {

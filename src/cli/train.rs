@@ -7,6 +7,8 @@
 //!   checkpoint.safetensors   the latest checkpoint (replaced atomically)
 //!   replay-E.safetensors     the replay memory saved with it (unless checkpoint_replay = false)
 //!   rewards.png              reward per episode with a 100-episode moving average
+//!   events.out.tfevents.*    TensorBoard's scalars (unless tensorboard = false)
+//!   continued.csv            where the run continued from a snapshot (`--resume` of one), if ever
 //!   .lock                    held by the process training in it (one at a time)
 //! ```
 //!
@@ -66,6 +68,13 @@ pub struct TrainArgs {
     /// first checkpoint starts again from its config.toml.
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
+    /// After each checkpoint, also keep a snapshot of the run in DIR: its `config.toml`,
+    /// `metrics.csv` and a `checkpoint.safetensors` without the replay memory, the target network
+    /// and Adam's moments (about 4 MB for `strong`), small enough to keep where the run
+    /// directory is not (a repository), so the run can continue on another machine with
+    /// `--resume DIR` (docs/runs.md). A failed snapshot is a warning; the run goes on.
+    #[arg(long, value_name = "DIR")]
+    snapshot: Option<PathBuf>,
     /// Print the resident memory (VmRSS) every N episodes, to check it stays flat.
     #[arg(long, value_name = "N")]
     log_rss: Option<u64>,
@@ -114,12 +123,17 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
 
 /// The files a run writes into its directory: a directory holding nothing else, and no
 /// checkpoint, can be reused by a new run.
-const RUN_FILES: [&str; 4] = [
+const RUN_FILES: [&str; 5] = [
     "config.toml",
     "metrics.csv",
     "rewards.png",
+    CONTINUED_FILE,
     guard::LOCK_FILE,
 ];
+
+/// The file where a run notes each time it continued from a snapshot (module `checkpoint`'s
+/// "Snapshots"): a header, then `episode,agent_steps,frames` of each continuation.
+pub const CONTINUED_FILE: &str = "continued.csv";
 
 fn train(args: &TrainArgs) -> anyhow::Result<()> {
     // First, so that a signal while the run loads (a replay memory takes seconds) stops it too.
@@ -216,6 +230,14 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
                 "note: the checkpoint was written where the kernels `{then}` ran, and `{here}` run here: the run continues, but not bit for bit with one never stopped (docs/runs.md)"
             );
         }
+        if ckpt.snapshot {
+            say!(
+                "note: {} holds a snapshot, not a full checkpoint: the run continues from episode {} with an empty replay memory (learning waits until it holds {} entries again), the target network as a copy of the online one and Adam started anew (docs/runs.md)",
+                dir.display(),
+                ckpt.counters.episodes,
+                config.learning_starts.min(config.replay_capacity as u64)
+            );
+        }
         let c = &ckpt.counters;
         if c.episodes >= config.episodes || (config.max_frames > 0 && c.frames >= config.max_frames)
         {
@@ -227,9 +249,16 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
                 budget(&config)
             );
         }
+        if ckpt.snapshot {
+            note_continued(&dir, c)?;
+        }
     } else if lock.is_none() {
         lock = Some(prepare_new_dir(&dir)?);
     }
+    let snapshot = match &args.snapshot {
+        Some(s) => Some(prepare_snapshot_dir(s, &dir)?),
+        None => None,
+    };
     // config.toml always says what runs, the budget included.
     write_atomic(&dir.join("config.toml"), config.to_toml().as_bytes())?;
     let _lock = lock;
@@ -247,7 +276,60 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         }
         None => Agent::new(config.clone(), env),
     };
-    train_loop(&mut agent, &dir, args.log_rss)
+    train_loop(&mut agent, &dir, snapshot.as_deref(), args.log_rss)
+}
+
+/// Checks and creates `--snapshot`'s directory before anything trains: it must not be the run
+/// directory itself (the snapshot would replace the checkpoint) and must be a directory.
+fn prepare_snapshot_dir(snap: &Path, run: &Path) -> anyhow::Result<PathBuf> {
+    std::fs::create_dir_all(snap)
+        .with_context(|| format!("cannot create the snapshot directory {}", snap.display()))?;
+    let same = match (snap.canonicalize(), run.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    if same {
+        bail!(
+            "--snapshot {} is the run directory: a snapshot would replace its checkpoint; give another directory",
+            snap.display()
+        );
+    }
+    Ok(snap.to_path_buf())
+}
+
+/// Appends a continuation from a snapshot at `counters` to the run's [`CONTINUED_FILE`].
+fn note_continued(dir: &Path, counters: &checkpoint::Counters) -> anyhow::Result<()> {
+    let path = dir.join(CONTINUED_FILE);
+    let mut text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => "episode,agent_steps,frames\n".into(),
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+    };
+    let line = format!(
+        "{},{},{}\n",
+        counters.episodes, counters.agent_steps, counters.frames
+    );
+    // Resumed again from the same snapshot (a stop before its next checkpoint): noted once.
+    if !text.ends_with(&line) {
+        text.push_str(&line);
+    }
+    write_atomic(&path, text.as_bytes())
+}
+
+/// Writes the run's snapshot into `snap` after a checkpoint: `metrics.csv`, `config.toml` and
+/// (if the run has one) [`CONTINUED_FILE`] first, then the snapshot's `checkpoint.safetensors`
+/// (each atomically), so the snapshot there always has the rows it needs.
+fn write_snapshot(snap: &Path, run: &Path, agent: &Agent<SpaceInvaders>) -> anyhow::Result<()> {
+    for file in ["metrics.csv", "config.toml", CONTINUED_FILE] {
+        let from = run.join(file);
+        if file == CONTINUED_FILE && !from.exists() {
+            continue;
+        }
+        let bytes =
+            std::fs::read(&from).with_context(|| format!("cannot read {}", from.display()))?;
+        write_atomic(&snap.join(file), &bytes)?;
+    }
+    checkpoint::save_snapshot(&snap.join(checkpoint::CHECKPOINT_FILE), agent)
 }
 
 /// Refuses a replay memory larger than the memory this machine has available (it would abort the
@@ -579,7 +661,7 @@ fn catch_signals() {
 }
 
 fn train_loop(
-    agent: &mut Agent<SpaceInvaders>, dir: &Path, log_rss: Option<u64>,
+    agent: &mut Agent<SpaceInvaders>, dir: &Path, snapshot: Option<&Path>, log_rss: Option<u64>,
 ) -> anyhow::Result<()> {
     let config = agent.config.clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
@@ -692,6 +774,15 @@ fn train_loop(
             })?;
             saved_episode = row.episode;
             SAVED_EPISODE.store(row.episode, Ordering::SeqCst);
+            if let Some(snap) = snapshot {
+                if let Err(e) = write_snapshot(snap, dir, agent) {
+                    say!(
+                        "warning: no snapshot of episode {} in {} (the run and its checkpoint go on): {e:#}",
+                        row.episode,
+                        snap.display()
+                    );
+                }
+            }
         }
         if let Some(n) = log_rss.filter(|&n| n > 0) {
             if row.episode.is_multiple_of(n) {

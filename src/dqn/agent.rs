@@ -395,10 +395,16 @@ impl<G: Game> Agent<G> {
     }
 
     /// Whether agent step `t` takes a gradient step: past `learning_starts`, every
-    /// `train_every` steps, once the replay memory holds a batch.
+    /// `train_every` steps, once the replay memory holds `learning_starts` entries (always so in
+    /// a run that kept its memory; a run resumed without it refills it first) and a batch.
     fn train_due(&self, t: u64) -> bool {
+        let refilled = self
+            .config
+            .learning_starts
+            .min(self.replay.capacity() as u64);
         t > self.config.learning_starts
             && t.is_multiple_of(self.config.train_every)
+            && self.replay.len() as u64 >= refilled
             && self.replay.can_sample(self.batch.len())
     }
 

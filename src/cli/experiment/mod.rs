@@ -25,7 +25,10 @@
 //! `--keep DIR` keeps each finished run's record there (see [`Record`]: its scores, counters,
 //! `metrics.csv` and `config.toml`, small enough to commit), and a run recorded there for the
 //! same preset, seed, overrides, budget and evaluation is not trained or played again: an
-//! experiment of several days can go on across machines from a repository.
+//! experiment of several days can go on across machines from a repository. Each run also keeps
+//! a snapshot of itself there while it trains (`DIR/LABEL-seedS/snapshot/`, about 4 MB for
+//! `strong`: `train --snapshot`), and its final network once trained; a run whose directory is
+//! gone continues from it, without its replay memory, and its record says at which frames.
 //!
 //! A Ctrl-C (or SIGTERM, or SIGHUP from a closed terminal) before the end stops the whole
 //! experiment and loses nothing: the runs stop after their episode with a checkpoint, no new run
@@ -58,6 +61,7 @@ use super::figures::{
     plot_groups, plot_groups_frames, read_digitized, read_frame_metrics, read_metrics,
     read_references, Group,
 };
+use super::train::CONTINUED_FILE;
 use super::Interrupted;
 use ablation::{ablation, AblationArgs};
 use invaders::dqn::checkpoint;

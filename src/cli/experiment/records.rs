@@ -7,6 +7,11 @@ use super::*;
 /// and `config.toml`.
 pub(super) const RECORD_FILE: &str = "result.toml";
 
+/// The folder of a `--keep` record (`KEEP/LABEL-seedS/snapshot/`) where the run's snapshot is
+/// kept while it trains, and its final network after (`train --snapshot`; module `checkpoint`'s
+/// "Snapshots"): where the run directory is gone, the run continues from it.
+pub(super) const SNAPSHOT_DIR: &str = "snapshot";
+
 /// A finished run as `--keep` keeps it: what the tables need of it, and the question it
 /// answers (preset, seed, overrides, budget reached, evaluations), so that a record is taken
 /// only for the same question. A few hundred kilobytes with its metrics, meant to be committed:
@@ -25,6 +30,10 @@ pub(super) struct Record {
     pub(super) protocol: Scores,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub(super) own_game: Option<Scores>,
+    /// The frames at which the run continued from its snapshot, without its replay memory
+    /// (its machine was gone); empty for a run trained in one piece.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub(super) continued_from_snapshot: Vec<u64>,
 }
 
 /// Adds a finished run's evaluation scores to its TensorBoard events (where it writes them), at

@@ -164,7 +164,11 @@ pub(super) fn finish_one(
             );
         }
     }
-    train_one(exe, job, budget)?;
+    let snapshot = kept.as_ref().map(|k| k.join(SNAPSHOT_DIR));
+    if let Some(snap) = &snapshot {
+        continue_from_snapshot(&name, job, &overrides, snap)?;
+    }
+    train_one(exe, job, budget, snapshot.as_deref())?;
     let counters = checkpoint::load(&job.dir.join(checkpoint::CHECKPOINT_FILE))?.counters;
     let own_game = match evals.own_game {
         Some(episodes) => Some(evaluate(exe, &job.dir, episodes, 1000 + job.seed)?),
@@ -181,6 +185,7 @@ pub(super) fn finish_one(
         counters,
         protocol,
         own_game,
+        continued_from_snapshot: read_continued(&job.dir)?,
     };
     if let Some(k) = &kept {
         write_record(k, &job.dir, &record)?;
@@ -192,9 +197,100 @@ pub(super) fn finish_one(
     })
 }
 
-/// Trains one run to `budget`, continuing it if it exists; [`Interrupted`] if a signal stopped it
-/// (or a stop came before it started).
-pub(super) fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Result<()> {
+/// Where the run directory of `job` is gone (another machine) and its `--keep` record has a
+/// snapshot of it (`snap`, written by `train --snapshot`) for the same configuration: a new run
+/// directory holding the snapshot's `config.toml`, `metrics.csv`, `continued.csv` and
+/// checkpoint, which `train --resume` continues (module `checkpoint`'s "Snapshots": without the
+/// replay memory, the target network or Adam's moments). Anything else leaves the run as it is:
+/// a run directory with files in it is the run's own, and a snapshot of another configuration is
+/// replaced by the new run's.
+fn continue_from_snapshot(
+    name: &str, job: &Job<'_>, overrides: &str, snap: &Path,
+) -> anyhow::Result<()> {
+    let file = snap.join(checkpoint::CHECKPOINT_FILE);
+    if !file.exists() || job.dir.join(checkpoint::CHECKPOINT_FILE).exists() {
+        return Ok(());
+    }
+    let occupied = std::fs::read_dir(&job.dir).is_ok_and(|mut d| d.next().is_some());
+    if occupied {
+        say!(
+            "{name}: its snapshot in {} is not used: {} holds the run's files (without a checkpoint)",
+            snap.display(),
+            job.dir.display()
+        );
+        return Ok(());
+    }
+    let ckpt = checkpoint::load(&file).with_context(|| {
+        format!(
+            "{name}'s snapshot cannot be used; delete {} to train that run from its start",
+            snap.display()
+        )
+    })?;
+    let mut asked = Config::resolve(Some(job.preset), Some(overrides))?;
+    asked.seed = job.seed;
+    let differ = config_differences(&ckpt.config, &asked);
+    if !differ.is_empty() {
+        say!(
+            "{name}: the snapshot in {} is of another configuration ({}): the run trains from its start, and its snapshots replace that one",
+            snap.display(),
+            differ.join("; ")
+        );
+        return Ok(());
+    }
+    std::fs::create_dir_all(&job.dir)
+        .with_context(|| format!("cannot create {}", job.dir.display()))?;
+    // The checkpoint last: until it is there, the directory is not a run that continues.
+    for f in [
+        "config.toml",
+        "metrics.csv",
+        CONTINUED_FILE,
+        checkpoint::CHECKPOINT_FILE,
+    ] {
+        let from = snap.join(f);
+        if f == CONTINUED_FILE && !from.exists() {
+            continue;
+        }
+        let bytes =
+            std::fs::read(&from).with_context(|| format!("cannot read {}", from.display()))?;
+        checkpoint::write_atomic(&job.dir.join(f), &bytes)?;
+    }
+    let c = &ckpt.counters;
+    say!(
+        "{name}: its run directory is gone; continued from its snapshot in {} (episode {}, {} frames), without its replay memory",
+        snap.display(),
+        c.episodes,
+        c.frames
+    );
+    Ok(())
+}
+
+/// The frames at which the run in `dir` continued from a snapshot (its `continued.csv`), oldest
+/// first; none if it never did.
+fn read_continued(dir: &Path) -> anyhow::Result<Vec<u64>> {
+    let path = dir.join(CONTINUED_FILE);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
+    };
+    text.lines()
+        .skip(1)
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| {
+            l.rsplit(',')
+                .next()
+                .and_then(|f| f.trim().parse::<u64>().ok())
+                .ok_or_else(|| anyhow!("{}: bad line `{l}`", path.display()))
+        })
+        .collect()
+}
+
+/// Trains one run to `budget`, continuing it if it exists, with `train --snapshot` into
+/// `snapshot` if given; [`Interrupted`] if a signal stopped it (or a stop came before it
+/// started).
+pub(super) fn train_one(
+    exe: &Path, job: &Job<'_>, budget: Budget, snapshot: Option<&Path>,
+) -> anyhow::Result<()> {
     let (label, seed, dir) = (job.label, job.seed, &job.dir);
     let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
     let mut cmd = invaders_command(exe);
@@ -226,6 +322,9 @@ pub(super) fn train_one(exe: &Path, job: &Job<'_>, budget: Budget) -> anyhow::Re
     }
     cmd.args(budget.flag())
         .args(["--threads", &job.threads.to_string()]);
+    if let Some(snap) = snapshot {
+        cmd.arg("--snapshot").arg(snap);
+    }
     std::fs::create_dir_all(dir.parent().unwrap_or(Path::new(".")))?;
     let log_path = dir.with_extension("log");
     let log = std::fs::OpenOptions::new()
@@ -455,6 +554,7 @@ mod tests {
                 counters,
                 protocol: scores,
                 own_game: None,
+                continued_from_snapshot: Vec::new(),
             },
             metrics,
         };

@@ -55,13 +55,38 @@ pub fn to_bytes(
     config: &Config, counters: &Counters, learner: &Learner, agent: &AgentState,
     replay: Option<(&str, u32)>,
 ) -> anyhow::Result<Vec<u8>> {
+    encode(config, counters, learner, agent, replay, false)
+}
+
+/// Serialises a snapshot (see the module's "Snapshots"): a checkpoint without the target
+/// network, Adam's moments and the replay memory, a quarter of the size.
+pub fn snapshot_to_bytes(
+    config: &Config, counters: &Counters, learner: &Learner, agent: &AgentState,
+) -> anyhow::Result<Vec<u8>> {
+    encode(config, counters, learner, agent, None, true)
+}
+
+/// A checkpoint's bytes, or a snapshot's (`snapshot`: the online network only, Adam's step
+/// count written as 0, and the metadata `contents = "snapshot"`).
+fn encode(
+    config: &Config, counters: &Counters, learner: &Learner, agent: &AgentState,
+    replay: Option<(&str, u32)>, snapshot: bool,
+) -> anyhow::Result<Vec<u8>> {
     let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
-    for (prefix, net) in [("online", &learner.online), ("target", &learner.target)] {
+    let nets: &[(&str, &Sequential<f32>)] = if snapshot {
+        &[("online", &learner.online)]
+    } else {
+        &[("online", &learner.online), ("target", &learner.target)]
+    };
+    for (prefix, net) in nets {
         for p in net.params() {
             tensors.push((format!("{prefix}.{}", p.name), view(&p.value)?));
         }
     }
     for (i, p) in learner.online.params().enumerate() {
+        if snapshot {
+            break;
+        }
         if let (Some(m), Some(v)) = (learner.adam.m.get(i), learner.adam.v.get(i)) {
             tensors.push((format!("adam.m.{}", p.name), view(m)?));
             tensors.push((format!("adam.v.{}", p.name), view(v)?));
@@ -86,7 +111,11 @@ pub fn to_bytes(
         explore: agent.explore_rng.clone(),
         sample: agent.sample_rng.clone(),
     };
-    let mut meta = make_header(FORMAT, &tensors, config, counters, learner)?;
+    let adam_steps = if snapshot { 0 } else { learner.adam.t };
+    let mut meta = make_header(FORMAT, &tensors, config, counters, adam_steps)?;
+    if snapshot {
+        meta.insert("contents".to_string(), SNAPSHOT_CONTENTS.to_string());
+    }
     meta.extend([
         ("rngs".to_string(), serde_json::to_string(&rngs)?),
         (
@@ -111,10 +140,10 @@ pub fn to_bytes(
 /// own.
 pub(super) fn make_header(
     format: &str, tensors: &[(String, TensorView<'_>)], config: &Config, counters: &Counters,
-    learner: &Learner,
+    adam_steps: u64,
 ) -> anyhow::Result<HashMap<String, String>> {
     let mut counters_json = serde_json::to_value(counters)?;
-    counters_json["adam_steps"] = learner.adam.t.into();
+    counters_json["adam_steps"] = adam_steps.into();
     let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (n.as_str(), v.data())));
     Ok(HashMap::from([
         ("format".to_string(), format.to_string()),
@@ -235,6 +264,16 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         bail!("unknown checkpoint format `{format}` (expected `{FORMAT}`)");
     }
     let (config, counters, adam_steps, n_actions) = header(&st, &meta)?;
+    let snapshot = match meta.get("contents").map(String::as_str) {
+        None => false,
+        Some(SNAPSHOT_CONTENTS) => true,
+        Some(other) => {
+            bail!("unknown checkpoint contents `{other}` (expected `{SNAPSHOT_CONTENTS}` or none)")
+        }
+    };
+    if snapshot && adam_steps != 0 {
+        bail!("a snapshot holds no optimizer state, yet its counters give Adam {adam_steps} steps");
+    }
     let rngs: Rngs =
         serde_json::from_str(meta_get(&meta, "rngs")?).context("checkpoint random generators")?;
     let replay_file = match meta_get(&meta, "replay")? {
@@ -251,7 +290,12 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
     let mut learner = Learner::from_config(&config, n_actions, &mut rng);
     load_net(&st, "online", &mut learner.online)?;
-    load_net(&st, "target", &mut learner.target)?;
+    if snapshot {
+        // The target network starts as the online one (as after a copy, ALGO 7).
+        learner.update_target();
+    } else {
+        load_net(&st, "target", &mut learner.target)?;
+    }
     if adam_steps > 0 {
         for p in learner.online.params() {
             let mut m = Tensor::zeros(p.value.shape());
@@ -293,7 +337,14 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         }
         Err(_) => None,
     };
-    let nets = 2 * learner.online.params().count() * if adam_steps > 0 { 2 } else { 1 };
+    let copies = if snapshot {
+        1
+    } else if adam_steps > 0 {
+        4
+    } else {
+        2
+    };
+    let nets = copies * learner.online.params().count();
     let expected = nets + 2 + game.is_some() as usize;
     if st.len() != expected {
         let mut names = st.names();
@@ -322,6 +373,7 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         replay_file,
         replay_checksum,
         kernels,
+        snapshot,
     })
 }
 

@@ -73,11 +73,26 @@
 //!
 //! With `checkpoint_replay = false` a resumed run starts with an empty replay memory, and that is
 //! the only state it lacks. It then differs from an uninterrupted run in this: gradient steps
-//! pause until the memory again holds `batch_size + C + 1` entries (the agent-step schedule of
-//! `train_every` and `learning_starts` is kept), the first minibatches are drawn from those few
+//! wait, as at the start of a run, until the memory holds `learning_starts` entries again (the
+//! agent-step schedule of `train_every` is kept), the first minibatches are drawn from those
 //! fresh transitions only, and from then on weights, rewards and ε-greedy choices drift apart
-//! from the uninterrupted run's. Counters, ε, random generators, the emulator and the networks
-//! are still restored exactly.
+//! from the uninterrupted run's. Counters, ε, random generators, the
+//! emulator and the networks are still restored exactly.
+//!
+//! # Snapshots: a run that outlives its machine
+//!
+//! A run directory's replay memory is gigabytes, so it stays on the machine that trained it. A
+//! *snapshot* ([`snapshot_to_bytes`], [`save_snapshot`]) is the part of a checkpoint small
+//! enough to keep elsewhere (about 4 MB for `strong`, a quarter of the checkpoint): a
+//! checkpoint of the same format with the metadata `contents = "snapshot"`, the `online.*`,
+//! `observer.*` and `game.state` tensors, the counters, the generators, and no `target.*`,
+//! `adam.*` or replay file. `train --snapshot DIR` writes one after each checkpoint, and
+//! `experiment --keep` keeps one for each run still training, so a run continues on another
+//! machine (`train --resume` on a directory holding it) where its run directory is gone. What
+//! it lacks is set as a run that never had it would: the replay memory starts empty (above),
+//! the target network is a copy of the online one (as after ALGO 7's copy), and Adam starts
+//! anew (step 0, zero moments). A run continued so is a run of its configuration, but not the
+//! one an uninterrupted run would have been; `experiment` records where it happened.
 //!
 //! # A model file (format `invaders-model-1`)
 //!
@@ -108,10 +123,10 @@ mod run_dir;
 
 pub use super::agent::{AgentState, Counters};
 pub use atomic::{tmp_path, write_atomic, write_atomic_with};
-pub use format::{from_bytes, load, tensors_checksum, to_bytes};
+pub use format::{from_bytes, load, snapshot_to_bytes, tensors_checksum, to_bytes};
 pub use model::{load_model, model_from_bytes, model_to_bytes, Model};
 pub use replay_file::{replay_file_name, replay_from_bytes, save_replay};
-pub use run_dir::{load_run, save_run};
+pub use run_dir::{load_run, save_run, save_snapshot};
 // The files' helpers, for each other.
 use format::*;
 use replay_file::*;
@@ -141,6 +156,8 @@ pub const REPLAY_FORMAT_V1: &str = "invaders-replay-1";
 pub const MODEL_FORMAT: &str = "invaders-model-1";
 /// The checkpoint's file name in a run directory.
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+/// The `contents` metadata of a snapshot ([`snapshot_to_bytes`]).
+pub const SNAPSHOT_CONTENTS: &str = "snapshot";
 
 /// A loaded checkpoint.
 pub struct Checkpoint {
@@ -160,6 +177,9 @@ pub struct Checkpoint {
     /// ([`crate::ops::plan::kernels`]; none in older checkpoints). A run continues bit for bit
     /// only where the same ones run.
     pub kernels: Option<String>,
+    /// Whether it is a snapshot (see the module's "Snapshots"): its target network was set to
+    /// the online one and Adam starts anew.
+    pub snapshot: bool,
 }
 
 impl Checkpoint {

@@ -24,7 +24,7 @@ pub fn model_to_bytes(
     for p in learner.online.params() {
         tensors.push((format!("online.{}", p.name), view(&p.value)?));
     }
-    let meta = make_header(MODEL_FORMAT, &tensors, config, counters, learner)?;
+    let meta = make_header(MODEL_FORMAT, &tensors, config, counters, learner.adam.t)?;
     Ok(safetensors::serialize(tensors, &Some(meta))?)
 }
 

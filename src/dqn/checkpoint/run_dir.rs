@@ -60,3 +60,15 @@ pub fn load_run(dir: &Path) -> anyhow::Result<(Checkpoint, Option<Replay>)> {
     };
     Ok((ckpt, replay))
 }
+
+/// Writes the agent's snapshot ([`snapshot_to_bytes`]) to `path`, atomically: a file to keep
+/// where the run directory is not (the module's "Snapshots").
+pub fn save_snapshot<G: Game>(path: &Path, agent: &Agent<G>) -> anyhow::Result<()> {
+    let bytes = snapshot_to_bytes(
+        &agent.config,
+        &agent.counters,
+        &agent.learner,
+        &agent.state(),
+    )?;
+    write_atomic(path, &bytes)
+}
