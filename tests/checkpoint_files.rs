@@ -97,6 +97,12 @@ fn ckpt_err(bytes: &[u8]) -> String {
     }
 }
 
+/// A snapshot of the same agent as [`files`]' checkpoint, as `train --snapshot` writes it.
+fn snapshot_bytes() -> Vec<u8> {
+    let c = good();
+    checkpoint::snapshot_to_bytes(&c.config, &c.counters, &c.learner, &c.agent).unwrap()
+}
+
 fn good() -> Checkpoint {
     checkpoint::from_bytes(&files().0).unwrap()
 }
@@ -118,6 +124,20 @@ fn the_real_files_load() {
     assert_eq!(old.counters.episodes, c.counters.episodes);
     let r = checkpoint::replay_from_bytes(&files().1, &c).unwrap();
     assert_eq!(r.written(), 41);
+    // Its snapshot: the online network, observer, game and counters as they were; the target
+    // network a copy of the online one, Adam anew, no replay file.
+    let s = checkpoint::from_bytes(&snapshot_bytes()).unwrap();
+    assert!(s.snapshot && !c.snapshot);
+    assert_eq!(s.counters, c.counters);
+    assert_eq!((s.replay_file, s.learner.adam.t), (None, 0));
+    assert_eq!(s.agent.game, c.agent.game);
+    assert_eq!(s.agent.stack, c.agent.stack);
+    for (a, b) in s.learner.online.params().zip(c.learner.online.params()) {
+        assert_eq!(a.value.data(), b.value.data(), "{}", a.name);
+    }
+    for (a, b) in s.learner.target.params().zip(c.learner.online.params()) {
+        assert_eq!(a.value.data(), b.value.data(), "{}", a.name);
+    }
 }
 
 /// Each kind of damage, with the words its error must contain.
@@ -273,6 +293,37 @@ fn every_kind_of_damage_is_refused_clearly() {
             t.3.clear();
         }),
         "0 actions",
+    ));
+    cases.push((
+        "unknown contents",
+        damaged(&|o| {
+            o.meta.insert("contents".into(), "weights".into());
+        }),
+        "unknown checkpoint contents `weights`",
+    ));
+    // A full checkpoint that claims to be a snapshot has tensors a snapshot lacks, and Adam's
+    // steps; a snapshot with the target network or Adam's moments of a checkpoint is refused.
+    cases.push((
+        "a checkpoint called a snapshot",
+        damaged(&|o| {
+            o.meta.insert("contents".into(), "snapshot".into());
+        }),
+        "a snapshot holds no optimizer state",
+    ));
+    cases.push((
+        "a snapshot with a target network",
+        {
+            let snap = Owned::parse(&snapshot_bytes());
+            let full = Owned::parse(ckpt);
+            let mut o = snap;
+            o.tensors.extend(
+                full.tensors
+                    .into_iter()
+                    .filter(|t| t.0.starts_with("target.")),
+            );
+            o.bytes()
+        },
+        "expected",
     ));
     for (what, bytes, needle) in &cases {
         let e = ckpt_err(bytes);
