@@ -746,6 +746,18 @@ fn experiment_continues_a_run_from_its_kept_snapshot() {
     fails_with(&invaders(&args), "snapshot cannot be used; delete");
     assert!(!out.join("strong-seed1/checkpoint.safetensors").exists());
     std::fs::write(&file, &good).unwrap();
+    // A snapshot of another configuration than the experiment asks for: refused, kept.
+    let other_cfg = root.join("other.toml");
+    std::fs::write(
+        &other_cfg,
+        format!("{TINY}checkpoint_every = 1\ngamma = 0.98\n"),
+    )
+    .unwrap();
+    fails_with(
+        &invaders(&experiment_args("strong", &flags, s(&other_cfg), s(&out))),
+        "of another configuration than this experiment asks for (`gamma`",
+    );
+    assert_eq!(std::fs::read(&file).unwrap(), good);
     let said = ok(&invaders(&args));
     assert!(said.contains("continued from its snapshot"), "{said}");
     let log = std::fs::read_to_string(out.join("strong-seed1.log")).unwrap();

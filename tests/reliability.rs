@@ -234,12 +234,45 @@ fn a_snapshot_continues_the_run_elsewhere() {
     assert!(after.counters.train_steps - c.train_steps <= (since - 38) / every + 1);
     assert_eq!(rows(&moved)[..3], rows(&run)[..3]);
     assert_eq!(rows(&moved).len(), 6);
-    fails_with(
-        &train_command(&cfg, 11, 1, &root.join("same"))
-            .args(["--snapshot", root.join("same").to_str().unwrap()])
+    // A snapshot replaces only an earlier snapshot of the same run: everything else is refused
+    // before the run trains, and left as it was.
+    let snapshot_into = |cmd: &mut Command, dir: &Path| {
+        cmd.args(["--snapshot", dir.to_str().unwrap()])
             .output()
-            .unwrap(),
+            .unwrap()
+    };
+    let same = root.join("same");
+    fails_with(
+        &snapshot_into(&mut train_command(&cfg, 11, 1, &same), &same),
         &["is the run directory"],
+    );
+    let (other, full_dir) = (root.join("other"), root.join("full"));
+    fails_with(
+        &snapshot_into(&mut train_command(&cfg, 11, 1, &other), &run),
+        &["which a snapshot does not"],
+    );
+    std::fs::create_dir_all(&full_dir).unwrap();
+    std::fs::copy(run.join(CHECKPOINT_FILE), full_dir.join(CHECKPOINT_FILE)).unwrap();
+    fails_with(
+        &snapshot_into(&mut train_command(&cfg, 11, 1, &other), &full_dir),
+        &["full checkpoint, not a snapshot"],
+    );
+    fails_with(
+        &snapshot_into(&mut train_command(&cfg, 12, 1, &other), &snap),
+        &["snapshot of another run"],
+    );
+    let later = root.join("later");
+    ok(&snapshot_into(bin().args(resume_args(&moved, 7)), &later));
+    fails_with(
+        &snapshot_into(bin().args(resume_args(&run, 4)), &later),
+        &["later snapshot of this run (episode 7)"],
+    );
+    assert_eq!(
+        checkpoint::load(&run.join(CHECKPOINT_FILE))
+            .unwrap()
+            .counters,
+        full.counters,
+        "the refused resume left the run as it was"
     );
     let _ = std::fs::remove_dir_all(&root);
 }

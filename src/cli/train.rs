@@ -256,7 +256,13 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         lock = Some(prepare_new_dir(&dir)?);
     }
     let snapshot = match &args.snapshot {
-        Some(s) => Some(prepare_snapshot_dir(s, &dir)?),
+        Some(s) => {
+            let at = match &resumed {
+                Some((ckpt, _)) => ckpt.counters,
+                None => checkpoint::Counters::default(),
+            };
+            Some(prepare_snapshot_dir(s, &dir, &config, &at)?)
+        }
         None => None,
     };
     // config.toml always says what runs, the budget included.
@@ -279,9 +285,21 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     train_loop(&mut agent, &dir, snapshot.as_deref(), args.log_rss)
 }
 
-/// Checks and creates `--snapshot`'s directory before anything trains: it must not be the run
-/// directory itself (the snapshot would replace the checkpoint) and must be a directory.
-fn prepare_snapshot_dir(snap: &Path, run: &Path) -> anyhow::Result<PathBuf> {
+/// The files a snapshot directory holds ([`write_snapshot`]).
+const SNAPSHOT_FILES: [&str; 4] = [
+    checkpoint::CHECKPOINT_FILE,
+    "config.toml",
+    "metrics.csv",
+    CONTINUED_FILE,
+];
+
+/// Checks and creates `--snapshot`'s directory before anything trains, so that a snapshot
+/// replaces nothing but an earlier snapshot of this very run (`config`, now at `counters`): not
+/// the run directory itself, not a directory holding other files (another run, say), not the
+/// snapshot of another configuration or seed, and not a later snapshot of this run.
+fn prepare_snapshot_dir(
+    snap: &Path, run: &Path, config: &Config, counters: &checkpoint::Counters,
+) -> anyhow::Result<PathBuf> {
     std::fs::create_dir_all(snap)
         .with_context(|| format!("cannot create the snapshot directory {}", snap.display()))?;
     let same = match (snap.canonicalize(), run.canonicalize()) {
@@ -293,6 +311,52 @@ fn prepare_snapshot_dir(snap: &Path, run: &Path) -> anyhow::Result<PathBuf> {
             "--snapshot {} is the run directory: a snapshot would replace its checkpoint; give another directory",
             snap.display()
         );
+    }
+    let is_tmp = |n: &str| SNAPSHOT_FILES.iter().any(|f| n == format!(".{f}.tmp"));
+    if let Some(other) = dir_names(snap)?
+        .into_iter()
+        .find(|n| !SNAPSHOT_FILES.contains(&n.as_str()) && !is_tmp(n))
+    {
+        bail!(
+            "--snapshot {} holds {other}, which a snapshot does not: it is not a snapshot directory, so nothing is written there; give another directory",
+            snap.display()
+        );
+    }
+    let file = snap.join(checkpoint::CHECKPOINT_FILE);
+    if file.exists() {
+        let had = checkpoint::load(&file).with_context(|| {
+            format!(
+                "--snapshot {} holds a checkpoint that cannot be read; move it away, or give another directory",
+                snap.display()
+            )
+        })?;
+        let budgetless = |c: &Config| {
+            let mut c = c.clone();
+            c.episodes = 0;
+            c.max_frames = 0;
+            c.to_toml()
+        };
+        if !had.snapshot {
+            bail!(
+                "--snapshot {} holds a run's full checkpoint, not a snapshot: give another directory",
+                snap.display()
+            );
+        }
+        if budgetless(&had.config) != budgetless(config) {
+            bail!(
+                "--snapshot {} holds the snapshot of another run (another configuration or seed): give another directory",
+                snap.display()
+            );
+        }
+        if had.counters.agent_steps > counters.agent_steps {
+            bail!(
+                "--snapshot {} holds a later snapshot of this run (episode {}) than the run is at (episode {}): continue from it with --resume {}, or give another directory",
+                snap.display(),
+                had.counters.episodes,
+                counters.episodes,
+                snap.display()
+            );
+        }
     }
     Ok(snap.to_path_buf())
 }
@@ -320,7 +384,8 @@ fn note_continued(dir: &Path, counters: &checkpoint::Counters) -> anyhow::Result
 /// (if the run has one) [`CONTINUED_FILE`] first, then the snapshot's `checkpoint.safetensors`
 /// (each atomically), so the snapshot there always has the rows it needs.
 fn write_snapshot(snap: &Path, run: &Path, agent: &Agent<SpaceInvaders>) -> anyhow::Result<()> {
-    for file in ["metrics.csv", "config.toml", CONTINUED_FILE] {
+    for file in &SNAPSHOT_FILES[1..] {
+        let file = *file;
         let from = run.join(file);
         if file == CONTINUED_FILE && !from.exists() {
             continue;

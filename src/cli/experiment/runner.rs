@@ -201,9 +201,9 @@ pub(super) fn finish_one(
 /// snapshot of it (`snap`, written by `train --snapshot`) for the same configuration: a new run
 /// directory holding the snapshot's `config.toml`, `metrics.csv`, `continued.csv` and
 /// checkpoint, which `train --resume` continues (module `checkpoint`'s "Snapshots": without the
-/// replay memory, the target network or Adam's moments). Anything else leaves the run as it is:
-/// a run directory with files in it is the run's own, and a snapshot of another configuration is
-/// replaced by the new run's.
+/// replay memory, the target network or Adam's moments). A run directory with files in it is
+/// the run's own and is left as it is; a snapshot of another configuration is refused (nothing
+/// is replaced).
 fn continue_from_snapshot(
     name: &str, job: &Job<'_>, overrides: &str, snap: &Path,
 ) -> anyhow::Result<()> {
@@ -230,12 +230,11 @@ fn continue_from_snapshot(
     asked.seed = job.seed;
     let differ = config_differences(&ckpt.config, &asked);
     if !differ.is_empty() {
-        say!(
-            "{name}: the snapshot in {} is of another configuration ({}): the run trains from its start, and its snapshots replace that one",
+        bail!(
+            "{name}: the snapshot in {} is of another configuration than this experiment asks for ({}): delete it to train this run from its start, or give another --keep",
             snap.display(),
             differ.join("; ")
         );
-        return Ok(());
     }
     std::fs::create_dir_all(&job.dir)
         .with_context(|| format!("cannot create {}", job.dir.display()))?;
