@@ -384,16 +384,7 @@ fn note_continued(dir: &Path, counters: &checkpoint::Counters) -> anyhow::Result
 /// (if the run has one) [`CONTINUED_FILE`] first, then the snapshot's `checkpoint.safetensors`
 /// (each atomically), so the snapshot there always has the rows it needs.
 fn write_snapshot(snap: &Path, run: &Path, agent: &Agent<SpaceInvaders>) -> anyhow::Result<()> {
-    for file in &SNAPSHOT_FILES[1..] {
-        let file = *file;
-        let from = run.join(file);
-        if file == CONTINUED_FILE && !from.exists() {
-            continue;
-        }
-        let bytes =
-            std::fs::read(&from).with_context(|| format!("cannot read {}", from.display()))?;
-        write_atomic(&snap.join(file), &bytes)?;
-    }
+    checkpoint::copy_files_atomic(run, snap, &SNAPSHOT_FILES[1..], &[CONTINUED_FILE])?;
     checkpoint::save_snapshot(&snap.join(checkpoint::CHECKPOINT_FILE), agent)
 }
 

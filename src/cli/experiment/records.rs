@@ -100,12 +100,7 @@ pub(super) fn read_record(dir: &Path) -> anyhow::Result<Option<Record>> {
 /// each atomically, so a record is there only with its metrics.
 pub(super) fn write_record(dir: &Path, run: &Path, record: &Record) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    for file in ["metrics.csv", "config.toml"] {
-        let from = run.join(file);
-        let bytes =
-            std::fs::read(&from).with_context(|| format!("cannot read {}", from.display()))?;
-        checkpoint::write_atomic(&dir.join(file), &bytes)?;
-    }
+    checkpoint::copy_files_atomic(run, dir, &["metrics.csv", "config.toml"], &[])?;
     let text = format!(
         "# A finished run of `invaders experiment` (see --keep): what it was asked and its scores.\n{}",
         toml::to_string(record)?

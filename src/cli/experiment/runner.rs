@@ -239,20 +239,13 @@ fn continue_from_snapshot(
     std::fs::create_dir_all(&job.dir)
         .with_context(|| format!("cannot create {}", job.dir.display()))?;
     // The checkpoint last: until it is there, the directory is not a run that continues.
-    for f in [
+    let files = [
         "config.toml",
         "metrics.csv",
         CONTINUED_FILE,
         checkpoint::CHECKPOINT_FILE,
-    ] {
-        let from = snap.join(f);
-        if f == CONTINUED_FILE && !from.exists() {
-            continue;
-        }
-        let bytes =
-            std::fs::read(&from).with_context(|| format!("cannot read {}", from.display()))?;
-        checkpoint::write_atomic(&job.dir.join(f), &bytes)?;
-    }
+    ];
+    checkpoint::copy_files_atomic(snap, &job.dir, &files, &[CONTINUED_FILE])?;
     let c = &ckpt.counters;
     say!(
         "{name}: its run directory is gone; continued from its snapshot in {} (episode {}, {} frames), without its replay memory",

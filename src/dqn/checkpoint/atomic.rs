@@ -59,3 +59,21 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
         Ok(())
     })
 }
+
+/// Copies the files `names` from the directory `from` into `to`, each atomically
+/// ([`write_atomic`]) and in the order given (so a file that must come last, a checkpoint naming
+/// the others, can); a name in `optional` that `from` lacks is skipped.
+pub fn copy_files_atomic(
+    from: &Path, to: &Path, names: &[&str], optional: &[&str],
+) -> anyhow::Result<()> {
+    for name in names {
+        let src = from.join(name);
+        if optional.contains(name) && !src.exists() {
+            continue;
+        }
+        let bytes =
+            std::fs::read(&src).with_context(|| format!("cannot read {}", src.display()))?;
+        write_atomic(&to.join(name), &bytes)?;
+    }
+    Ok(())
+}

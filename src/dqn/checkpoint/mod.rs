@@ -122,7 +122,7 @@ mod replay_file;
 mod run_dir;
 
 pub use super::agent::{AgentState, Counters};
-pub use atomic::{tmp_path, write_atomic, write_atomic_with};
+pub use atomic::{copy_files_atomic, tmp_path, write_atomic, write_atomic_with};
 pub use format::{from_bytes, load, snapshot_to_bytes, tensors_checksum, to_bytes};
 pub use model::{load_model, model_from_bytes, model_to_bytes, Model};
 pub use replay_file::{replay_file_name, replay_from_bytes, save_replay};
