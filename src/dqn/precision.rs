@@ -1,18 +1,19 @@
 //! `precision = "auto"`: the arithmetic a run trains in, chosen on the host it starts on.
 //!
 //! bf16 products are not faster everywhere: on AMD Zen 4 and 5 (AVX512-BF16) the train step
-//! takes about 0.7 of its f32 time, on an Intel Xeon with AVX512-BF16 (without the AMX kernels
-//! this program does not have) 2.2 times its f32 time. No rule per CPU family would stay true as
-//! the kernels change, so `auto` measures: where bf16 runs at all ([`bf16_runs`]), it times
-//! [`TIMED`] train steps of the run's own network and batch in each precision, alternating, on
-//! the run's thread pool, and takes bf16 only if its fastest step is at least [`BF16_MARGIN`]
-//! below f32's (bf16 rounds the operands: when the two are close, f32 is the safer choice, and
-//! the margin keeps noise from flipping the choice between runs). The fastest step, not the
-//! median: a neighbour on the host only ever lengthens a step, and a burst of it over half of
-//! one precision's steps moved the median enough to pick f32 on an AMD Zen 4 where bf16 is 25%
-//! faster (1 call in 12, 2 threads; docs/performance.md, series I). Where the first
-//! [`TIMED`] pairs leave the two within [`BF16_MARGIN`], [`TIMED`] more are timed and pooled.
-//! Where bf16 does not run, the answer is f32 without a measurement. The resolved value is what the run records in its
+//! takes about 0.7 of its f32 time; on an Intel Xeon with AMX it took 2.2 times its f32 time on
+//! `vdpbf16ps` and 0.7–0.75 once the bf16 products ran on the tiles (docs/performance.md,
+//! series G and H). No rule per CPU family would stay true as the kernels change, so `auto`
+//! measures: where bf16 runs at all ([`bf16_runs`]), it times [`TIMED`] train steps of the run's
+//! own network and batch in each precision, alternating, on the run's thread pool, and takes
+//! bf16 only if its fastest step is at least [`BF16_MARGIN`] below f32's (bf16 rounds the
+//! operands: when the two are close, f32 is the safer choice, and the margin keeps noise from
+//! flipping the choice between runs). The fastest step, not the median: a neighbour on the host
+//! only ever lengthens a step, and a burst of it over half of one precision's steps moved the
+//! median enough to pick f32 on an AMD Zen 4 where bf16 is 25% faster (1 call in 12, 2 threads;
+//! docs/performance.md, series I). Where the first [`TIMED`] pairs leave the two within
+//! [`BF16_MARGIN`] of each other, [`TIMED`] more are timed and pooled. Where bf16 does not run,
+//! the answer is f32 without a measurement. The resolved value is what the run records in its
 //! `config.toml`, so a resumed run, its evaluation and a rerun from that file keep it.
 
 use super::{Batch, Config, Learner};
@@ -77,8 +78,8 @@ pub fn resolve_precision(config: &Config) -> Resolved {
         precision,
         times_ms: Some((f32_ms, bf16_ms)),
         why: format!(
-            "precision auto: {} (train step {f32_ms:.2} ms in f32, {bf16_ms:.2} ms in bf16 on {} \
-             thread(s); bf16 is taken when at least {:.0}% faster)",
+            "precision auto: {} (fastest train step {f32_ms:.2} ms in f32, {bf16_ms:.2} ms in \
+             bf16 on {} thread(s); bf16 is taken when at least {:.0}% faster)",
             if precision == Precision::Bf16 {
                 "bf16"
             } else {
