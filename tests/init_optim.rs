@@ -93,7 +93,7 @@ fn adam_matches_closed_form() {
             .map(|i| ((t * 7 + i * 3) as f64).sin() * (i + 1) as f64)
             .collect();
         p.grad.data_mut().copy_from_slice(&g);
-        adam.step(std::iter::once(&mut p));
+        assert!(adam.step(std::iter::once(&mut p)), "step {t}: all finite");
         for i in 0..4 {
             m[i] = 0.9 * m[i] + 0.1 * g[i];
             v[i] = 0.999 * v[i] + 0.001 * g[i] * g[i];
@@ -107,6 +107,40 @@ fn adam_matches_closed_form() {
         }
     }
     assert_eq!(adam.t, 50);
+}
+
+/// `Adam::step` says whether every weight it wrote is finite (the divergence guard's check), and
+/// still updates every weight when one is not: here a NaN gradient in the first of two 20 000-value
+/// parameters' chunks, and an infinite weight in the second's last chunk.
+#[test]
+fn adam_reports_a_non_finite_weight_and_updates_the_rest() {
+    let n = 20_000; // more than one of Adam's 16 384-value chunks
+    let mut a = Param::<f32>::zeros("a".into(), &[n]);
+    let mut b = Param::<f32>::zeros("b".into(), &[n]);
+    a.grad.data_mut().fill(1.0);
+    b.grad.data_mut().fill(1.0);
+    let mut adam = Adam::new(0.01f32);
+    assert!(adam.step([&mut a, &mut b].into_iter()));
+    a.grad.data_mut()[0] = f32::NAN;
+    assert!(!adam.step([&mut a, &mut b].into_iter()));
+    assert!(a.value.data()[0].is_nan());
+    // Every other weight took its second step of −lr·m̂/(sqrt(v̂) + ε̂) = −0.01 (a constant gradient).
+    for (i, &w) in a.value.data()[1..].iter().chain(b.value.data()).enumerate() {
+        assert!((w + 0.02).abs() < 1e-6, "weight {i}: {w}");
+    }
+    // A weight already infinite (finite moments): reported; the others step; once it is
+    // finite again, so is the report.
+    let mut c = Param::<f32>::zeros("c".into(), &[n]);
+    let mut d = Param::<f32>::zeros("d".into(), &[n]);
+    c.grad.data_mut().fill(1.0);
+    d.grad.data_mut().fill(1.0);
+    d.value.data_mut()[n - 1] = f32::INFINITY;
+    let mut adam = Adam::new(0.01f32);
+    assert!(!adam.step([&mut c, &mut d].into_iter()));
+    assert!((c.value.data()[n - 1] + 0.01).abs() < 1e-6);
+    assert!((d.value.data()[0] + 0.01).abs() < 1e-6);
+    d.value.data_mut()[n - 1] = 0.0;
+    assert!(adam.step([&mut c, &mut d].into_iter()));
 }
 
 #[test]

@@ -415,10 +415,15 @@ impl<G: Game> Agent<G> {
             Some(format!("the loss is {}", s.loss))
         } else if !s.grad_norm.is_finite() {
             Some(format!("the gradient norm is {}", s.grad_norm))
+        } else if !s.weights_finite {
+            // Adam saw a non-finite weight as it wrote it: find which, for the message.
+            let p = self.learner.non_finite_param();
+            Some(format!(
+                "weight {} is not finite",
+                p.as_deref().unwrap_or("?")
+            ))
         } else {
-            self.learner
-                .non_finite_param()
-                .map(|p| format!("weight {p} is not finite"))
+            None
         };
         if let Some(what) = what {
             bail!(

@@ -18,6 +18,9 @@ pub struct StepStats {
     pub mean_max_q: f32,
     /// Global gradient norm before any clipping.
     pub grad_norm: f32,
+    /// Whether every online-network weight is finite after the update ([`Adam::step`] checks
+    /// each as it writes it; [`Learner::non_finite_param`] finds which one is not).
+    pub weights_finite: bool,
 }
 
 /// The online network, its lagged target copy and the optimizer, with every buffer a step needs.
@@ -394,11 +397,12 @@ impl Learner {
             Some(max) => clip_grad_norm(&mut self.online, max),
             None => crate::optim::global_grad_norm(self.online.params()),
         };
-        self.adam.step(self.online.params_mut());
+        let weights_finite = self.adam.step(self.online.params_mut());
         StepStats {
             loss,
             mean_max_q: max_q_sum / batch.len() as f32,
             grad_norm,
+            weights_finite,
         }
     }
 }

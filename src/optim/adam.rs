@@ -51,13 +51,16 @@ impl<T: Float> Adam<T> {
     }
 
     /// One update of every parameter from its gradient. The moments are allocated on the first
-    /// call, shaped like the parameters.
-    pub fn step<'a>(&mut self, params: impl Iterator<Item = &'a mut Param<T>>) {
+    /// call, shaped like the parameters. Returns whether every updated value is finite: the
+    /// divergence guard's question, answered while each value is in a register rather than by a
+    /// second pass over the weights (for `hidden = 512`, 14 MB a step).
+    pub fn step<'a>(&mut self, params: impl Iterator<Item = &'a mut Param<T>>) -> bool {
         self.t += 1;
         let t = self.t as i32;
         let one = T::one();
         let alpha = self.lr * (one - self.beta2.powi(t)).sqrt() / (one - self.beta1.powi(t));
         let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        let mut finite = true;
         for (i, p) in params.enumerate() {
             if i == self.m.len() {
                 self.m.push(Tensor::zeros(p.value.shape()));
@@ -69,24 +72,31 @@ impl<T: Float> Adam<T> {
                 "Adam: parameter {} changed shape",
                 p.name
             );
-            // Element by element, so any split over threads gives the same bits.
+            // Element by element, so any split over threads gives the same bits. `reduce`, not
+            // `all`: every chunk is updated, whatever another one found.
             const CHUNK: usize = 1 << 14;
             let m = self.m[i].data_mut().par_chunks_mut(CHUNK);
             let v = self.v[i].data_mut().par_chunks_mut(CHUNK);
             let (w, g) = (p.value.data_mut(), p.grad.data());
-            w.par_chunks_mut(CHUNK)
+            finite &= w
+                .par_chunks_mut(CHUNK)
                 .zip(g.par_chunks(CHUNK))
                 .zip(m.zip(v))
-                .for_each(|((w, g), (m, v))| {
+                .map(|((w, g), (m, v))| {
                     vectorized(|| {
+                        let mut ok = true;
                         let it = w.iter_mut().zip(g).zip(m.iter_mut().zip(v.iter_mut()));
                         for ((w, &g), (m, v)) in it {
                             *m = b1 * *m + (one - b1) * g;
                             *v = b2 * *v + (one - b2) * g * g;
                             *w -= alpha * *m / (v.sqrt() + eps);
+                            ok &= w.is_finite();
                         }
+                        ok
                     })
-                });
+                })
+                .reduce(|| true, |a, b| a & b);
         }
+        finite
     }
 }
