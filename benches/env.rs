@@ -10,8 +10,8 @@ use clap::ValueEnum;
 use criterion::{black_box, criterion_group, criterion_main, Criterion, Throughput};
 use invaders::env::ale::{Ale, AleSettings, SCREEN_RGB_LEN};
 use invaders::env::{
-    preprocess_rgb, Composer, Downsample, EnvConfig, EnvMode, FrameStack, Normalization, Observer,
-    Pipeline, SpaceInvaders, FRAME_LEN,
+    preprocess_rgb, Composer, Crop, Downsample, EnvConfig, EnvMode, FrameStack, Normalization,
+    Observer, Pipeline, SpaceInvaders, FRAME_LEN,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -145,8 +145,20 @@ fn processing_only(c: &mut Criterion) {
         g.bench_function(name(pipeline), |bch| {
             bch.iter(|| {
                 for _ in 0..FRAMES / 4 {
-                    preprocess_rgb(black_box(&rgb), None, Downsample::Pick, &mut a);
-                    preprocess_rgb(black_box(&rgb), None, Downsample::Pick, &mut b_);
+                    preprocess_rgb(
+                        black_box(&rgb),
+                        None,
+                        Crop::Article,
+                        Downsample::Pick,
+                        &mut a,
+                    );
+                    preprocess_rgb(
+                        black_box(&rgb),
+                        None,
+                        Crop::Article,
+                        Downsample::Pick,
+                        &mut b_,
+                    );
                     let f = composer.step(&a, &b_, &b_);
                     stack.push(f);
                     stack.write_input(&table, &mut input);

@@ -281,6 +281,73 @@ fn preprocessing_matches_an_independent_computation_and_contrast_is_a_no_op() {
     assert_eq!(ms_pacman_pixels, 0);
 }
 
+/// The mothership (purple, RGB 151 25 122) flies in screen rows 12 to 19, above the article's
+/// crop (rows 25 to 200, `the_mothership_crop_keeps_the_ship_band_and_the_playfield` in
+/// `src/env/preprocess.rs`): random play that fires half the time meets it, and the `mothership`
+/// crop's frame shows it in its top 4 rows. The rows that crop leaves out (20 to 29, 198 to 200)
+/// hold nothing but a one-pixel shot, and the ground, on every screen of 3 000 steps and more.
+#[test]
+fn the_mothership_crop_sees_the_ship_that_the_article_crop_cannot() {
+    use invaders::env::Crop;
+    const SHIP: [u8; 3] = [151, 25, 122];
+    let cfg = EnvConfig {
+        downsample: invaders::env::Downsample::Max,
+        crop: Crop::Mothership,
+        ..mode(EnvMode::V5)
+    };
+    let mut e = env(&cfg, 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let lit = |rgb: &[u8], y: usize| {
+        rgb[y * 160 * 3..(y + 1) * 160 * 3]
+            .chunks_exact(3)
+            .filter(|p| p.iter().any(|&v| v > 0))
+            .count()
+    };
+    let (mut seen, mut steps) = (0, 0);
+    while (seen < 20 || steps < 3_000) && steps < 20_000 {
+        let a = if rng.random_bool(0.5) {
+            1
+        } else {
+            rng.random_range(0..6)
+        };
+        let r = e.step(a);
+        steps += 1;
+        let rgb = e.screen_rgb();
+        for y in 20..30 {
+            assert!(
+                lit(rgb, y) <= 2,
+                "step {steps}: screen row {y} holds more than a shot"
+            );
+        }
+        let ground = lit(rgb, 198);
+        assert!(
+            (198..201).all(|y| lit(rgb, y) == ground),
+            "rows 198 to 200 are the ground"
+        );
+        let ship_rows = (12..20).filter(|&y| {
+            rgb[y * 160 * 3..(y + 1) * 160 * 3]
+                .chunks_exact(3)
+                .any(|p| p == SHIP)
+        });
+        if ship_rows.count() >= 6 {
+            seen += 1;
+            let frame = e.last_two_frames().1;
+            let top: u32 = frame[..4 * FRAME_WIDTH].iter().map(|&v| v as u32).sum();
+            assert!(
+                top > 0,
+                "step {steps}: the ship is on screen but not in the frame"
+            );
+        }
+        if r.terminal || r.truncated {
+            e.reset();
+        }
+    }
+    assert!(
+        seen >= 20,
+        "the mothership appears in {seen} of {steps} steps of random play"
+    );
+}
+
 #[test]
 fn pipelines_compose_by_their_definitions_on_real_frames() {
     let cfg = mode(EnvMode::V0);

@@ -13,7 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use invaders::env::{
-    preprocess_rgb, Downsample, EnvConfig, EnvMode, Observer, Pipeline, SpaceInvaders,
+    preprocess_rgb, Crop, Downsample, EnvConfig, EnvMode, Observer, Pipeline, SpaceInvaders,
     FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH,
 };
 
@@ -111,8 +111,24 @@ fn draw(path: &Path, env: &SpaceInvaders, observers: &[Observer]) -> anyhow::Res
     grey(&root, env.observation(), 400, 40, 2)?;
     text("2x2 max (strong)", 580, 10).map_err(e)?;
     let mut max = vec![0u8; FRAME_LEN];
-    preprocess_rgb(env.screen_rgb(), None, Downsample::Max, &mut max);
+    preprocess_rgb(
+        env.screen_rgb(),
+        None,
+        Crop::Article,
+        Downsample::Max,
+        &mut max,
+    );
     grey(&root, &max, 580, 40, 2)?;
+    // The crop that also keeps the mothership's band (screen rows 12 to 19) in the top 4 rows.
+    text("max, mothership crop", 400, 250).map_err(e)?;
+    preprocess_rgb(
+        env.screen_rgb(),
+        None,
+        Crop::Mothership,
+        Downsample::Max,
+        &mut max,
+    );
+    grey(&root, &max, 400, 280, 2)?;
     // Each pipeline's stack, 2x, oldest on the left.
     let mut y0 = 480;
     for (o, p) in observers.iter().zip(PIPELINES) {

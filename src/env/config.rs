@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
-use super::preprocess::Downsample;
+use super::preprocess::{Crop, Downsample};
 use super::EnvError;
 
 /// The most emulator frames one agent step may repeat an action for.
@@ -71,6 +71,9 @@ pub struct EnvConfig {
     /// How each 2 x 2 pixel block becomes one pixel of the 88 x 80 frame: `pick` its top-left
     /// pixel (the article's, and the default) or its `max` (keeps one-pixel-wide shots).
     pub downsample: Downsample,
+    /// Which screen rows become the frame's 88: the article's (the default), or the `mothership`
+    /// crop that also keeps the band the mothership flies in.
+    pub crop: Crop,
     /// Let ALE print its informational console output.
     pub ale_verbose: bool,
 }
@@ -90,6 +93,7 @@ impl EnvConfig {
             rom: None,
             contrast_rgb_sum: None,
             downsample: Downsample::Pick,
+            crop: Crop::Article,
             ale_verbose: false,
         };
         match mode {
@@ -114,13 +118,14 @@ impl EnvConfig {
     }
 
     /// `mode`'s dynamics (frame skip, sticky actions, max-pool, no-ops, episode cut, action set)
-    /// with this configuration's preprocessing (`contrast_rgb_sum`, `downsample`), ROM and
+    /// with this configuration's preprocessing (`contrast_rgb_sum`, `downsample`, `crop`), ROM and
     /// verbosity: what choosing a game mode changes, for a run or an evaluation.
     pub fn with_mode(&self, mode: EnvMode) -> EnvConfig {
         EnvConfig {
             rom: self.rom.clone(),
             contrast_rgb_sum: self.contrast_rgb_sum,
             downsample: self.downsample,
+            crop: self.crop,
             ale_verbose: self.ale_verbose,
             ..EnvConfig::from_mode(mode)
         }
@@ -191,15 +196,20 @@ impl EnvConfig {
 
     /// The settings that shape the game's dynamics, as text; a saved state records it so it is
     /// not restored into a differently configured environment. (The ROM path and verbosity may
-    /// differ; the mode label is ignored as only the knobs matter. The downsampling is named
-    /// only when it is not the default, so the fingerprints of earlier checkpoints still match.)
+    /// differ; the mode label is ignored as only the knobs matter. The downsampling and the crop
+    /// are named only when they are not the default, so the fingerprints of earlier checkpoints
+    /// still match.)
     pub(crate) fn dynamics_fingerprint(&self) -> String {
         let downsample = match self.downsample {
             Downsample::Pick => String::new(),
             d => format!(" downsample={d:?}"),
         };
+        let crop = match self.crop {
+            Crop::Article => String::new(),
+            c => format!(" crop={c:?}"),
+        };
         format!(
-            "skip={}..={} sticky={} maxpool={} noop={} limit={:?} full={} contrast={:?}{downsample}",
+            "skip={}..={} sticky={} maxpool={} noop={} limit={:?} full={} contrast={:?}{downsample}{crop}",
             self.frame_skip_min,
             self.frame_skip_max,
             self.sticky_prob,
@@ -237,6 +247,7 @@ struct PartialEnvConfig {
     #[serde(default, deserialize_with = "present")]
     contrast_rgb_sum: Option<Option<u16>>,
     downsample: Option<Downsample>,
+    crop: Option<Crop>,
     ale_verbose: Option<bool>,
 }
 
@@ -279,6 +290,7 @@ impl TryFrom<PartialEnvConfig> for EnvConfig {
             rom: p.rom.unwrap_or(d.rom),
             contrast_rgb_sum: p.contrast_rgb_sum.unwrap_or(d.contrast_rgb_sum),
             downsample: p.downsample.unwrap_or(d.downsample),
+            crop: p.crop.unwrap_or(d.crop),
             ale_verbose: p.ale_verbose.unwrap_or(d.ale_verbose),
         };
         c.validate()?;
@@ -372,5 +384,23 @@ mod tests {
         assert_eq!(back, full);
         assert!(serde_json::from_str::<EnvConfig>(r#"{"frame_skip_min":0}"#).is_err());
         assert!(serde_json::from_str::<EnvConfig>(r#"{"mode":"v1"}"#).is_err());
+    }
+
+    /// The crop is read from a config file (the article's when missing, so earlier runs' files
+    /// load unchanged), an unknown one is refused, and it enters the saved state's fingerprint
+    /// only when it is not the article's, so earlier checkpoints' fingerprints still match.
+    #[test]
+    fn the_crop_is_read_refused_and_fingerprinted() {
+        let c: EnvConfig = toml::from_str("mode = \"v5\"\ncrop = \"mothership\"").unwrap();
+        assert_eq!(c.crop, Crop::Mothership);
+        let d: EnvConfig = toml::from_str("mode = \"v5\"").unwrap();
+        assert_eq!(d.crop, Crop::Article);
+        let e = toml::from_str::<EnvConfig>("crop = \"tall\"").unwrap_err();
+        assert!(e.to_string().contains("mothership"), "{e}");
+        let back: EnvConfig = toml::from_str(&toml::to_string(&c).unwrap()).unwrap();
+        assert_eq!(back, c);
+        assert!(!d.dynamics_fingerprint().contains("crop"));
+        assert!(c.dynamics_fingerprint().ends_with(" crop=Mothership"));
+        assert_eq!(c.with_mode(EnvMode::Nature).crop, Crop::Mothership);
     }
 }

@@ -19,8 +19,14 @@ pub const FRAME_HEIGHT: usize = 88;
 pub const FRAME_WIDTH: usize = 80;
 /// Pixels (= bytes) of a preprocessed frame.
 pub const FRAME_LEN: usize = FRAME_HEIGHT * FRAME_WIDTH;
-/// First screen row kept by the crop.
+/// First screen row kept by the article's crop ([`Crop::Article`]).
 pub const CROP_TOP: usize = 25;
+/// First screen row of the mothership's band, which [`Crop::Mothership`] keeps.
+pub const MOTHERSHIP_TOP: usize = 12;
+/// Frame rows given to the mothership's band (screen rows 12 to 19) by [`Crop::Mothership`].
+pub const MOTHERSHIP_ROWS: usize = 4;
+/// First screen row of the playfield kept by [`Crop::Mothership`] below the mothership's band.
+pub const PLAYFIELD_TOP: usize = 30;
 
 /// The article's "contrast" colour, as a sum of R + G + B: `mspacman_color = 210 + 164 + 74`.
 ///
@@ -43,10 +49,43 @@ pub enum Downsample {
     Max,
 }
 
+/// Which screen rows become the 88 rows of a frame.
+///
+/// Space Invaders draws the mothership (the "command alien ship", 200 points a hit, about 600
+/// frames on screen in each pass) at screen rows 12 to 19, in the score's band: the game hides
+/// the score while it flies. The article's crop starts at row 25, below it, so a
+/// network fed that crop never sees the ship and hits it only by chance (the `strong` model:
+/// 7 of 40 passes in 20 episodes, docs/strong.md "Seeing the mothership").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Crop {
+    /// Screen rows 25 to 200 (`obs[25:201:2]`, the article's): the aliens, the shields, the
+    /// cannon and the top of the ground; not the mothership.
+    #[default]
+    Article,
+    /// Screen rows 12 to 19 (the mothership's band) as frame rows 0 to 3, then rows 30 to 197
+    /// as frame rows 4 to 87: the article's crop less rows 25 to 29 (empty: the first wave's
+    /// aliens start at row 31, and later waves lower) and 198 to 200 (ground), so that the ship
+    /// fits in the same 88 rows. The frame, the network and their cost are unchanged. Rows 20 to
+    /// 29, between the ship and the aliens, are left out; only a shot crosses them.
+    Mothership,
+}
+
+impl Crop {
+    /// The screen row whose block (rows `y` and `y + 1`) becomes frame row `r` (`r < 88`).
+    pub fn screen_row(self, r: usize) -> usize {
+        match self {
+            Crop::Article => CROP_TOP + 2 * r,
+            Crop::Mothership if r < MOTHERSHIP_ROWS => MOTHERSHIP_TOP + 2 * r,
+            Crop::Mothership => PLAYFIELD_TOP + 2 * (r - MOTHERSHIP_ROWS),
+        }
+    }
+}
+
 /// Crops, downsamples and greys one RGB screen into an 88 x 80 frame.
 ///
-/// Output pixel `(r, c)` comes from screen rows `25 + 2r` (and `26 + 2r`) and columns `2c`
-/// (and `2c + 1`), as [`Downsample`] says. Grey is the integer mean of the three channels
+/// Output pixel `(r, c)` comes from screen rows `y = crop.screen_row(r)` (and `y + 1`; for the
+/// article's crop `y = 25 + 2r`) and columns `2c` (and `2c + 1`), as [`Downsample`] says. Grey is the integer mean of the three channels
 /// rounded down, `(r + g + b) / 3`. The article's code takes the floating-point mean; flooring
 /// differs from it by less than one grey level.
 ///
@@ -56,7 +95,9 @@ pub enum Downsample {
 ///
 /// # Panics
 /// If `rgb.len() != 210 * 160 * 3` or `out.len() != 88 * 80`.
-pub fn preprocess_rgb(rgb: &[u8], contrast: Option<u16>, downsample: Downsample, out: &mut [u8]) {
+pub fn preprocess_rgb(
+    rgb: &[u8], contrast: Option<u16>, crop: Crop, downsample: Downsample, out: &mut [u8],
+) {
     assert_eq!(rgb.len(), SCREEN_RGB_LEN, "RGB screen has the wrong length");
     assert_eq!(out.len(), FRAME_LEN, "frame buffer has the wrong length");
     let key = contrast.map(u32::from).unwrap_or(u32::MAX);
@@ -70,7 +111,7 @@ pub fn preprocess_rgb(rgb: &[u8], contrast: Option<u16>, downsample: Downsample,
     };
     let screen_row = |y: usize| &rgb[y * SCREEN_WIDTH * 3..(y + 1) * SCREEN_WIDTH * 3];
     for (r, out_row) in out.chunks_exact_mut(FRAME_WIDTH).enumerate() {
-        let y = CROP_TOP + 2 * r;
+        let y = crop.screen_row(r);
         debug_assert!(y + 1 < SCREEN_HEIGHT);
         let top = screen_row(y);
         match downsample {
@@ -171,15 +212,47 @@ mod tests {
             }
         }
         let mut out = vec![0u8; FRAME_LEN];
-        preprocess_rgb(&by_row, None, Downsample::Pick, &mut out);
+        preprocess_rgb(&by_row, None, Crop::Article, Downsample::Pick, &mut out);
         for r in 0..FRAME_HEIGHT {
             assert!(out[r * FRAME_WIDTH..(r + 1) * FRAME_WIDTH]
                 .iter()
                 .all(|&v| v as usize == 25 + 2 * r));
         }
-        preprocess_rgb(&by_col, None, Downsample::Pick, &mut out);
+        preprocess_rgb(&by_col, None, Crop::Article, Downsample::Pick, &mut out);
         for (c, &v) in out[..FRAME_WIDTH].iter().enumerate() {
             assert_eq!(v as usize, 2 * c);
+        }
+    }
+
+    /// The mothership's crop: frame rows 0 to 3 are screen rows 12, 14, 16, 18 (the ship's
+    /// band), rows 4 to 87 are screen rows 30, 32, ..., 196; with the max, each block's second
+    /// row (13, ..., 197) counts too. Screen rows 20 to 29 and 198 onwards never reach a frame.
+    #[test]
+    fn the_mothership_crop_keeps_the_ship_band_and_the_playfield() {
+        let mut by_row = vec![0u8; SCREEN_RGB_LEN];
+        for y in 0..SCREEN_HEIGHT {
+            by_row[y * SCREEN_WIDTH * 3..(y + 1) * SCREEN_WIDTH * 3].fill(y as u8);
+        }
+        let mut out = vec![0u8; FRAME_LEN];
+        let row = |out: &[u8], r: usize| {
+            let px = &out[r * FRAME_WIDTH..(r + 1) * FRAME_WIDTH];
+            assert!(px.iter().all(|&v| v == px[0]));
+            px[0] as usize
+        };
+        preprocess_rgb(&by_row, None, Crop::Mothership, Downsample::Pick, &mut out);
+        let picked: Vec<usize> = (0..FRAME_HEIGHT).map(|r| row(&out, r)).collect();
+        assert_eq!(&picked[..5], &[12, 14, 16, 18, 30]);
+        assert_eq!(picked[FRAME_HEIGHT - 1], 196);
+        assert!(picked.windows(2).skip(4).all(|w| w[1] == w[0] + 2));
+        preprocess_rgb(&by_row, None, Crop::Mothership, Downsample::Max, &mut out);
+        let maxed: Vec<usize> = (0..FRAME_HEIGHT).map(|r| row(&out, r)).collect();
+        assert_eq!(&maxed[..5], &[13, 15, 17, 19, 31]);
+        assert_eq!(maxed[FRAME_HEIGHT - 1], 197);
+        // The article's crop, for comparison: rows 25 to 200, nothing above.
+        preprocess_rgb(&by_row, None, Crop::Article, Downsample::Max, &mut out);
+        assert_eq!((row(&out, 0), row(&out, FRAME_HEIGHT - 1)), (26, 200));
+        for r in 0..FRAME_HEIGHT {
+            assert_eq!(Crop::Article.screen_row(r), CROP_TOP + 2 * r);
         }
     }
 
@@ -193,9 +266,15 @@ mod tests {
         let k = (CROP_TOP * SCREEN_WIDTH + 6) * 3;
         rgb[k..k + 3].copy_from_slice(&[210, 164, 75]); // one off
         let mut out = vec![0u8; FRAME_LEN];
-        preprocess_rgb(&rgb, None, Downsample::Pick, &mut out);
+        preprocess_rgb(&rgb, None, Crop::Article, Downsample::Pick, &mut out);
         assert_eq!(&out[..4], &[0, 1, 149, 149]);
-        preprocess_rgb(&rgb, Some(MSPACMAN_RGB_SUM), Downsample::Pick, &mut out);
+        preprocess_rgb(
+            &rgb,
+            Some(MSPACMAN_RGB_SUM),
+            Crop::Article,
+            Downsample::Pick,
+            &mut out,
+        );
         assert_eq!(&out[..4], &[0, 1, 0, 149]);
     }
 
@@ -210,15 +289,21 @@ mod tests {
         let j = (CROP_TOP * SCREEN_WIDTH + 46) * 3; // the block's top-left pixel, dimmer
         rgb[j..j + 3].copy_from_slice(&[30, 30, 30]);
         let mut out = vec![0u8; FRAME_LEN];
-        preprocess_rgb(&rgb, None, Downsample::Pick, &mut out);
+        preprocess_rgb(&rgb, None, Crop::Article, Downsample::Pick, &mut out);
         assert_eq!(out[23], 30);
         assert_eq!(out.iter().map(|&v| v as u32).sum::<u32>(), 30);
-        preprocess_rgb(&rgb, None, Downsample::Max, &mut out);
+        preprocess_rgb(&rgb, None, Crop::Article, Downsample::Max, &mut out);
         assert_eq!(out[23], 142);
         assert_eq!(out.iter().map(|&v| v as u32).sum::<u32>(), 142);
         // The contrast colour is blanked before the max: it cannot win a block.
         rgb[i..i + 3].copy_from_slice(&[210, 164, 74]);
-        preprocess_rgb(&rgb, Some(MSPACMAN_RGB_SUM), Downsample::Max, &mut out);
+        preprocess_rgb(
+            &rgb,
+            Some(MSPACMAN_RGB_SUM),
+            Crop::Article,
+            Downsample::Max,
+            &mut out,
+        );
         assert_eq!(out[23], 30);
     }
 

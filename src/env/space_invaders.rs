@@ -238,6 +238,7 @@ impl SpaceInvaders {
         preprocess_rgb(
             &self.rgb_last,
             self.config.contrast_rgb_sum,
+            self.config.crop,
             self.config.downsample,
             &mut self.frame_last,
         );
