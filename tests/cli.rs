@@ -277,6 +277,17 @@ fn train_eval_resume_plot() {
             && text.contains("max"),
         "{text}"
     );
+    // Each episode's line and the summary count the mothership's passes and the hits on it.
+    assert!(
+        text.contains("steps")
+            && text
+                .lines()
+                .filter(|l| l.starts_with("episode") && l.contains(" mothership "))
+                .count()
+                == 2
+            && text.contains(", mothership hit in "),
+        "{text}"
+    );
     let bytes = std::fs::read(&gif).unwrap();
     assert!(bytes.starts_with(b"GIF89a") && bytes.len() > 10_000);
     assert_eq!(u16::from_le_bytes([bytes[6], bytes[7]]), 160, "GIF width");

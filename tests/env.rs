@@ -289,7 +289,7 @@ fn preprocessing_matches_an_independent_computation_and_contrast_is_a_no_op() {
 #[test]
 fn the_mothership_crop_sees_the_ship_that_the_article_crop_cannot() {
     use invaders::env::Crop;
-    const SHIP: [u8; 3] = [151, 25, 122];
+    const SHIP: [u8; 3] = invaders::env::MOTHERSHIP_RGB;
     let cfg = EnvConfig {
         downsample: invaders::env::Downsample::Max,
         crop: Crop::Mothership,
@@ -329,7 +329,9 @@ fn the_mothership_crop_sees_the_ship_that_the_article_crop_cannot() {
                 .chunks_exact(3)
                 .any(|p| p == SHIP)
         });
-        if ship_rows.count() >= 6 {
+        let rows = ship_rows.count();
+        assert_eq!(rows > 0, invaders::env::mothership_on_screen(rgb));
+        if rows >= 6 {
             seen += 1;
             let frame = e.last_two_frames().1;
             let top: u32 = frame[..4 * FRAME_WIDTH].iter().map(|&v| v as u32).sum();

@@ -10,7 +10,7 @@ use rand_chacha::ChaCha8Rng;
 use invaders::dqn::checkpoint;
 use invaders::dqn::play_evaluation_episode;
 use invaders::dqn::Preset;
-use invaders::env::{EnvConfig, EnvMode, Observer, SpaceInvaders};
+use invaders::env::{mothership_on_screen, EnvConfig, EnvMode, Observer, SpaceInvaders};
 use invaders::tensor::Tensor;
 
 // The emulator's screen size (the ALE's).
@@ -241,9 +241,11 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         None => None,
     };
     let mut scores = Vec::with_capacity(plan.episodes as usize);
+    let mut ships = Mothership::default();
     for episode in 0..plan.episodes {
         let mut recorder = if episode == 0 { gif.as_mut() } else { None };
         let mut record_error = None;
+        let mut ship = Mothership::default();
         let (score, steps) = play_evaluation_episode(
             &mut env,
             &mut net,
@@ -254,6 +256,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
             plan.epsilon,
             &mut rng,
             |g| {
+                ship.observe(mothership_on_screen(g.screen_rgb()), g.episode().score);
                 if let (Some(r), None) = (recorder.as_deref_mut(), &record_error) {
                     if let Err(e) = r.frame(g.screen_rgb()) {
                         record_error = Some(e);
@@ -265,9 +268,13 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
             return Err(e);
         }
         out!(
-            "episode {:>3}: score {score:>6} steps {steps:>5}",
-            episode + 1
+            "episode {:>3}: score {score:>6} steps {steps:>5} mothership {}/{}",
+            episode + 1,
+            ship.hits,
+            ship.passes
         );
+        ships.passes += ship.passes;
+        ships.hits += ship.hits;
         scores.push(score);
         if super::streams::stdout_lost() {
             // Nobody reads the scores any more: stop playing (the GIF, if any, is complete).
@@ -280,7 +287,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     }
     let s = Summary::of(&scores);
     out!(
-        "checkpoint {} (preset {}, {} episodes, {} frames trained), mode {}{}, epsilon {}, {} episodes, seed {}: {s}",
+        "checkpoint {} (preset {}, {} episodes, {} frames trained), mode {}{}, epsilon {}, {} episodes, seed {}, mothership hit in {} of {} passes: {s}",
         file.display(),
         config.preset.name(),
         model.counters.episodes,
@@ -290,8 +297,43 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         plan.epsilon,
         s.n,
         plan.seed,
+        ships.hits,
+        ships.passes,
     );
     Ok(())
+}
+
+/// The mothership's passes over an episode and the agent's hits on it: a pass begins on a step
+/// whose screen shows the ship after at least [`Mothership::GAP`] steps without it (the ship is
+/// on screen for about 150 steps of 4 frames a pass), and a hit is a step that scores 200 or more
+/// (the ship is worth 200, an alien 5 to 30).
+#[derive(Default)]
+struct Mothership {
+    passes: u64,
+    hits: u64,
+    /// Steps since the ship was last on screen (`None` before it first was).
+    off: Option<u64>,
+    last_score: f64,
+}
+
+impl Mothership {
+    const GAP: u64 = 8;
+
+    /// One step: whether the ship is on screen, and the episode's score after the step.
+    fn observe(&mut self, on_screen: bool, score: f64) {
+        if on_screen {
+            if self.off.is_none_or(|n| n >= Self::GAP) {
+                self.passes += 1;
+            }
+            self.off = Some(0);
+        } else if let Some(n) = &mut self.off {
+            *n += 1;
+        }
+        if score >= self.last_score + 200.0 {
+            self.hits += 1;
+        }
+        self.last_score = score;
+    }
 }
 
 /// Writes an animated GIF frame by frame into its output file's temporary path, put in place at
@@ -373,6 +415,21 @@ impl Summary {
 #[cfg(test)]
 mod tests {
     use super::Summary;
+
+    /// Passes are counted at the ship's arrival, not once per step or per flicker shorter than
+    /// the gap; a hit is a 200-point step, not several aliens' points over several steps.
+    #[test]
+    fn mothership_passes_and_hits() {
+        let mut m = super::Mothership::default();
+        let seen = [0, 1, 1, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0];
+        let score = [
+            0, 0, 30, 30, 230, 230, 260, 290, 290, 320, 320, 320, 320, 320, 320, 320, 320, 545,
+        ];
+        for (&on, &s) in seen.iter().zip(&score) {
+            m.observe(on == 1, s as f64);
+        }
+        assert_eq!((m.passes, m.hits), (2, 2));
+    }
 
     #[test]
     fn summary_uses_population_std() {

@@ -44,7 +44,7 @@ pub use pipeline::{
     write_stacked_input, write_stacked_input_bordered, Composer, FrameStack, Observer, Pipeline,
 };
 pub use preprocess::{
-    max_into, normalize_into, preprocess_rgb, Crop, Downsample, Normalization, FRAME_HEIGHT,
-    FRAME_LEN, FRAME_WIDTH, MSPACMAN_RGB_SUM,
+    max_into, mothership_on_screen, normalize_into, preprocess_rgb, Crop, Downsample,
+    Normalization, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH, MOTHERSHIP_RGB, MSPACMAN_RGB_SUM,
 };
 pub use space_invaders::{EpisodeStats, SpaceInvaders, StepResult};

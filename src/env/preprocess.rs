@@ -82,6 +82,19 @@ impl Crop {
     }
 }
 
+/// The mothership's colour, RGB.
+pub const MOTHERSHIP_RGB: [u8; 3] = [151, 25, 122];
+
+/// Whether an RGB screen shows the mothership: a pixel of its colour in screen rows 12 to 19.
+///
+/// # Panics
+/// If `rgb.len() != 210 * 160 * 3`.
+pub fn mothership_on_screen(rgb: &[u8]) -> bool {
+    assert_eq!(rgb.len(), SCREEN_RGB_LEN, "RGB screen has the wrong length");
+    let band = MOTHERSHIP_TOP * SCREEN_WIDTH * 3..(MOTHERSHIP_TOP + 8) * SCREEN_WIDTH * 3;
+    rgb[band].chunks_exact(3).any(|p| p == MOTHERSHIP_RGB)
+}
+
 /// Crops, downsamples and greys one RGB screen into an 88 x 80 frame.
 ///
 /// Output pixel `(r, c)` comes from screen rows `y = crop.screen_row(r)` (and `y + 1`; for the
