@@ -91,7 +91,8 @@ pub const MOTHERSHIP_RGB: [u8; 3] = [151, 25, 122];
 /// If `rgb.len() != 210 * 160 * 3`.
 pub fn mothership_on_screen(rgb: &[u8]) -> bool {
     assert_eq!(rgb.len(), SCREEN_RGB_LEN, "RGB screen has the wrong length");
-    let band = MOTHERSHIP_TOP * SCREEN_WIDTH * 3..(MOTHERSHIP_TOP + 8) * SCREEN_WIDTH * 3;
+    let band = MOTHERSHIP_TOP * SCREEN_WIDTH * 3
+        ..(MOTHERSHIP_TOP + 2 * MOTHERSHIP_ROWS) * SCREEN_WIDTH * 3;
     rgb[band].chunks_exact(3).any(|p| p == MOTHERSHIP_RGB)
 }
 
