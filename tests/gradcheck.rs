@@ -45,7 +45,8 @@ proptest! {
 
     /// Conv2d: kernel 1..8 (height and width drawn separately), strides 1/2/4 (separately),
     /// SAME and VALID, 1..3 channels in and out, batch 1..2, with and without the fused ReLU
-    /// and an output border.
+    /// and an output border. With the ReLU, cases with a pre-activation within 1e-3 of its kink
+    /// are redrawn.
     #[test]
     fn conv2d_gradients(
         kh in 1usize..=8, kw in 1usize..=8, sh in stride(), sw in stride(),
@@ -59,13 +60,22 @@ proptest! {
         let g = ConvGeom::new(h, w, cin, cout, kh, kw, (sh, sw), pad).unwrap();
         let (top, bottom, left, right) = border;
         let border = Border { top, bottom, left, right };
+        let mut r = rng(seed ^ 1);
+        let x = uniform(&[n, h, w, cin], &mut r);
+        if relu {
+            // A pre-activation within the step `H` of the kink makes the central difference
+            // average the two slopes (one seed put one at 2.5e-6 and missed by 40%): redraw
+            // cases with one within 1e-3, as for the layer norm below.
+            let mut plain = Conv2d::<f64>::new("conv", g);
+            randomise(&mut plain, seed);
+            plain.forward(&x);
+            prop_assume!(plain.output().data().iter().all(|z| z.abs() > 1e-3));
+        }
         let mut layer = Conv2d::<f64>::new("conv", g).with_border(border);
         if relu {
             layer = layer.with_relu();
         }
         randomise(&mut layer, seed);
-        let mut r = rng(seed ^ 1);
-        let x = uniform(&[n, h, w, cin], &mut r);
         let (hb, wb) = border.around(g.oh, g.ow);
         let dy = uniform(&[n, hb, wb, cout], &mut r);
         check_layer(&mut layer, &x, &dy, 400, seed).map_err(TestCaseError::fail)?;
