@@ -514,6 +514,49 @@ fn config_files_override_and_reject_bad_keys() {
     assert_eq!(Config::resolve(None, Some(&c.to_toml())).unwrap(), c);
 }
 
+/// The learner's reward: the Nature DQN's clip makes every hit worth 1; `reward_scale` with a
+/// wider `reward_clip` keeps the game's order (an invader 5 to 30, the mothership 200); the
+/// keys default to the clip to [-1, 1] (earlier configs resolve unchanged) and refuse
+/// non-positive or absurd values.
+#[test]
+fn rewards_are_scaled_then_clipped() {
+    let strong = Config::preset(Preset::Strong);
+    assert_eq!((strong.reward_scale, strong.reward_clip), (1.0, 1.0));
+    let hits: Vec<f32> = [0.0, 5.0, 30.0, 200.0, -7.0]
+        .iter()
+        .map(|&r| strong.reward(r))
+        .collect();
+    assert_eq!(hits, [0.0, 1.0, 1.0, 1.0, -1.0]);
+    let c = Config::resolve(
+        Some(Preset::Strong),
+        Some("reward_scale = 0.03125\nreward_clip = 10.0\n"),
+    )
+    .unwrap();
+    let hits: Vec<f32> = [5.0, 30.0, 200.0, 400.0, -64.0]
+        .iter()
+        .map(|&r| c.reward(r))
+        .collect();
+    assert_eq!(hits, [0.156_25, 0.9375, 6.25, 10.0, -2.0]);
+    // Without clipping only the scale applies.
+    let c = Config::resolve(Some(Preset::Article), Some("reward_scale = 0.5")).unwrap();
+    assert_eq!(c.reward(200.0), 100.0);
+    assert_eq!(Config::preset(Preset::Article).reward(200.0), 200.0);
+    let err = |t: &str| format!("{:#}", Config::resolve(None, Some(t)).unwrap_err());
+    for bad in [
+        "reward_scale = 0.0",
+        "reward_scale = -1.0",
+        "reward_clip = 0.0",
+        "reward_clip = 1e9",
+    ] {
+        assert!(
+            err(bad).contains(bad.split(' ').next().unwrap()),
+            "{bad}: {}",
+            err(bad)
+        );
+    }
+    assert!(err("reward_clip = nan").contains("reward_clip"));
+}
+
 #[test]
 fn checkpoints_round_trip_and_refuse_damage() {
     let mut agent = Agent::new(toy_config(), Corridor::new());

@@ -51,9 +51,10 @@ pub struct TrainArgs {
     /// Seed of every random generator.
     #[arg(long)]
     seed: Option<u64>,
-    /// The training products' arithmetic (default: the preset's: bf16 for `strong`, f32 for the
+    /// The training products' arithmetic (default: the preset's: auto for `strong`, f32 for the
     /// article's): bf16 rounds their operands to bfloat16 and keeps f32 sums, on CPUs with
-    /// AVX512-BF16 (elsewhere f32).
+    /// AVX512-BF16 (elsewhere f32); auto picks whichever of the two trains faster here, measured
+    /// when the run starts and recorded in its config.toml.
     #[arg(long, value_enum, conflicts_with = "resume")]
     precision: Option<Precision>,
     /// Worker threads for the kernels (default: all cores).

@@ -337,14 +337,10 @@ impl<G: Game> Agent<G> {
             // ALGO 4: play it; compose the step's frame; push it on the stack.
             let r = self.game.step(action);
             let frame = self.observer.step(&self.game);
-            // ALGO 5: store (a, r, done, new frame). Rewards clipped to [-1, 1] if so
-            // configured; done ends the bootstrapping: the game is over, or (if so configured)
-            // a life was lost.
-            let reward = if self.config.clip_rewards {
-                r.reward.clamp(-1.0, 1.0)
-            } else {
-                r.reward
-            };
+            // ALGO 5: store (a, r, done, new frame). Rewards scaled and clipped (to [-1, 1] in
+            // the Nature DQN) if so configured; done ends the bootstrapping: the game is over,
+            // or (if so configured) a life was lost.
+            let reward = self.config.reward(r.reward);
             let life_lost = lives.is_some_and(|l| r.lives < l);
             lives = Some(r.lives);
             let done = r.terminal || (self.config.life_loss_terminal && life_lost);

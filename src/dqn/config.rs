@@ -110,6 +110,10 @@ fn munchausen_clip_default() -> f64 {
     -1.0
 }
 
+fn one_f64() -> f64 {
+    1.0
+}
+
 fn article_hidden() -> usize {
     ARTICLE_HIDDEN
 }
@@ -245,8 +249,17 @@ pub struct Config {
     /// ([`super::resolve_precision`]). Weights, gradients, Adam's state and checkpoints stay f32.
     #[serde(default)]
     pub precision: Precision,
-    /// Clip rewards to [-1, 1] (the Nature DQN; the article does not).
+    /// Clip rewards to [-`reward_clip`, `reward_clip`] (the Nature DQN: [-1, 1]; the article
+    /// does not).
     pub clip_rewards: bool,
+    /// The game's rewards are multiplied by this before any clipping (default 1). With
+    /// `reward_scale = 1/30` and `reward_clip = 10` an invader is worth 1/6 to 1 and the
+    /// mothership 6.7, where clipping to [-1, 1] makes both worth 1 ([`Config::reward`]).
+    #[serde(default = "one_f64")]
+    pub reward_scale: f64,
+    /// The bound of clipped rewards (default 1, the Nature DQN's).
+    #[serde(default = "one_f64")]
+    pub reward_clip: f64,
     /// The notebook's swap: pick actions with the lagged (target) network.
     pub act_with_target_network: bool,
     /// The notebook's extra transition at each episode end: the final state, the last action,
@@ -311,6 +324,8 @@ impl Config {
             precision: Precision::F32,
             clip_grad_norm: 0.0,
             clip_rewards: false,
+            reward_scale: 1.0,
+            reward_clip: 1.0,
             act_with_target_network: false,
             fake_terminal_transition: false,
             checkpoint_every: 25,
@@ -364,6 +379,18 @@ impl Config {
                 },
                 ..article
             },
+        }
+    }
+
+    /// The reward the learner sees for the game's reward `r`: `r · reward_scale`, clamped to
+    /// ±`reward_clip` if `clip_rewards`. Returns and scores always count the game's `r`.
+    pub fn reward(&self, r: f32) -> f32 {
+        let r = r * self.reward_scale as f32;
+        if self.clip_rewards {
+            let c = self.reward_clip as f32;
+            r.clamp(-c, c)
+        } else {
+            r
         }
     }
 
@@ -565,6 +592,14 @@ impl Config {
                 "munchausen_alpha must be in [0, 1], got {}",
                 c.munchausen_alpha
             );
+        }
+        for (name, v) in [
+            ("reward_scale", c.reward_scale),
+            ("reward_clip", c.reward_clip),
+        ] {
+            if !(v > 0.0 && v <= 1e6) {
+                bail!("{name} must be in (0, 1e6], got {v}");
+            }
         }
         if !(c.munchausen_tau > 0.0 && c.munchausen_tau <= 100.0) {
             bail!(
