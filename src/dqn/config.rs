@@ -253,8 +253,9 @@ pub struct Config {
     /// does not).
     pub clip_rewards: bool,
     /// The game's rewards are multiplied by this before any clipping (default 1). With
-    /// `reward_scale = 1/30` and `reward_clip = 10` an invader is worth 1/6 to 1 and the
-    /// mothership 6.7, where clipping to [-1, 1] makes both worth 1 ([`Config::reward`]).
+    /// `reward_scale = 1/32` and `reward_clip = 10` an invader (5 to 30 points) is worth 0.16 to
+    /// 0.94 and the mothership (200) 6.25, where clipping to [-1, 1] makes both worth 1
+    /// ([`Config::reward`]).
     #[serde(default = "one_f64")]
     pub reward_scale: f64,
     /// The bound of clipped rewards (default 1, the Nature DQN's).
