@@ -135,7 +135,7 @@ fn train_step(c: &mut Criterion) {
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut learner = Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut rng);
     // Laid out as the agent's batches are: inside conv1's padding (a zero border).
-    let mut batch = Batch::padded(48, [88, 80, 4]);
+    let mut batch = Batch::padded(48, [88, 80, 4], Padding::Same);
     for states in [&mut batch.states, &mut batch.next_states] {
         *states = random(states.shape(), &mut rng);
         batch.border.zero(states.data_mut(), 48, 88, 80, 4);

@@ -12,7 +12,7 @@ use invaders::dqn::{article_qnet, Batch, Learner};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::Sequential;
 use invaders::ops::plan::Precision;
-use invaders::tensor::{Float, Tensor};
+use invaders::tensor::{Float, Padding, Tensor};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -144,7 +144,7 @@ fn train(threads: usize, precision: Precision) {
     learner.double = threads == 2;
     for step in 0..4 {
         let mut batch = if step % 2 == 0 {
-            Batch::padded(32, input)
+            Batch::padded(32, input, Padding::Same)
         } else {
             Batch::new(32, input)
         };

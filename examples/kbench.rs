@@ -2,7 +2,8 @@
 //! `perf stat` when the machine is shared (CPU time and cycles are robust to preemption where
 //! criterion's wall time is not): `cargo run --release --example kbench -- conv1 fwd 50`;
 //! `-- step train 30` (and `step act 300`) for the whole train step with its minimum and median;
-//! `-- step infer 300` for acting as `invaders bench` times it (game frames from random play,
+//! `-- step strong 30 [FILE]` for the `strong` preset's train step (or a configuration file's on
+//! it, an implicit quantile head's fractions drawn per step); `-- step infer 300` for acting as `invaders bench` times it (game frames from random play,
 //! an article network after `bench`'s 33 train steps, `Sequential::infer` and the argmax), for
 //! profiling under `perf`;
 //! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders);
@@ -86,13 +87,38 @@ fn run() {
         );
         return;
     }
+    if what == "step" && op == "strong" {
+        // `strong`'s train step, or that of a configuration on it (`-- step strong 100 FILE`),
+        // on a random batch as `invaders bench --config` times it, fractions drawn per step.
+        let text = args.get(4).map(|p| std::fs::read_to_string(p).unwrap());
+        let config =
+            invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), text.as_deref())
+                .unwrap();
+        let mut learner = Learner::from_config(&config, 6, &mut rng);
+        let mut batch = Batch::random(&config, &mut rng);
+        let mut step = |rng: &mut ChaCha8Rng| {
+            if let Some(iqn) = config.iqn() {
+                batch.draw_fractions(rng, iqn.samples, iqn.target_samples);
+            }
+            learner.train_step(&batch);
+        };
+        step(&mut rng);
+        let (times, cpu) = timed(iters, |_| step(&mut rng));
+        println!(
+            "step strong: {cpu:.3} ms CPU, min {:.3} median {:.3} per step (batch {})",
+            times[0],
+            times[iters / 2],
+            config.batch_size
+        );
+        return;
+    }
     if what == "step" {
         let mut learner = Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut rng);
         if args.get(4).map(String::as_str) == Some("bf16") {
             learner.set_precision(invaders::ops::plan::Precision::Bf16);
         }
         // Laid out as the agent's batches are: inside conv1's padding (a zero border).
-        let mut batch = Batch::padded(48, [88, 80, 4]);
+        let mut batch = Batch::padded(48, [88, 80, 4], Padding::Same);
         for states in [&mut batch.states, &mut batch.next_states] {
             *states = random(states.shape(), &mut rng);
             batch.border.zero(states.data_mut(), 48, 88, 80, 4);

@@ -7,7 +7,7 @@ use invaders::dqn::checkpoint;
 use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
 use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
 use invaders::ops::plan::Precision;
-use invaders::tensor::Tensor;
+use invaders::tensor::{Padding, Tensor};
 use proptest::prelude::*;
 use rand::Rng;
 
@@ -128,6 +128,32 @@ fn layer_norm_learns_a_toy_corridor() {
         c.precision = Precision::F32;
         c.layer_norm = true;
     });
+}
+
+/// With VALID convolutions (`padding = "valid"`, no zero border around the batches) the agent
+/// learns the corridor too.
+#[test]
+fn valid_convolutions_learn_a_toy_corridor() {
+    learns(|c| {
+        c.precision = Precision::F32;
+        c.padding = Padding::Valid;
+    });
+}
+
+/// `padding` is `same` unless a file says `valid`; anything else is refused, naming the key.
+#[test]
+fn padding_is_same_unless_asked() {
+    assert_eq!(Config::preset(Preset::Strong).padding, Padding::Same);
+    let c = Config::resolve(Some(Preset::Strong), Some("padding = \"valid\"")).unwrap();
+    assert_eq!(c.padding, Padding::Valid);
+    // A run's recorded configuration keeps it.
+    let again = Config::resolve(None, Some(&toml::to_string(&c).unwrap())).unwrap();
+    assert_eq!(again.padding, Padding::Valid);
+    let err = format!(
+        "{:#}",
+        Config::resolve(None, Some("padding = \"full\"")).unwrap_err()
+    );
+    assert!(err.contains("padding") && err.contains("valid"), "{err}");
 }
 
 /// An agent of [`toy_config`] changed by `set` learns the corridor.
@@ -390,12 +416,17 @@ fn padded_batches_train_exactly_like_plain_ones() {
         replay.push_step(i as usize % 6, i as f32, i % 13 == 0, &f);
     }
     let table: [f32; 256] = std::array::from_fn(|i| i as f32 / 255.0 - 0.5);
-    let border = input_border([88, 80, 4]);
+    let border = input_border([88, 80, 4], Padding::Same);
     assert_eq!(
         (border.top, border.bottom, border.left, border.right),
         (2, 2, 2, 2)
     );
-    let (mut plain, mut padded) = (Batch::new(8, [88, 80, 4]), Batch::padded(8, [88, 80, 4]));
+    // VALID convolutions (`padding = "valid"`) need no border: their batches are plain ones.
+    assert!(input_border([88, 80, 4], Padding::Valid).is_none());
+    let (mut plain, mut padded) = (
+        Batch::new(8, [88, 80, 4]),
+        Batch::padded(8, [88, 80, 4], Padding::Same),
+    );
     replay.sample(&mut common::rng(3), &table, &mut plain);
     replay.sample(&mut common::rng(3), &table, &mut padded);
     assert_eq!(padded.states.shape(), &[8, 92, 84, 4]);

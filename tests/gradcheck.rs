@@ -357,6 +357,7 @@ fn dueling_qnet_gradients() {
         atoms: 1,
         iqn: None,
         layer_norm: false,
+        ..Head::ARTICLE
     });
 }
 
@@ -369,6 +370,7 @@ fn dueling_quantile_qnet_gradients() {
         atoms: 3,
         iqn: None,
         layer_norm: false,
+        ..Head::ARTICLE
     });
 }
 
@@ -382,7 +384,29 @@ fn layer_norm_qnet_gradients() {
         atoms: 1,
         iqn: None,
         layer_norm: true,
+        ..Head::ARTICLE
     });
+}
+
+/// The same with VALID convolutions (`padding = "valid"`, the Nature DQN's), dueling, at an input
+/// of 38 x 37: conv1 gives 8 x 8, conv2 3 x 3, conv3 1 x 1 (the smallest VALID input is 36 x 36).
+#[test]
+fn valid_qnet_gradients() {
+    let head = Head {
+        padding: Padding::Valid,
+        hidden: 24,
+        dueling: true,
+        ..Head::ARTICLE
+    };
+    let net = qnet::<f64>([38, 37, 2], 6, head, &VarianceScaling::HE, &mut rng(1));
+    let shapes: Vec<Vec<usize>> = net
+        .layers()
+        .iter()
+        .take(3)
+        .map(|l| l.output_shape())
+        .collect();
+    assert_eq!(shapes, [vec![8, 8, 32], vec![3, 3, 64], vec![1, 1, 64]]);
+    qnet_gradients_at([38, 37, 2], head);
 }
 
 /// The same with an implicit quantile head whose embedding enters after dense1 (the default):
@@ -401,6 +425,7 @@ fn iqn_hidden_qnet_gradients() {
             policy_samples: 3,
         }),
         layer_norm: false,
+        ..Head::ARTICLE
     });
 }
 
@@ -419,6 +444,7 @@ fn iqn_features_qnet_gradients() {
             policy_samples: 2,
         }),
         layer_norm: false,
+        ..Head::ARTICLE
     });
 }
 
@@ -428,8 +454,13 @@ fn iqn_features_qnet_gradients() {
 /// puts none there for any of the three heads; seeds 9 to 12 pass as well. A wrong index moves
 /// many values by far more.
 fn qnet_gradients(head: Head) {
+    qnet_gradients_at([21, 19, 2], head);
+}
+
+/// [`qnet_gradients`] for inputs of shape `[H, W, C]`.
+fn qnet_gradients_at(input: [usize; 3], head: Head) {
     let mut r = rng(8);
-    let mut net = qnet::<f64>([21, 19, 2], 6, head, &VarianceScaling::HE, &mut r);
+    let mut net = qnet::<f64>(input, 6, head, &VarianceScaling::HE, &mut r);
     // Non-zero biases, so bias indexing is exercised too.
     for p in net.params_mut() {
         if p.name.ends_with(".bias") {
@@ -439,7 +470,8 @@ fn qnet_gradients(head: Head) {
             }
         }
     }
-    let x = uniform::<f64>(&[2, 21, 19, 2], &mut r);
+    let [h, w, c] = input;
+    let x = uniform::<f64>(&[2, h, w, c], &mut r);
     // An implicit quantile head evaluates each state at its fractions: one output row each.
     let rows = match head.iqn {
         Some(iqn) => {

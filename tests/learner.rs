@@ -542,6 +542,7 @@ fn quantile_learner(double: bool, online: [f32; 6], target: [f32; 6]) -> Learner
         atoms: 2,
         iqn: None,
         layer_norm: false,
+        ..Head::ARTICLE
     };
     constant_learner(head, double, &online, &target)
 }
@@ -592,6 +593,7 @@ fn iqn_learner(double: bool, online: [f32; 3], target: [f32; 3]) -> Learner {
             policy_samples: 2,
         }),
         layer_norm: false,
+        ..Head::ARTICLE
     };
     constant_learner(head, double, &online, &target)
 }

@@ -8,6 +8,7 @@ use super::Replay;
 use crate::env::{Downsample, EnvConfig, EnvMode, Normalization, Pipeline};
 use crate::layers::loss::LossKind;
 use crate::ops::plan::Precision;
+use crate::tensor::Padding;
 use anyhow::{bail, Context};
 use serde::{Deserialize, Serialize};
 
@@ -177,6 +178,12 @@ pub struct Config {
     pub loss: LossKind,
     /// Double DQN targets.
     pub double_dqn: bool,
+    /// The convolutions' padding: `same` (the article's: conv1 to conv3 give 22 x 20, 11 x 10 and
+    /// 11 x 10 pixels, 7 040 features) or `valid` (the Nature DQN's and Dopamine's: no padding,
+    /// 21 x 19, 9 x 8 and 7 x 6 pixels, 2 688 features; 0.61 times the multiply-adds per sample)
+    /// ([`super::qnet`]).
+    #[serde(default)]
+    pub padding: Padding,
     /// Units of the dense layer after the convolutions (the article: 128; the Nature DQN: 512).
     #[serde(default = "article_hidden")]
     pub hidden: usize,
@@ -306,6 +313,7 @@ impl Config {
             epsilon_decay_steps: 500_000,
             loss: LossKind::Mse,
             double_dqn: false,
+            padding: Padding::Same,
             hidden: ARTICLE_HIDDEN,
             quantiles: 0,
             dueling: false,

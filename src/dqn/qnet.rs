@@ -4,7 +4,7 @@ use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
 use crate::layers::{Conv2d, Dense, Dueling, LayerNorm, QuantileEmbedding, Relu, Sequential};
 use crate::ops::plan;
-use crate::tensor::{Border, ConvGeom, Float, Tensor};
+use crate::tensor::{Border, ConvGeom, Float, Padding, Tensor};
 use rand::Rng;
 
 /// The convolutions as the article defines them: `(filters, kernel size, stride)`, SAME.
@@ -21,6 +21,10 @@ const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 /// dense1 128, ReLU                       -> [N, 128]
 /// dense2 n_actions, linear               -> [N, n_actions]   one Q-value per action
 /// ```
+///
+/// With VALID padding (`padding = "valid"`, the Nature DQN's; [`Head::padding`]) the
+/// convolutions give `[N, 21, 19, 32]`, `[N, 9, 8, 64]` and `[N, 7, 6, 64]`, and dense1 reads
+/// 2 688 features: 0.61 times the multiply-adds per sample.
 ///
 /// Weights are drawn with `init` (the article: VarianceScaling(2.0), i.e. [`VarianceScaling::HE`]),
 /// biases start at zero. Any input size works (the gradient checks use small ones).
@@ -40,10 +44,13 @@ pub fn article_qnet<T: Float>(
     qnet(input, n_actions, Head::ARTICLE, init, rng)
 }
 
-/// What follows the convolutions: dense1's width, whether a dueling combine follows dense2, how
-/// many values (atoms) each action's output has, and an implicit quantile head.
+/// The network's options beyond the article's: the convolutions' padding, dense1's width,
+/// whether a dueling combine follows dense2, how many values (atoms) each action's output has, an
+/// implicit quantile head, and layer normalisation.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Head {
+    /// The convolutions' padding: SAME (the article's) or VALID (the Nature DQN's).
+    pub padding: Padding,
     /// Units of dense1 (the article: 128).
     pub hidden: usize,
     /// A dueling combine after dense2 ([`Dueling`]).
@@ -93,6 +100,7 @@ pub enum IqnMerge {
 impl Head {
     /// The article's: 128 units, one Q-value per action.
     pub const ARTICLE: Head = Head {
+        padding: Padding::Same,
         hidden: ARTICLE_HIDDEN,
         dueling: false,
         atoms: 1,
@@ -103,6 +111,7 @@ impl Head {
     /// The head a configuration asks for.
     pub fn of(config: &super::Config) -> Head {
         Head {
+            padding: config.padding,
             hidden: config.hidden,
             dueling: config.dueling,
             atoms: config.atoms(),
@@ -147,21 +156,11 @@ pub fn midpoints(k: usize, batch: usize) -> Vec<f64> {
 pub fn qnet<T: Float>(
     input: [usize; 3], n_actions: usize, head: Head, init: &VarianceScaling, rng: &mut impl Rng,
 ) -> Sequential<T> {
-    let [h, w, c] = input;
     let mut net = Sequential::new();
-    // The three convolutions as the article defines them (SAME), on the unbordered shapes.
-    let mut same = Vec::new();
-    let mut shape = [h, w, c];
-    for (cout, k, s) in CONVS {
-        let g = ConvGeom::input(shape[0], shape[1], shape[2])
-            .filters(cout, k, k)
-            .stride(s, s)
-            .same()
-            .expect("SAME convolution of a non-empty input");
-        same.push(g);
-        shape = [g.oh, g.ow, cout];
-    }
-    for (i, g) in same.iter().enumerate() {
+    // The three convolutions as the article defines them (SAME, or VALID if the head says so),
+    // on the unbordered shapes.
+    let convs = conv_geometries(input, head.padding);
+    for (i, g) in convs.iter().enumerate() {
         // conv1 pads its own input (the network's input); the others read their padding from
         // the border the layer before wrote (and skip its gradient: it is a constant).
         let name = format!("conv{}", i + 1);
@@ -171,7 +170,7 @@ pub fn qnet<T: Float>(
             let (valid, padding) = g.as_valid();
             Conv2d::new(&name, valid).with_input_border(padding)
         };
-        let border = same
+        let border = convs
             .get(i + 1)
             .map(|next| next.as_valid().1)
             .unwrap_or_default();
@@ -193,7 +192,8 @@ pub fn qnet<T: Float>(
             net.push(conv.with_relu().with_border(border));
         }
     }
-    // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place.
+    // Flatten: dense1 reads each [11, 10, 64] NHWC output as its 7040-vector in place (VALID:
+    // [7, 6, 64], 2688).
     let flat = net.output_len();
     let Head {
         hidden,
@@ -201,6 +201,7 @@ pub fn qnet<T: Float>(
         atoms,
         iqn,
         layer_norm,
+        ..
     } = head;
     if let Some(Iqn {
         embedding,
@@ -240,18 +241,32 @@ pub fn qnet<T: Float>(
     net
 }
 
-/// conv1's SAME padding of `[H, W, C]` inputs as a zero border: states written inside it
+/// The three convolutions' geometries for `[H, W, C]` inputs with `padding`, each over the
+/// unbordered output of the one before. VALID needs inputs of at least 36 x 36 (conv3's 3 x 3
+/// window over conv2's output); panics on smaller ones.
+fn conv_geometries(input: [usize; 3], padding: Padding) -> Vec<ConvGeom> {
+    let mut shape = input;
+    CONVS
+        .iter()
+        .map(|&(cout, k, s)| {
+            let g = ConvGeom::input(shape[0], shape[1], shape[2])
+                .filters(cout, k, k)
+                .stride(s, s)
+                .padding(padding)
+                .unwrap_or_else(|| {
+                    panic!("{padding:?} convolutions of {input:?} inputs: the input is too small")
+                });
+            shape = [g.oh, g.ow, cout];
+            g
+        })
+        .collect()
+}
+
+/// conv1's padding of `[H, W, C]` inputs as a zero border: states written inside it
 /// ([`crate::dqn::Batch::with_border`]) are read by conv1 in place, as the equivalent VALID
 /// convolution ([`crate::layers::Conv2d::input_geometry`]); the results are bit-identical.
-/// For the article's 88 x 80 input: 2 rows above and below, 2 columns left and right.
-pub fn input_border(input: [usize; 3]) -> Border {
-    let [h, w, c] = input;
-    let (cout, k, s) = CONVS[0];
-    ConvGeom::input(h, w, c)
-        .filters(cout, k, k)
-        .stride(s, s)
-        .same()
-        .expect("SAME convolution of a non-empty input")
-        .as_valid()
-        .1
+/// For the article's 88 x 80 input with SAME padding: 2 rows above and below, 2 columns left
+/// and right; with VALID padding, none.
+pub fn input_border(input: [usize; 3], padding: Padding) -> Border {
+    conv_geometries(input, padding)[0].as_valid().1
 }

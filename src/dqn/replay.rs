@@ -29,7 +29,7 @@
 use super::input_border;
 use super::sumtree::SumTree;
 use crate::env::{write_stacked_input_bordered, FRAME_LEN};
-use crate::tensor::{Border, Tensor};
+use crate::tensor::{Border, Padding, Tensor};
 use rand::Rng;
 
 /// Replay flag bit: the step from this entry ended the episode.
@@ -505,10 +505,11 @@ impl Batch {
         Batch::with_border(batch, input, Border::default())
     }
 
-    /// An empty batch laid out for the article's network: states inside conv1's padding
-    /// ([`input_border`]), which conv1 then reads in place. What the agent trains on.
-    pub fn padded(batch: usize, input: [usize; 3]) -> Self {
-        Batch::with_border(batch, input, input_border(input))
+    /// An empty batch laid out for the article's network with convolutions padded by
+    /// `padding`: states inside conv1's padding ([`input_border`]; none for VALID), which conv1
+    /// then reads in place. What the agent trains on.
+    pub fn padded(batch: usize, input: [usize; 3], padding: Padding) -> Self {
+        Batch::with_border(batch, input, input_border(input, padding))
     }
 
     /// An empty batch whose states are `[H + top + bottom, W + left + right, C]` images with
@@ -537,7 +538,7 @@ impl Batch {
     /// workload of the benchmarks and of `precision = "auto"`'s measurement.
     pub fn random(config: &super::Config, rng: &mut impl Rng) -> Batch {
         let input = config.input_shape();
-        let mut b = Batch::padded(config.batch_size, input);
+        let mut b = Batch::padded(config.batch_size, input, config.padding);
         for states in [&mut b.states, &mut b.next_states] {
             for v in states.data_mut() {
                 *v = rng.random_range(-1.0..1.0);

@@ -17,12 +17,13 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// How the input is padded.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Padding {
     /// TensorFlow's `SAME`: `OH = ceil(H / SH)`; the total padding
     /// `max((OH − 1)·SH + KH − H, 0)` is split with the smaller half on top (and left), so an odd
     /// total puts the extra row at the bottom (and the extra column on the right).
+    #[default]
     Same,
     /// No padding: `OH = floor((H − KH) / SH) + 1`; needs `H ≥ KH`.
     Valid,
