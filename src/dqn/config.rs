@@ -180,7 +180,7 @@ pub struct Config {
     pub double_dqn: bool,
     /// The convolutions' padding: `same` (the article's: conv1 to conv3 give 22 x 20, 11 x 10 and
     /// 11 x 10 pixels, 7 040 features) or `valid` (the Nature DQN's and Dopamine's: no padding,
-    /// 21 x 19, 9 x 8 and 7 x 6 pixels, 2 688 features; 0.61 times the multiply-adds per sample)
+    /// 21 x 19, 9 x 8 and 7 x 6 pixels, 2 688 features; 0.62 times the multiply-adds per sample)
     /// ([`super::qnet`]).
     #[serde(default)]
     pub padding: Padding,
