@@ -3,9 +3,9 @@
 //! criterion's wall time is not): `cargo run --release --example kbench -- conv1 fwd 50`;
 //! `-- step train 30` (and `step act 300`) for the whole train step with its minimum and median;
 //! `-- step strong 30 [FILE]` for the `strong` preset's train step (or a configuration file's on
-//! it, an implicit quantile head's fractions drawn per step); `-- step infer 300` for acting as `invaders bench` times it (game frames from random play,
-//! an article network after `bench`'s 33 train steps, `Sequential::infer` and the argmax), for
-//! profiling under `perf`;
+//! it, an implicit quantile head's fractions drawn per step); `-- step infer 300` for acting as
+//! `invaders bench` times it (game frames from random play, an article network after `bench`'s
+//! 33 train steps, `Sequential::infer` and the argmax), for profiling under `perf`;
 //! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders);
 //! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input); a layer's
 //! batch and then `bf16` after the count time its bf16 products (`-- conv1p wgrad 300 48 bf16`).

@@ -7,7 +7,8 @@ use crate::ops::plan;
 use crate::tensor::{Border, ConvGeom, Float, Padding, Tensor};
 use rand::Rng;
 
-/// The convolutions as the article defines them: `(filters, kernel size, stride)`, SAME.
+/// The convolutions as the article defines them: `(filters, kernel size, stride)`, SAME (VALID
+/// where [`Head::padding`] says so).
 const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 
 /// Builds the article's Q-network for `[H, W, C]` inputs and `n_actions` outputs:
@@ -27,7 +28,8 @@ const CONVS: [(usize, usize, usize); 3] = [(32, 8, 4), (64, 4, 2), (64, 3, 1)];
 /// 2 688 features: 0.62 times the multiply-adds per sample.
 ///
 /// Weights are drawn with `init` (the article: VarianceScaling(2.0), i.e. [`VarianceScaling::HE`]),
-/// biases start at zero. Any input size works (the gradient checks use small ones).
+/// biases start at zero. Any input size works with SAME padding (the gradient checks use small
+/// ones); VALID needs at least 36 x 36.
 ///
 /// How it is laid out in memory: each convolution applies its ReLU as it stores its output
 /// ([`Conv2d::with_relu`]), and conv1 and conv2 write their outputs with the next layer's SAME
