@@ -285,7 +285,7 @@ fn article_network_infers_as_it_forwards() {
         (Head::ARTICLE, 0.0f32),
         (Head::ARTICLE, -1.0),
         (valid, 0.0),
-        (valid, -1.1),
+        (valid, -1.085),
     ] {
         let mut net = qnet::<f32>([88, 80, 4], 6, head, &VarianceScaling::HE, &mut r);
         for p in net.params_mut() {
@@ -315,7 +315,7 @@ fn article_network_infers_as_it_forwards() {
                 // conv2 and conv3 read conv1's and conv2's outputs: under a fifth nonzero (and
                 // something reaches dense1).
                 assert!(
-                    zeros[0] > 0.8 && zeros[1] > 0.8 && zeros[2] < 1.0,
+                    zeros[0] > 0.8 && zeros[1] > 0.8 && zeros[2] < 0.99,
                     "zeros {zeros:?}"
                 );
             }
