@@ -122,7 +122,10 @@ fn run() {
         for states in [&mut batch.states, &mut batch.next_states] {
             *states = random(states.shape(), &mut rng);
             batch.border.zero(states.data_mut(), 48, 88, 80, 4);
+            // Rounded to bf16 once, as an agent's batch in bf16 is (f32 ignores it).
+            states.keep_bf16();
         }
+        batch.keep_bf16 = true;
         let x1 = random(&[1, 88, 80, 4], &mut rng);
         learner.train_step(&batch);
         let (times, cpu) = timed(iters, |_| {

@@ -15,7 +15,7 @@ use invaders::tensor::bf16::{dot_bf16, dot_bf16_reference, dot_error_bound, roun
 use invaders::tensor::cpu::{Family, Path};
 use invaders::tensor::gather_bf16::{pack_pairs, pack_shifted, pair_shifted, to_bf16_vec};
 use invaders::tensor::{gather_gemm_bf16, gather_gemm_bf16_portable, GatherGemmBf16, Init};
-use invaders::tensor::{ConvGeom, Padding};
+use invaders::tensor::{ConvGeom, Padding, Tensor};
 use proptest::prelude::*;
 use rand::Rng;
 
@@ -545,6 +545,48 @@ proptest! {
         within_bounds("dw", layer.params()[0].grad.data(), &dw, &bound(&dwa))?;
         within_bounds("dx", layer.input_grad().data(), &dx, &bound(&dxa))?;
     }
+}
+
+/// A tensor keeps its values' bf16 roundings from `write_with_bf16` (or `keep_bf16`), a write
+/// starting from the roundings of the values as they are, until any other mutable access drops
+/// them; a clone keeps them too.
+#[test]
+fn a_tensor_keeps_its_bf16_roundings_until_it_changes() {
+    let mut r = rng(5);
+    let rounded = |t: &Tensor<f32>| t.data().iter().map(|&v| to_bf16(v)).collect::<Vec<u16>>();
+    let mut t = uniform::<f32>(&[3, 7], &mut r);
+    assert!(t.bf16().is_none(), "none at first");
+    t.keep_bf16();
+    assert_eq!(t.bf16(), Some(&rounded(&t)[..]));
+    t.write_with_bf16(|x, x16| {
+        x[4] = 2.5;
+        x16[4] = to_bf16(2.5);
+    });
+    assert_eq!(
+        t.bf16(),
+        Some(&rounded(&t)[..]),
+        "one value written both ways"
+    );
+    assert_eq!(t.clone().bf16(), Some(&rounded(&t)[..]), "a clone");
+    type Change = fn(&mut Tensor<f32>);
+    let drops: [(&str, Change); 5] = [
+        ("data_mut", |t| t.data_mut()[0] = 1.0),
+        ("view_mut", |t| t.view_mut()[[0, 1]] = 1.0),
+        ("fill_zero", |t| t.fill_zero()),
+        ("set_shape", |t| t.set_shape(&[7, 3])),
+        ("copy_from", |t| t.copy_from(&Tensor::zeros(&[3, 7]))),
+    ];
+    for (name, change) in drops {
+        t.keep_bf16();
+        change(&mut t);
+        assert!(t.bf16().is_none(), "{name} drops them");
+    }
+    // A write to a tensor that kept none starts from its values' roundings.
+    t.data_mut()
+        .copy_from_slice(uniform::<f32>(&[3, 7], &mut r).data());
+    let before = rounded(&t);
+    t.write_with_bf16(|_, x16| assert_eq!(x16, &before[..]));
+    assert_eq!(t.bf16(), Some(&before[..]));
 }
 
 /// The layers in bf16 give the same bits on 1, 2 and 3 threads: a convolution reading its input

@@ -7,6 +7,7 @@ use invaders::dqn::checkpoint;
 use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
 use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
 use invaders::ops::plan::Precision;
+use invaders::tensor::bf16::to_bf16;
 use invaders::tensor::{Padding, Tensor};
 use proptest::prelude::*;
 use rand::Rng;
@@ -454,6 +455,55 @@ fn padded_batches_train_exactly_like_plain_ones() {
     );
     for _ in 0..2 {
         assert_eq!(a.train_step(&plain), b.train_step(&padded));
+    }
+    for (p, q) in a.online.params().zip(b.online.params()) {
+        assert!(p.value == q.value, "{} differs", p.name);
+    }
+}
+
+/// A batch that keeps its states' bf16 roundings (`Batch::keep_bf16`, as an agent in bf16 asks)
+/// gets the same values from the replay memory, and beside them, border included, exactly their
+/// roundings; in bf16 a train step on it gives the bits of one on a batch that keeps none (conv1
+/// reads the kept roundings instead of rounding the states itself).
+#[test]
+fn batches_keep_their_states_rounded_to_bf16_when_asked() {
+    let mut replay = Replay::new(64, 4);
+    replay.push_start(&frame(0));
+    for i in 1..40u8 {
+        let f: Vec<u8> = (0..FRAME_LEN).map(|p| (p as u8).wrapping_mul(i)).collect();
+        replay.push_step(i as usize % 6, i as f32, i % 13 == 0, &f);
+    }
+    let table: [f32; 256] = std::array::from_fn(|i| i as f32 / 255.0 - 0.5);
+    let (mut plain, mut kept) = (
+        Batch::padded(8, [88, 80, 4], Padding::Same),
+        Batch::padded(8, [88, 80, 4], Padding::Same),
+    );
+    kept.keep_bf16 = true;
+    // Twice: the second batch is written over the first one's values and roundings.
+    for seed in [3, 5] {
+        replay.sample(&mut common::rng(seed), &table, &mut plain);
+        replay.sample(&mut common::rng(seed), &table, &mut kept);
+        for (p, q) in [
+            (&plain.states, &kept.states),
+            (&plain.next_states, &kept.next_states),
+        ] {
+            assert!(p.bf16().is_none(), "a plain batch keeps no roundings");
+            assert_eq!(p.data(), q.data(), "the same values");
+            let want: Vec<u16> = q.data().iter().map(|&v| to_bf16(v)).collect();
+            assert!(
+                q.bf16() == Some(&want[..]),
+                "their roundings, border included"
+            );
+        }
+    }
+    let (mut a, mut b) = (
+        Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut common::rng(4)),
+        Learner::new([88, 80, 4], 6, 1e-3, 0.97, &mut common::rng(4)),
+    );
+    a.set_precision(Precision::Bf16);
+    b.set_precision(Precision::Bf16);
+    for _ in 0..2 {
+        assert_eq!(a.train_step(&plain), b.train_step(&kept));
     }
     for (p, q) in a.online.params().zip(b.online.params()) {
         assert!(p.value == q.value, "{} differs", p.name);

@@ -221,7 +221,10 @@ impl<G: Game> Agent<G> {
             replay: config.new_replay(),
             table: config.normalization.table(),
             input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
-            batch: Batch::padded(config.batch_size, input, config.padding),
+            batch: Batch {
+                keep_bf16: crate::ops::plan::bf16_runs(config.precision),
+                ..Batch::padded(config.batch_size, input, config.padding)
+            },
             explore_rng: stream(config.seed, 2 + 2 * counters.episodes),
             sample_rng: stream(config.seed, 3 + 2 * counters.episodes),
             learner,

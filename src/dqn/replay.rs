@@ -29,6 +29,7 @@
 use super::input_border;
 use super::sumtree::SumTree;
 use crate::env::{write_stacked_input_bordered, FRAME_LEN};
+use crate::tensor::bf16::to_bf16;
 use crate::tensor::{Border, Padding, Tensor};
 use rand::Rng;
 
@@ -385,8 +386,11 @@ impl Replay {
                 batch.entries.extend_from_slice(&picks);
             }
         }
-        let per = batch.states.len() / batch.len();
         let border = batch.border;
+        // The bytes' bf16 roundings, where the batch keeps them (`Batch::keep_bf16`).
+        let rounded: Option<[u16; 256]> = batch
+            .keep_bf16
+            .then(|| std::array::from_fn(|v| to_bf16(table[v])));
         for (i, &g) in picks.iter().enumerate() {
             let (ret, m, done) = self.n_step_return(g);
             batch.actions[i] = self.actions[self.slot(g)] as usize;
@@ -394,21 +398,12 @@ impl Replay {
             batch.steps[i] = m;
             batch.dones[i] = done;
             let state = self.state_frames(g).expect("checked");
-            write_stacked_input_bordered(
-                &state[..self.k],
-                table,
-                border,
-                &mut batch.states.data_mut()[i * per..][..per],
-            );
+            let tables = (table, rounded.as_ref());
+            write_state(&state[..self.k], tables, border, i, &mut batch.states);
             let next = self
                 .state_frames(g + m as u64)
                 .expect("a later entry of the same episode is held");
-            write_stacked_input_bordered(
-                &next[..self.k],
-                table,
-                border,
-                &mut batch.next_states.data_mut()[i * per..][..per],
-            );
+            write_state(&next[..self.k], tables, border, i, &mut batch.next_states);
         }
         self.picks = picks;
     }
@@ -470,6 +465,25 @@ impl Replay {
     }
 }
 
+/// Writes state `i` of a batch's `states` from its frames through `tables`: the values, and
+/// their bf16 roundings as well where a table of those is given.
+fn write_state(
+    frames: &[&[u8]], tables: (&[f32; 256], Option<&[u16; 256]>), border: Border, i: usize,
+    states: &mut Tensor<f32>,
+) {
+    let per = states.len() / states.batch();
+    match tables {
+        (values, Some(rounded)) => states.write_with_bf16(|x, x16| {
+            write_stacked_input_bordered(frames, values, border, &mut x[i * per..][..per]);
+            write_stacked_input_bordered(frames, rounded, border, &mut x16[i * per..][..per]);
+        }),
+        (values, None) => {
+            let x = &mut states.data_mut()[i * per..][..per];
+            write_stacked_input_bordered(frames, values, border, x);
+        }
+    }
+}
+
 /// A minibatch of transitions `(s, a, r, s', done)`, laid out for the network.
 pub struct Batch {
     /// `[B, H, W, C]`, normalised network inputs (inside `border`, if any).
@@ -497,6 +511,11 @@ pub struct Batch {
     /// ([`input_border`]), so that conv1 reads the states in place (it would otherwise copy each
     /// batch into a padded buffer, about 11 MB of memory traffic per train step at batch 48).
     pub border: Border,
+    /// Whether the states keep their values rounded to bf16 as well
+    /// ([`Tensor::write_with_bf16`]), for a learner whose products run in bf16: conv1 then
+    /// reads them in each of the train step's forward passes instead of rounding 5.4 MB of
+    /// states (at batch 48) in each. Off for a new batch; the agent sets it.
+    pub keep_bf16: bool,
 }
 
 impl Batch {
@@ -529,6 +548,7 @@ impl Batch {
             taus: Vec::new(),
             target_taus: Vec::new(),
             border,
+            keep_bf16: false,
         }
     }
 
@@ -545,7 +565,10 @@ impl Batch {
             }
             let [h, w, c] = input;
             b.border.zero(states.data_mut(), config.batch_size, h, w, c);
+            // As an agent's batch in bf16 keeps them (f32 products ignore them).
+            states.keep_bf16();
         }
+        b.keep_bf16 = true;
         for i in 0..b.len() {
             b.actions[i] = rng.random_range(0..6);
             b.rewards[i] = rng.random_range(0.0..1.0);

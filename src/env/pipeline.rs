@@ -188,11 +188,13 @@ pub fn write_stacked_input(frames: &[&[u8]], table: &[f32; 256], out: &mut [f32]
 /// `[top + 88 + bottom, left + 80 + right, k]`, and only the interior is written (the border
 /// places keep what they hold, zeros for a fresh buffer). With the network's first padding as
 /// the border ([`crate::dqn::input_border`]) the first convolution reads the input in place.
+/// The values may be of any type the table holds: f32, or their bf16 roundings (a replay memory
+/// writing a batch's states both ways, [`crate::tensor::Tensor::write_with_bf16`]).
 ///
 /// # Panics
 /// If a frame is not 88 x 80 or `out` has the wrong length.
-pub fn write_stacked_input_bordered(
-    frames: &[&[u8]], table: &[f32; 256], border: Border, out: &mut [f32],
+pub fn write_stacked_input_bordered<V: Copy>(
+    frames: &[&[u8]], table: &[V; 256], border: Border, out: &mut [V],
 ) {
     let k = frames.len();
     assert!(

@@ -53,11 +53,19 @@ use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};
 /// The buffer never shrinks: its first `len` values are the tensor, and a tensor that goes from
 /// batch 48 to batch 1 and back (acting, then training, with the same network) neither
 /// reallocates nor refills.
+///
+/// An f32 tensor may also keep its values rounded to bf16, written by whoever wrote the values
+/// ([`Tensor::write_with_bf16`]): a product in bf16 then reads them ([`Tensor::bf16`]) instead of
+/// rounding the values again, once per pass that reads them (a train step reads each batch of
+/// states in two or three forward passes). Every other mutable access drops them.
 #[derive(Clone, Debug)]
 pub struct Tensor<T> {
     shape: Vec<usize>,
     data: Vec<T>,
     len: usize,
+    /// `bf16[i] = to_bf16(data[i])` for `i < len` while `bf16_kept`; a buffer reused like `data`.
+    bf16: Vec<u16>,
+    bf16_kept: bool,
 }
 
 impl<T: PartialEq> PartialEq for Tensor<T> {
@@ -74,6 +82,8 @@ impl<T: Float> Tensor<T> {
             shape: shape.to_vec(),
             data: vec![T::zero(); len],
             len,
+            bf16: Vec::new(),
+            bf16_kept: false,
         }
     }
 
@@ -83,6 +93,8 @@ impl<T: Float> Tensor<T> {
             shape: vec![0],
             data: Vec::new(),
             len: 0,
+            bf16: Vec::new(),
+            bf16_kept: false,
         }
     }
 
@@ -99,12 +111,15 @@ impl<T: Float> Tensor<T> {
             shape: shape.to_vec(),
             len: data.len(),
             data,
+            bf16: Vec::new(),
+            bf16_kept: false,
         }
     }
 
     /// Changes the shape, growing the buffer only if needed. The contents are unspecified
     /// afterwards (old values, or zeros where the buffer grew); callers overwrite them.
     pub fn set_shape(&mut self, shape: &[usize]) {
+        self.bf16_kept = false;
         if self.shape != shape {
             self.shape.clear();
             self.shape.extend_from_slice(shape);
@@ -142,7 +157,14 @@ impl<T: Float> Tensor<T> {
 
     /// The elements in row-major order, mutably.
     pub fn data_mut(&mut self) -> &mut [T] {
+        self.bf16_kept = false;
         &mut self.data[..self.len]
+    }
+
+    /// The values rounded to bf16 (to nearest even), if whoever wrote the values kept them
+    /// ([`Tensor::write_with_bf16`]); `None` otherwise.
+    pub fn bf16(&self) -> Option<&[u16]> {
+        self.bf16_kept.then(|| &self.bf16[..self.len])
     }
 
     /// An ndarray view.
@@ -152,6 +174,7 @@ impl<T: Float> Tensor<T> {
 
     /// A mutable ndarray view.
     pub fn view_mut(&mut self) -> ArrayViewMutD<'_, T> {
+        self.bf16_kept = false;
         let len = self.len;
         ArrayViewMutD::from_shape(IxDyn(&self.shape), &mut self.data[..len])
             .expect("shape matches data")
@@ -166,5 +189,31 @@ impl<T: Float> Tensor<T> {
     pub fn copy_from(&mut self, other: &Tensor<T>) {
         self.set_shape(&other.shape);
         self.data_mut().copy_from_slice(other.data());
+    }
+}
+
+impl Tensor<f32> {
+    /// Writes values and keeps them rounded to bf16 as well: `write(values, rounded)` changes
+    /// any values it likes and sets `rounded[i] = bf16::to_bf16(values[i])` for each `i` it
+    /// changes (a table of both, say, for values drawn from 256 bytes). Before it runs, `rounded`
+    /// already holds the rounding of every value (of the values as they are, rounded here
+    /// where they were not kept), so places it leaves alone stay right. [`Tensor::bf16`] gives
+    /// them until the next other mutable access.
+    pub fn write_with_bf16(&mut self, write: impl FnOnce(&mut [f32], &mut [u16])) {
+        let len = self.len;
+        if self.bf16.len() < len {
+            self.bf16.resize(len, 0);
+        }
+        if !self.bf16_kept {
+            gather_bf16::round_into(&self.data[..len], &mut self.bf16[..len]);
+        }
+        write(&mut self.data[..len], &mut self.bf16[..len]);
+        self.bf16_kept = true;
+    }
+
+    /// Rounds the values to bf16 now and keeps the rounding ([`Tensor::write_with_bf16`]
+    /// writing nothing).
+    pub fn keep_bf16(&mut self) {
+        self.write_with_bf16(|_, _| {});
     }
 }

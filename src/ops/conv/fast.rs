@@ -173,7 +173,9 @@ impl<T: Float> ConvOps<T> {
     }
 
     /// `Z = b + x·W` in bf16 ([`Kernel::GatherBf16`]): pairs of patch values (a pixel's
-    /// channels, next to each other) against pairs of filter rows.
+    /// channels, next to each other) against pairs of filter rows. The input in bf16 is the
+    /// one `x` keeps ([`Tensor::bf16`]: a batch of states) where the layer reads it in place,
+    /// else rounded here.
     pub(super) fn forward_bf16(
         &mut self, s: &ConvSpec, x: &Tensor<T>, w: &[T], b: &[T], y: &mut Tensor<T>,
     ) {
@@ -185,11 +187,20 @@ impl<T: Float> ConvOps<T> {
             "{}: patch pairs",
             self.name
         );
-        to_bf16_vec(f32s(input(&g, x, &f.xpad)), &mut f.bf_x);
-        f.bf_x_of = Some((x.data().as_ptr() as usize, x.len()));
+        let a = match x.bf16().filter(|_| g.reads_input_directly()) {
+            Some(kept) => {
+                f.bf_x_of = None;
+                kept
+            }
+            None => {
+                to_bf16_vec(f32s(input(&g, x, &f.xpad)), &mut f.bf_x);
+                f.bf_x_of = Some((x.data().as_ptr() as usize, x.len()));
+                &f.bf_x[..]
+            }
+        };
         pack_pairs(f32s(w), g.patch_len(), g.cout, g.cout, &mut f.bf_w);
         let (y, b) = (f32s_mut(y.data_mut()), Init::Bias(f32s(b)));
-        let z = GatherGemmBf16::new(&f.bf_x, &f.pixels, &f.bf_q, &f.bf_w, g.cout, y, b);
+        let z = GatherGemmBf16::new(a, &f.pixels, &f.bf_q, &f.bf_w, g.cout, y, b);
         let c_rows = bordered_rows(s, x.batch(), &mut self.out_rows);
         gather_gemm_bf16(GatherGemmBf16 {
             c_rows,
@@ -249,7 +260,10 @@ impl<T: Float> ConvOps<T> {
         f.bf_p.clear();
         f.bf_p.extend(f.patch.iter().map(|&k| 2 * k));
         let rounded = Some((x.data().as_ptr() as usize, x.len()));
-        if forward == Kernel::GatherBf16 && f.bf_x_of == rounded {
+        if let Some(kept) = x.bf16().filter(|_| g.reads_input_directly()) {
+            // The input keeps its rounding (a batch of states): pair that.
+            pair_shifted(kept, d, &mut f.bf_xs);
+        } else if forward == Kernel::GatherBf16 && f.bf_x_of == rounded {
             // The forward pass rounded this input already: pair it as it is.
             assert_eq!(f.bf_x.len(), a.len(), "{}: bf16 input", self.name);
             pair_shifted(&f.bf_x, d, &mut f.bf_xs);
