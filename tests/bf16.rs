@@ -589,6 +589,58 @@ fn a_tensor_keeps_its_bf16_roundings_until_it_changes() {
     assert_eq!(t.bf16(), Some(&before[..]));
 }
 
+/// A dense layer in bf16 packs its weights into pairs once and reuses them until they change:
+/// every change made through `params_mut` (a whole new set, one weight edited in place) is seen
+/// by the next forward pass, which gives the bits of a fresh layer holding the new weights.
+/// (Where the CPU runs no bf16 the f32 kernel runs, which packs nothing, and this holds too.)
+#[test]
+fn a_dense_layers_packed_weights_follow_its_weights() {
+    let (ni, no, n) = (64, 32, 5);
+    let mut r = rng(23);
+    let x = uniform::<f32>(&[n, ni], &mut r);
+    let fresh = |w: &Tensor<f32>, b: &Tensor<f32>| {
+        let mut layer = Dense::<f32>::new("d", ni, no);
+        layer.set_precision(Precision::Bf16);
+        set_params(&mut layer, &[w, b]);
+        layer.forward(&x);
+        layer.output().data().to_vec()
+    };
+    let mut layer = Dense::<f32>::new("d", ni, no);
+    layer.set_precision(Precision::Bf16);
+    let (w1, b) = (
+        uniform::<f32>(&[ni, no], &mut r),
+        uniform::<f32>(&[no], &mut r),
+    );
+    set_params(&mut layer, &[&w1, &b]);
+    layer.forward(&x);
+    let y1 = layer.output().data().to_vec();
+    assert_eq!(y1, fresh(&w1, &b), "the first pass");
+    layer.forward(&x);
+    assert_eq!(layer.output().data(), &y1[..], "the same weights again");
+    if bf16_expected() {
+        assert_eq!(plan::last(Product::DenseForward), Some(Kernel::GatherBf16));
+    }
+
+    // New weights, all of them.
+    let w2 = uniform::<f32>(&[ni, no], &mut r);
+    set_params(&mut layer, &[&w2, &b]);
+    layer.forward(&x);
+    let y2 = layer.output().data().to_vec();
+    assert_ne!(y2, y1, "new weights, new outputs");
+    assert_eq!(y2, fresh(&w2, &b), "a new set of weights");
+
+    // One weight edited in place: row 7, column 3 (only output column 3 changes).
+    let mut w3 = w2.clone();
+    w3.data_mut()[7 * no + 3] += 4.0;
+    layer.params_mut()[0].value.data_mut()[7 * no + 3] += 4.0;
+    layer.forward(&x);
+    let y3 = layer.output().data().to_vec();
+    assert_eq!(y3, fresh(&w3, &b), "one weight edited");
+    for (i, (a, b)) in y3.iter().zip(&y2).enumerate() {
+        assert_eq!(a != b, i % no == 3, "output {i}: only column 3 changes");
+    }
+}
+
 /// The layers in bf16 give the same bits on 1, 2 and 3 threads: a convolution reading its input
 /// in place (so all three products run in bf16, the input gradient by phases) and a dense layer
 /// with an odd batch.

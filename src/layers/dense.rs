@@ -15,8 +15,9 @@ pub struct Dense<T> {
     core: Core<T>,
     n_in: usize,
     n_out: usize,
-    /// `[weight [In, Out], bias [Out]]` with their gradients.
-    pub params: [Param<T>; 2],
+    /// `[weight [In, Out], bias [Out]]` with their gradients. Private: the weights change only
+    /// through [`Layer::params_mut`], which tells the kernels ([`DenseOps::weights_changed`]).
+    params: [Param<T>; 2],
     /// Whether acting may take the sum over the input's nonzeros ([`Dense::with_sparse_inference`]).
     sparse: bool,
     /// The training products' arithmetic ([`Layer::set_precision`]).
@@ -132,7 +133,10 @@ impl<T: Float> Layer<T> for Dense<T> {
         &self.params
     }
 
+    /// The parameters to change: the bf16 kernels' packed copy of the weights is dropped
+    /// ([`DenseOps::weights_changed`]), since the caller may change them.
     fn params_mut(&mut self) -> &mut [Param<T>] {
+        self.ops.weights_changed();
         &mut self.params
     }
 
