@@ -16,10 +16,12 @@
 # (in f32: bf16 needs AVX512-BF16),
 # the frameworks under ONEDNN_MAX_CPU_ISA=AVX2 (TensorFlow and PyTorch) and
 # ATEN_CPU_CAPABILITY=avx2 (PyTorch's own kernels), and the peak of 256-bit FMAs.
+# BIN times another build of ours (say, the one before a change, copied aside); PRECISIONS
+# names ours to run (default "f32 bf16 auto"); NO_AMX=0 leaves out the run under INVADERS_NO_AMX.
 set -u
 ROUNDS=${1:-3}
 OUT=${2:-bench-series.log}
-BIN=target/release/invaders
+BIN=${BIN:-target/release/invaders}
 PY=${PY:-python3}
 B=${BENCH:-../shared/bench}
 ISA=${ISA:-native}
@@ -31,7 +33,7 @@ if [ "$ISA" = avx2 ]; then
 fi
 {
   date
-  echo "binary: $(git rev-parse --short HEAD 2>/dev/null)"
+  echo "binary: $BIN, $(git rev-parse --short HEAD 2>/dev/null)"
   echo "ISA=$ISA"
   lscpu | grep -E "Model name|^CPU\(s\)|Thread|CPU family|^Model:"
   grep -o -w -E "avx2|avx512f|avx512_bf16|amx_tile|amx_bf16" /proc/cpuinfo | sort -u | tr '\n' ' '
@@ -47,12 +49,12 @@ fi
 for r in $(seq 1 "$ROUNDS"); do
   for t in 1 2; do
     # Under ISA=avx2 ours has no bf16 kernels (they need AVX512-BF16): f32 only.
-    precisions="f32 bf16 auto"
+    precisions=${PRECISIONS:-f32 bf16 auto}
     [ "$ISA" = avx2 ] && precisions=f32
     for p in $precisions; do
       echo "round $r ours-$p threads=$t $(env "${OURS_ENV[@]}" $BIN bench --json --threads "$t" --precision $p --steps 30 ${CKPT:+--checkpoint "$CKPT"} 2>/dev/null)" >> "$OUT"
     done
-    if [ "$ISA" != avx2 ] && grep -q -w amx_bf16 /proc/cpuinfo; then
+    if [ "$ISA" != avx2 ] && [ "${NO_AMX:-1}" != 0 ] && grep -q -w amx_bf16 /proc/cpuinfo; then
       echo "round $r ours-bf16-noamx threads=$t $(INVADERS_NO_AMX=1 $BIN bench --json --threads "$t" --precision bf16 --steps 30 ${CKPT:+--checkpoint "$CKPT"} 2>/dev/null)" >> "$OUT"
     fi
     for script in ${SCRIPTS:-tf_step tf_step_bf16 torch_step torch_step_bf16}; do
