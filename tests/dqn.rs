@@ -405,18 +405,24 @@ fn replay_sums_n_step_returns_within_episodes() {
     assert_eq!(seen.len(), 10, "every sampleable entry drawn: {seen:?}");
 }
 
-/// The agent's batches are written inside conv1's padding (a zero border), which conv1 reads in
-/// place: the states are the plain batch's inside zeros, and a train step on them is
-/// bit-identical to one on the plain batch.
-#[test]
-fn padded_batches_train_exactly_like_plain_ones() {
+/// A replay memory of 40 patterned frames (a terminal every 13 steps) and a table that maps
+/// bytes into [−0.5, 0.5]: batches to sample for the batch-layout tests below.
+fn patterned_replay() -> (Replay, [f32; 256]) {
     let mut replay = Replay::new(64, 4);
     replay.push_start(&frame(0));
     for i in 1..40u8 {
         let f: Vec<u8> = (0..FRAME_LEN).map(|p| (p as u8).wrapping_mul(i)).collect();
         replay.push_step(i as usize % 6, i as f32, i % 13 == 0, &f);
     }
-    let table: [f32; 256] = std::array::from_fn(|i| i as f32 / 255.0 - 0.5);
+    (replay, std::array::from_fn(|i| i as f32 / 255.0 - 0.5))
+}
+
+/// The agent's batches are written inside conv1's padding (a zero border), which conv1 reads in
+/// place: the states are the plain batch's inside zeros, and a train step on them is
+/// bit-identical to one on the plain batch.
+#[test]
+fn padded_batches_train_exactly_like_plain_ones() {
+    let (mut replay, table) = patterned_replay();
     let border = input_border([88, 80, 4], Padding::Same);
     assert_eq!(
         (border.top, border.bottom, border.left, border.right),
@@ -461,19 +467,13 @@ fn padded_batches_train_exactly_like_plain_ones() {
     }
 }
 
-/// A batch that keeps its states' bf16 roundings (`Batch::keep_bf16`, as an agent in bf16 asks)
+/// A batch that keeps its states' bf16 roundings (its `keep_bf16`, as an agent in bf16 asks)
 /// gets the same values from the replay memory, and beside them, border included, exactly their
 /// roundings; in bf16 a train step on it gives the bits of one on a batch that keeps none (conv1
 /// reads the kept roundings instead of rounding the states itself).
 #[test]
 fn batches_keep_their_states_rounded_to_bf16_when_asked() {
-    let mut replay = Replay::new(64, 4);
-    replay.push_start(&frame(0));
-    for i in 1..40u8 {
-        let f: Vec<u8> = (0..FRAME_LEN).map(|p| (p as u8).wrapping_mul(i)).collect();
-        replay.push_step(i as usize % 6, i as f32, i % 13 == 0, &f);
-    }
-    let table: [f32; 256] = std::array::from_fn(|i| i as f32 / 255.0 - 0.5);
+    let (mut replay, table) = patterned_replay();
     let (mut plain, mut kept) = (
         Batch::padded(8, [88, 80, 4], Padding::Same),
         Batch::padded(8, [88, 80, 4], Padding::Same),
