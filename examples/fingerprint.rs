@@ -180,6 +180,48 @@ fn train(threads: usize, precision: Precision) {
     }
 }
 
+/// `strong` with M-IQN's head (32 fractions, Munchausen targets; `docs/strong/levers/m-iqn.toml`)
+/// in `precision`: four train steps on random batches with their fractions drawn, then acting
+/// (the `K` policy midpoints) on a few of their states.
+fn train_iqn(threads: usize, precision: Precision) {
+    let text = format!(
+        "precision = \"{}\"\niqn_samples = 32\niqn_target_samples = 32\n\
+         iqn_policy_samples = 32\nmunchausen_alpha = 0.9\n",
+        if precision == Precision::Bf16 {
+            "bf16"
+        } else {
+            "f32"
+        }
+    );
+    let config =
+        invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), Some(&text)).unwrap();
+    let iqn = config.iqn().unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(25);
+    let mut learner = Learner::from_config(&config, 6, &mut rng);
+    let head = invaders::dqn::Head::of(&config);
+    for step in 0..4 {
+        let mut batch = Batch::random(&config, &mut rng);
+        batch.draw_fractions(&mut rng, iqn.samples, iqn.target_samples);
+        let s = learner.train_step(&batch);
+        let [h, w, c] = config.input_shape();
+        let actions: Vec<usize> = (0..3)
+            .map(|_| {
+                let x = input::<f32>(&[1, h, w, c], true, &mut rng);
+                head.greedy(&mut learner.online, &x, 6)
+            })
+            .collect();
+        println!(
+            "m-iqn {precision:?} t={threads} step {step}: loss {:08x} maxq {:08x} norm {:08x} \
+             params {:016x} targets {:016x} acts {actions:?}",
+            s.loss.to_bits(),
+            s.mean_max_q.to_bits(),
+            s.grad_norm.to_bits(),
+            params_hash(&learner.online),
+            hash(learner.targets())
+        );
+    }
+}
+
 fn main() {
     for threads in [1, 2] {
         let pool = rayon::ThreadPoolBuilder::new()
@@ -192,6 +234,7 @@ fn main() {
                 passes::<f32>(&tag, [88, 80, 4], &[1, 4, 8, 48], precision);
                 passes::<f32>(&format!("{tag} c1"), [88, 80, 1], &[1, 8], precision);
                 train(threads, precision);
+                train_iqn(threads, precision);
             }
             passes::<f64>(
                 &format!("f64 t={threads}"),

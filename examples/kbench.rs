@@ -7,6 +7,8 @@
 //! `invaders bench` times it (game frames from random play, an article network after `bench`'s
 //! 33 train steps, `Sequential::infer` and the argmax), for profiling under `perf`;
 //! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders);
+//! `-- layers strong 1000 [FILE]` for each layer of `strong`'s network (or a configuration's
+//! on it) at the train step's batch, an implicit quantile head's layers at their `B·N` rows;
 //! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input); a layer's
 //! batch and then `bf16` after the count time its bf16 products (`-- conv1p wgrad 300 48 bf16`).
 
@@ -109,6 +111,57 @@ fn run() {
             times[0],
             times[iters / 2],
             config.batch_size
+        );
+        return;
+    }
+    if what == "layers" && op == "strong" {
+        // Each layer of `strong`'s network (or a configuration's on it: `-- layers strong 100
+        // FILE`) at the train step's batch, with an implicit quantile head's `N` fractions per
+        // state: CPU time per call of forward, infer, the weight gradient alone, and dX.
+        let text = args.get(4).map(|p| std::fs::read_to_string(p).unwrap());
+        let config =
+            invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), text.as_deref())
+                .unwrap();
+        let mut learner = Learner::from_config(&config, 6, &mut rng);
+        let mut batch = Batch::random(&config, &mut rng);
+        if let Some(iqn) = config.iqn() {
+            batch.draw_fractions(&mut rng, iqn.samples, iqn.target_samples);
+            learner.online.set_fractions(&batch.taus);
+        }
+        let net = &mut learner.online;
+        net.forward(&batch.states);
+        let mut inputs = vec![batch.states.clone()];
+        for l in net.layers().iter() {
+            inputs.push(l.output().clone());
+        }
+        let mut total = [0.0; 4];
+        for (i, l) in net.layers_mut().iter_mut().enumerate() {
+            let dy = random(inputs[i + 1].shape(), &mut rng);
+            let time = |f: &mut dyn FnMut()| {
+                let t = cpu_seconds();
+                for _ in 0..iters {
+                    f();
+                }
+                (cpu_seconds() - t) * 1e3 / iters as f64
+            };
+            let fwd = time(&mut || l.forward(&inputs[i]));
+            let inf = time(&mut || l.infer(&inputs[i]));
+            let wg = time(&mut || l.backward(&inputs[i], &dy, false));
+            let both = time(&mut || l.backward(&inputs[i], &dy, true));
+            for (t, v) in total.iter_mut().zip([fwd, inf, wg, both - wg]) {
+                *t += v;
+            }
+            println!(
+                "{:10} rows {:5}  fwd {fwd:.3}  infer {inf:.3}  wgrad {wg:.3}  dx {:.3} ms",
+                l.name(),
+                inputs[i].batch(),
+                both - wg
+            );
+        }
+        let [fwd, inf, wg, dx] = total;
+        println!(
+            "{:10} {:10}  fwd {fwd:.3}  infer {inf:.3}  wgrad {wg:.3}  dx {dx:.3} ms",
+            "all", ""
         );
         return;
     }

@@ -181,16 +181,23 @@ proptest! {
     }
 
     /// The cosine embedding of quantile fractions (IQN): `B` samples of `F` features, `N`
-    /// fractions each, `E` cosines. Parameters whose ReLU input lies within 1e-3 of its kink
-    /// are redrawn (the finite difference straddles the kink there).
+    /// fractions each, `E` cosines; with `repeat`, every sample has the first one's fractions
+    /// (as a pass's policy midpoints are), which the layer computes once. Parameters whose ReLU
+    /// input lies within 1e-3 of its kink are redrawn (the finite difference straddles the kink
+    /// there).
     #[test]
     fn quantile_embedding_gradients(
-        e in 1usize..6, f in 1usize..8, b in 1usize..=3, n in 1usize..=4, seed in any::<u64>(),
+        e in 1usize..6, f in 1usize..8, b in 1usize..=3, n in 1usize..=4, repeat in any::<bool>(),
+        seed in any::<u64>(),
     ) {
         let mut layer = QuantileEmbedding::<f64>::new("iqn", e, f);
         randomise(&mut layer, seed);
         let mut r = rng(seed ^ 1);
-        let taus: Vec<f64> = uniform::<f64>(&[b * n], &mut r).data().iter().map(|v| 0.5 + 0.5 * v).collect();
+        let mut taus: Vec<f64> = uniform::<f64>(&[b * n], &mut r).data().iter().map(|v| 0.5 + 0.5 * v).collect();
+        if repeat {
+            let first = taus[..n].to_vec();
+            taus = (0..b).flat_map(|_| first.iter().copied()).collect();
+        }
         let (w, bias) = (layer.params()[0].value.clone(), layer.params()[1].value.clone());
         for &t in &taus {
             for j in 0..f {
