@@ -497,14 +497,19 @@ fn article_convolutions_in_bf16_match_the_exact_products() {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(common::cases(32)))]
 
-    /// A dense layer in bf16 (even and odd widths and batches): `y`, `dW` and `dX` against the
-    /// exact products, to the derived bound.
+    /// A dense layer in bf16 (even and odd widths and batches; with and without its fused
+    /// ReLU; batches whose input gradient runs on `W` in place and on `Wᵀ`): `y`, `dW` and `dX`
+    /// against the exact products, to the derived bound.
     #[test]
     fn dense_in_bf16_matches_the_exact_products(
-        ni in 1usize..200, no in 1usize..80, n in 1usize..9, seed in any::<u64>()
+        ni in 1usize..200, no in 1usize..80, n in 1usize..40, relu in any::<bool>(),
+        seed in any::<u64>()
     ) {
         let mut r = rng(seed);
         let mut layer = Dense::<f32>::new("d", ni, no);
+        if relu {
+            layer = layer.with_relu();
+        }
         layer.set_precision(Precision::Bf16);
         let wt = uniform::<f32>(&[ni, no], &mut r);
         let bt = uniform::<f32>(&[no], &mut r);
@@ -512,7 +517,15 @@ proptest! {
         let x = uniform::<f32>(&[n, ni], &mut r);
         let dy = uniform::<f32>(&[n, no], &mut r);
         layer.forward(&x);
+        let y_layer = layer.output().data().to_vec();
         layer.backward(&x, &dy, true);
+        // With a ReLU, `dY` where the layer's output is positive (the mask it applied).
+        let dy = if relu {
+            let masked = dy.data().iter().zip(&y_layer).map(|(&g, &y)| if y > 0.0 { g } else { 0.0 });
+            Tensor::from_vec(&[n, no], masked.collect())
+        } else {
+            dy
+        };
         let even = ni.is_multiple_of(2) && no.is_multiple_of(2);
         let want = if bf16_expected() && even { Some(Kernel::GatherBf16) } else { plan::last(Product::DenseForward).filter(|&k| k != Kernel::GatherBf16) };
         prop_assert_eq!(plan::last(Product::DenseForward), want);
@@ -536,7 +549,8 @@ proptest! {
                     dx[s * ni + i] += d;
                     dxa[s * ni + i] += d.abs();
                 }
-                y[s * no + j] = t;
+                // A ReLU moves a value no farther from the exact one's ReLU.
+                y[s * no + j] = if relu { t.max(0.0) } else { t };
                 ya[s * no + j] = ta;
             }
         }

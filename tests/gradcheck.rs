@@ -81,10 +81,12 @@ proptest! {
         check_layer(&mut layer, &x, &dy, 400, seed).map_err(TestCaseError::fail)?;
     }
 
+    /// A dense layer, with or without its fused ReLU ([`Dense::with_relu`]; cases with a
+    /// pre-activation within 1e-3 of the kink are redrawn).
     #[test]
     fn dense_gradients(
         n_in in 1usize..40, n_out in 1usize..12, n in 1usize..=4, image in any::<bool>(),
-        seed in any::<u64>(),
+        relu in any::<bool>(), seed in any::<u64>(),
     ) {
         let mut layer = Dense::<f64>::new("dense", n_in, n_out);
         randomise(&mut layer, seed);
@@ -92,6 +94,11 @@ proptest! {
         // A flat input, or the same values as `[N, 1, In, 1]` (read in place, no flatten).
         let shape = if image { vec![n, 1, n_in, 1] } else { vec![n, n_in] };
         let x = uniform(&shape, &mut r);
+        if relu {
+            layer.forward(&x);
+            prop_assume!(layer.output().data().iter().all(|z| z.abs() > 1e-3));
+            layer = layer.with_relu();
+        }
         let dy = uniform(&[n, n_out], &mut r);
         check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
     }

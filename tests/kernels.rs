@@ -12,7 +12,7 @@ use common::{
     gamma, on_path, padded_input, reference_dz, reference_forward, reference_grads,
     reference_output, rng, same_on_1_2_3_threads, set_params, uniform, Square,
 };
-use invaders::layers::{Conv2d, Layer};
+use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::cpu::Family;
 use invaders::tensor::{
@@ -159,6 +159,53 @@ proptest! {
         let fast = run(false);
         assert_close("C", &fast, &slow, 1e-5)?;
         prop_assert_eq!(fast, run(true));
+    }
+
+    /// The `Dense` layer in f32 (the gather GEMM where the CPU has it), with and without its
+    /// fused ReLU, against the plain products in f64: `y`, `dW`, `db` and `dX`, for batches
+    /// whose input gradient runs on `W` in place and on `Wᵀ` ([`plan::dense_dx_on_wt`]).
+    #[test]
+    fn dense_matches_reference(
+        ni in 1usize..150, no in 1usize..40, n in 1usize..70, relu in any::<bool>(),
+        seed in any::<u64>(),
+    ) {
+        let mut r = rng(seed);
+        let mut layer = Dense::<f32>::new("d", ni, no);
+        if relu {
+            layer = layer.with_relu();
+        }
+        let (w, b) = (uniform::<f32>(&[ni, no], &mut r), uniform::<f32>(&[no], &mut r));
+        set_params(&mut layer, &[&w, &b]);
+        let x = uniform::<f32>(&[n, ni], &mut r);
+        let dy = uniform::<f32>(&[n, no], &mut r);
+        layer.forward(&x);
+        let y = layer.output().data().to_vec();
+        layer.backward(&x, &dy, true);
+        let f = |v: f32| f64::from(v);
+        let (mut y_ref, mut dz) = (vec![0.0f64; n * no], vec![0.0f64; n * no]);
+        for s in 0..n {
+            for j in 0..no {
+                let z = f(b.data()[j])
+                    + (0..ni).map(|i| f(x.data()[s * ni + i]) * f(w.data()[i * no + j])).sum::<f64>();
+                y_ref[s * no + j] = if relu { z.max(0.0) } else { z };
+                // The mask as the layer stored it (a value within rounding of 0 may fall
+                // either side).
+                let on = !relu || y[s * no + j] > 0.0;
+                dz[s * no + j] = if on { f(dy.data()[s * no + j]) } else { 0.0 };
+            }
+        }
+        let dw_ref: Vec<f64> = (0..ni * no)
+            .map(|k| (0..n).map(|s| f(x.data()[s * ni + k / no]) * dz[s * no + k % no]).sum())
+            .collect();
+        let db_ref: Vec<f64> = (0..no).map(|j| (0..n).map(|s| dz[s * no + j]).sum()).collect();
+        let dx_ref: Vec<f64> = (0..n * ni)
+            .map(|k| (0..no).map(|j| dz[k / ni * no + j] * f(w.data()[k % ni * no + j])).sum())
+            .collect();
+        let f64s = |v: &[f32]| v.iter().map(|&v| f64::from(v)).collect::<Vec<f64>>();
+        assert_close("y", &f64s(&y), &y_ref, 1e-5)?;
+        assert_close("dW", &f64s(layer.params()[0].grad.data()), &dw_ref, 1e-5)?;
+        assert_close("db", &f64s(layer.params()[1].grad.data()), &db_ref, 1e-5)?;
+        assert_close("dX", &f64s(layer.input_grad().data()), &dx_ref, 1e-5)?;
     }
 
     /// The `Conv2d` layer (im2col + GEMM, col2im) against the direct convolution and its direct

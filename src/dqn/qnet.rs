@@ -226,8 +226,8 @@ pub fn qnet<T: Float>(
     }) = iqn
     {
         net.push(QuantileEmbedding::new("iqn", embedding, hidden));
-        net.push(Dense::new("dense_tau", hidden, hidden));
-        net.push(Relu::new("relu_tau", &[hidden]));
+        // Its ReLU stored by the products (1 024 rows and more per pass: no pass of its own).
+        net.push(Dense::new("dense_tau", hidden, hidden).with_relu());
     }
     if dueling {
         net.push(Dense::new("dense2", hidden, (1 + n_actions) * atoms));

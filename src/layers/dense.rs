@@ -20,6 +20,10 @@ pub struct Dense<T> {
     params: [Param<T>; 2],
     /// Whether acting may take the sum over the input's nonzeros ([`Dense::with_sparse_inference`]).
     sparse: bool,
+    /// Whether the output is `max(0, x·W + b)` ([`Dense::with_relu`]).
+    relu: bool,
+    /// `dZ = dY ⊙ [y > 0]` `[N, Out]` of the last backward pass, with a ReLU.
+    dz: Vec<T>,
     /// The training products' arithmetic ([`Layer::set_precision`]).
     precision: Precision,
     /// The products' kernels and their buffers.
@@ -45,6 +49,8 @@ impl<T: Float> Dense<T> {
                 Param::zeros(format!("{name}.bias"), &[n_out]),
             ],
             sparse: false,
+            relu: false,
+            dz: Vec::new(),
             precision: Precision::F32,
             ops: DenseOps::default(),
         }
@@ -57,6 +63,14 @@ impl<T: Float> Dense<T> {
     /// about 96% zeros. Off by default; [`crate::dqn::article_qnet`] turns it on for dense1.
     pub fn with_sparse_inference(mut self, on: bool) -> Self {
         self.sparse = on;
+        self
+    }
+
+    /// Applies a ReLU as the products store the output: `y = max(0, x·W + b)`, the same values as
+    /// a [`super::Relu`] after the layer without its pass and its buffer. Backward then masks
+    /// `dY` by `[y > 0]` (which is `[x·W + b > 0]`) before the three products below.
+    pub fn with_relu(mut self) -> Self {
+        self.relu = true;
         self
     }
 
@@ -86,8 +100,8 @@ impl<T: Float> Layer<T> for Dense<T> {
         self.check_input(x);
         let [w, b] = &self.params;
         let (w, b) = (w.value.data(), b.value.data());
-        self.ops
-            .forward(self.precision, x, w, b, self.core.y.data_mut());
+        let y = self.core.y.data_mut();
+        self.ops.forward(self.precision, x, w, b, y, self.relu);
     }
 
     /// The same `y` for acting: with [`Dense::with_sparse_inference`], the sum over nonzero
@@ -97,13 +111,16 @@ impl<T: Float> Layer<T> for Dense<T> {
         let [w, b] = &self.params;
         let (w, b) = (w.value.data(), b.value.data());
         let y = self.core.y.data_mut();
-        self.ops.infer(self.precision, self.sparse, x, w, b, y);
+        let (precision, sparse, relu) = (self.precision, self.sparse, self.relu);
+        self.ops.infer(precision, sparse, x, w, b, y, relu);
     }
 
     /// Differentiating `y[n, j] = b[j] + Σ_i x[n, i]·W[i, j]`:
     /// - `∂L/∂W[i, j] = Σ_n x[n, i]·dY[n, j]`, i.e. `dW += xᵀ·dY` (`[In, N]·[N, Out]`);
     /// - `∂L/∂b[j] = Σ_n dY[n, j]`, the column sums of `dY`;
     /// - `∂L/∂x[n, i] = Σ_j dY[n, j]·W[i, j]`, i.e. `dX = dY·Wᵀ` (`[N, Out]·[Out, In]`).
+    ///
+    /// With a ReLU ([`Dense::with_relu`]) each of them reads `dZ = dY ⊙ [y > 0]` for `dY`.
     fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         let n = x.batch();
         assert_eq!(
@@ -112,11 +129,20 @@ impl<T: Float> Layer<T> for Dense<T> {
             "{}: upstream gradient",
             self.core.name
         );
+        let dy = if self.relu {
+            self.dz.clear();
+            let y = self.core.y.data();
+            let mask = |(&g, &v): (&T, &T)| if v > T::zero() { g } else { T::zero() };
+            self.dz.extend(dy.data().iter().zip(y).map(mask));
+            &self.dz[..]
+        } else {
+            dy.data()
+        };
         let [w, b] = &mut self.params;
         self.ops
-            .weight_grad(self.precision, x, dy.data(), w.grad.data_mut());
+            .weight_grad(self.precision, x, dy, w.grad.data_mut());
         let db = b.grad.data_mut();
-        for row in dy.data().chunks_exact(self.n_out) {
+        for row in dy.chunks_exact(self.n_out) {
             for (g, &d) in db.iter_mut().zip(row) {
                 *g += d;
             }
@@ -125,7 +151,7 @@ impl<T: Float> Layer<T> for Dense<T> {
             self.core.dx.set_shape(x.shape());
             let dx = self.core.dx.data_mut();
             self.ops
-                .input_grad(self.precision, x, dy.data(), w.value.data(), dx);
+                .input_grad(self.precision, x, dy, w.value.data(), dx);
         }
     }
 

@@ -21,9 +21,11 @@ pub struct DenseOps<T> {
     x_rows: Vec<usize>,
     iota_in: Vec<usize>,
     iota_out: Vec<usize>,
-    /// Input gradient: `dYᵀ` `[Out, N]` and `dXᵀ` `[In, N]`.
+    /// Input gradient: `dYᵀ` `[Out, N]` and `dXᵀ` `[In, N]`, or `Wᵀ` `[Out, In]`
+    /// ([`plan::dense_dx_on_wt`]).
     dyt: Vec<T>,
     dxt: Vec<T>,
+    wt: Vec<T>,
     /// Acting: the input's nonzeros.
     nz: Nonzeros<T>,
     /// The bf16 operands ([`Kernel::GatherBf16`]) and their pair and row tables.
@@ -45,7 +47,8 @@ struct Bf16Operands {
     /// Weight gradient: `x` and `dY` in pairs of samples.
     x_pairs: Vec<u16>,
     dy_pairs: Vec<u16>,
-    /// Input gradient: `W`, and `dYᵀ` in pairs of rows.
+    /// Input gradient: `W`, and `dYᵀ` in pairs of rows; or `Wᵀ` in pairs of rows, and `dY`
+    /// ([`plan::dense_dx_on_wt`]).
     w: Vec<u16>,
     dyt_pairs: Vec<u16>,
 }
@@ -69,8 +72,11 @@ impl<T: Float> DenseOps<T> {
         self.bf.w_pairs_of = None;
     }
 
-    /// `y = b + x·W` into `y` (`[N, Out]`, sized by the caller).
-    pub fn forward(&mut self, precision: Precision, x: &Tensor<T>, w: &[T], b: &[T], y: &mut [T]) {
+    /// `y = b + x·W` into `y` (`[N, Out]`, sized by the caller); `max(0, y)` if `relu` (the
+    /// kernels store it so, no pass of its own).
+    pub fn forward(
+        &mut self, precision: Precision, x: &Tensor<T>, w: &[T], b: &[T], y: &mut [T], relu: bool,
+    ) {
         let ((ni, no), n) = (sizes(w, b), x.batch());
         match plan::ran(Product::DenseForward, plan::dense::<T>(precision, ni, no)) {
             Kernel::Gemm => {
@@ -78,13 +84,18 @@ impl<T: Float> DenseOps<T> {
                     row.copy_from_slice(b);
                 }
                 gemm(Op::N, Op::N, n, no, ni, T::one(), x.data(), w, T::one(), y);
+                if relu {
+                    y.iter_mut().for_each(|v| *v = v.max(T::zero()));
+                }
             }
             Kernel::Gather => {
                 // Rows i·In, steps 0..In, starting from the bias.
                 fill_iota(&mut self.x_rows, n, ni);
                 fill_iota(&mut self.iota_in, ni, 1);
                 let (p, q) = (&self.x_rows, &self.iota_in);
-                T::gather_gemm(GatherGemm::new(x.data(), p, q, w, no, y, Init::Bias(b)));
+                let mut g = GatherGemm::new(x.data(), p, q, w, no, y, Init::Bias(b));
+                g.relu = relu;
+                T::gather_gemm(g);
             }
             Kernel::GatherBf16 => {
                 // Pairs of inputs x[n, 2u..2u + 2] against pairs of weight rows.
@@ -99,7 +110,9 @@ impl<T: Float> DenseOps<T> {
                 }
                 let (p, q, b) = (&self.x_rows, &self.bf_q, Init::Bias(f32s(b)));
                 let (a, w, y) = (&self.bf.x, &self.bf.w_pairs, f32s_mut(y));
-                gather_gemm_bf16(GatherGemmBf16::new(a, p, q, w, no, y, b));
+                let mut g = GatherGemmBf16::new(a, p, q, w, no, y, b);
+                g.relu = relu;
+                gather_gemm_bf16(g);
             }
             k => unreachable!("{k:?} computes no dense product"),
         }
@@ -108,14 +121,16 @@ impl<T: Float> DenseOps<T> {
     /// The same `y` for acting. With `sparse`: `y = b + Σ_{i : x_i ≠ 0} x_i·W[i, :]`, reading
     /// only the weight rows of nonzero inputs, at batch 1 always, for a batch if at most a tenth
     /// of the inputs are nonzero ([`plan::dense_sparse_share`]); otherwise
-    /// [`DenseOps::forward`].
+    /// [`DenseOps::forward`]; `max(0, y)` if `relu`.
+    #[allow(clippy::too_many_arguments)]
     pub fn infer(
-        &mut self, precision: Precision, sparse: bool, x: &Tensor<T>, w: &[T], b: &[T], y: &mut [T],
+        &mut self, precision: Precision, sparse: bool, x: &Tensor<T>, w: &[T], b: &[T],
+        y: &mut [T], relu: bool,
     ) {
         let ((ni, no), n) = (sizes(w, b), x.batch());
         let share = plan::dense_sparse_share(n);
         if !sparse || !self.nz.collect_sparse(x.data(), ni, ni, share) {
-            self.forward(precision, x, w, b, y);
+            self.forward(precision, x, w, b, y, relu);
             plan::ran(Product::DenseInfer, plan::dense::<T>(precision, ni, no));
             return;
         }
@@ -129,7 +144,7 @@ impl<T: Float> DenseOps<T> {
             taps: &[0],
             w,
             bias: b,
-            relu: false,
+            relu,
             y,
             rows: &self.iota_out,
         }
@@ -197,6 +212,9 @@ impl<T: Float> DenseOps<T> {
             let (one, zero) = (T::one(), T::zero());
             return gemm(Op::N, Op::T, n, ni, no, one, dy, w, zero, dx);
         }
+        if plan::dense_dx_on_wt(n, ni, no) {
+            return self.input_grad_on_wt(kernel, n, ni, no, dy, w, dx);
+        }
         self.dyt.resize(no * n, T::zero());
         transpose(dy, n, no, &mut self.dyt);
         fill_iota(&mut self.x_rows, ni, no);
@@ -221,5 +239,36 @@ impl<T: Float> DenseOps<T> {
         }
         // dX = (dXᵀ)ᵀ.
         transpose(&self.dxt, ni, n, dx);
+    }
+
+    /// `dX = dY·Wᵀ` on `Wᵀ` (`[Out, In]`, transposed here; [`plan::dense_dx_on_wt`]): a
+    /// forward pass of `dY` through `Wᵀ`, rows `n·Out` of `dY`, steps `0..Out` (bf16: pairs of
+    /// outputs, `Wᵀ` packed in pairs of rows).
+    #[allow(clippy::too_many_arguments)]
+    fn input_grad_on_wt(
+        &mut self, kernel: Kernel, n: usize, ni: usize, no: usize, dy: &[T], w: &[T], dx: &mut [T],
+    ) {
+        self.wt.resize(no * ni, T::zero());
+        transpose(w, ni, no, &mut self.wt);
+        let wt = &self.wt;
+        fill_iota(&mut self.x_rows, n, no);
+        match kernel {
+            Kernel::Gather => {
+                // dX[n, i] = Σ_j dY[n, j]·Wᵀ[j, i].
+                fill_iota(&mut self.iota_out, no, 1);
+                let (p, q) = (&self.x_rows, &self.iota_out);
+                T::gather_gemm(GatherGemm::new(dy, p, q, wt, ni, dx, Init::Zero));
+            }
+            Kernel::GatherBf16 => {
+                // dX[n, i] = Σ_u dY[n, 2u..2u + 2]·Wᵀ2[u, i], over pairs of outputs.
+                to_bf16_vec(f32s(dy), &mut self.bf.dyt_pairs);
+                pack_pairs(f32s(wt), no, ni, ni, &mut self.bf.w);
+                fill_iota(&mut self.bf_q, no / 2, 2);
+                let (a, b, dx) = (&self.bf.dyt_pairs, &self.bf.w, f32s_mut(dx));
+                let (p, q) = (&self.x_rows, &self.bf_q);
+                gather_gemm_bf16(GatherGemmBf16::new(a, p, q, b, ni, dx, Init::Zero));
+            }
+            k => unreachable!("{k:?} computes no dense product"),
+        }
     }
 }

@@ -372,6 +372,16 @@ pub fn dense<T: Float>(precision: Precision, n_in: usize, n_out: usize) -> Kerne
     }
 }
 
+/// Whether a dense layer's input gradient `dX = dY·Wᵀ` (`[N, Out]·[Out, In]`) runs on `Wᵀ`
+/// (one transpose of the `In × Out` weights) rather than as `dXᵀ = W·dYᵀ` (reading `W`'s rows
+/// in place, but transposing `dY` and the result, `N × Out` and `N × In` values): the smaller
+/// transpose. dense1 at a batch of 32 (7 040 × 128 weights) reads `W` in place; the layers of
+/// an implicit quantile head at 1 024 rows, and dense2 at any batch, transpose `W`. Each
+/// element of `dX` is the same sum over the outputs in the same order either way.
+pub fn dense_dx_on_wt(n: usize, n_in: usize, n_out: usize) -> bool {
+    n * (n_in + n_out) > n_in * n_out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
