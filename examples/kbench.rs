@@ -7,6 +7,7 @@
 //! `invaders bench` times it (game frames from random play, an article network after `bench`'s
 //! 33 train steps, `Sequential::infer` and the argmax), for profiling under `perf`;
 //! `-- net x 30` for each layer of the article's network as built (fused ReLUs, borders);
+//! `-- act strong 300 [FILE]` for acting as `strong`'s runs act (batch 1, game frames);
 //! `-- layers strong 1000 [FILE]` for each layer of `strong`'s network (or a configuration's
 //! on it) at the train step's batch, an implicit quantile head's layers at their `B·N` rows;
 //! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input); a layer's
@@ -111,6 +112,34 @@ fn run() {
             times[0],
             times[iters / 2],
             config.batch_size
+        );
+        return;
+    }
+    if what == "act" && op == "strong" {
+        // Acting as `strong`'s runs act (or a configuration's on it: `-- act strong 300 FILE`):
+        // the online network after a few train steps, game frames from random play,
+        // `Head::greedy` at batch 1 (an implicit quantile head's `K` policy midpoints).
+        let text = args.get(4).map(|p| std::fs::read_to_string(p).unwrap());
+        let config =
+            invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), text.as_deref())
+                .unwrap();
+        let mut learner = Learner::from_config(&config, 6, &mut rng);
+        let mut batch = Batch::random(&config, &mut rng);
+        for _ in 0..5 {
+            if let Some(iqn) = config.iqn() {
+                batch.draw_fractions(&mut rng, iqn.samples, iqn.target_samples);
+            }
+            learner.train_step(&batch);
+        }
+        let frames = invaders::dqn::random_play_inputs(&config, 64, 10, &mut rng).unwrap();
+        let head = invaders::dqn::Head::of(&config);
+        let (times, cpu) = timed(iters, |i| {
+            head.greedy(&mut learner.online, &frames[i % frames.len()], 6);
+        });
+        println!(
+            "act strong: {cpu:.3} ms CPU, min {:.3} median {:.3} per action",
+            times[0],
+            times[iters / 2]
         );
         return;
     }
