@@ -55,6 +55,40 @@ fn timed(iters: usize, mut f: impl FnMut(usize)) -> (Vec<f64>, f64) {
     (times, cpu)
 }
 
+/// `strong`'s configuration, or that of a configuration file on it.
+fn strong_config(file: Option<&String>) -> invaders::dqn::Config {
+    let text = file.map(|p| std::fs::read_to_string(p).unwrap());
+    invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), text.as_deref()).unwrap()
+}
+
+/// Times acting as `invaders bench` does (game frames from random play, `Head::greedy` at batch
+/// 1 by `learner`'s online network) over `iters` actions, and prints it as `what`.
+fn time_acting(
+    what: &str, config: &invaders::dqn::Config, learner: &mut Learner, iters: usize,
+    rng: &mut ChaCha8Rng,
+) {
+    let frames = invaders::dqn::random_play_inputs(config, 64, 10, rng).unwrap();
+    let head = invaders::dqn::Head::of(config);
+    let (times, cpu) = timed(iters, |i| {
+        head.greedy(&mut learner.online, &frames[i % frames.len()], 6);
+    });
+    println!(
+        "{what}: {cpu:.3} ms CPU, min {:.3} median {:.3} per action",
+        times[0],
+        times[iters / 2]
+    );
+}
+
+/// CPU time per call of `f` over `iters` calls, in ms (clock ticks of 10 ms: give enough
+/// iterations), robust to a shared host.
+fn cpu_per_call(iters: usize, f: &mut dyn FnMut()) -> f64 {
+    let t = cpu_seconds();
+    for _ in 0..iters {
+        f();
+    }
+    (cpu_seconds() - t) * 1e3 / iters as f64
+}
+
 fn main() {
     // On a pool worker, as the `invaders` commands run (see `cli::train::in_pool`);
     // RAYON_NUM_THREADS sets the size.
@@ -78,25 +112,13 @@ fn run() {
         for _ in 0..33 {
             learner.train_step(&batch);
         }
-        let frames = invaders::dqn::random_play_inputs(&config, 64, 10, &mut rng).unwrap();
-        let head = invaders::dqn::Head::of(&config);
-        let (times, cpu) = timed(iters, |i| {
-            head.greedy(&mut learner.online, &frames[i % frames.len()], 6);
-        });
-        println!(
-            "step infer: {cpu:.3} ms CPU, min {:.3} median {:.3} per action",
-            times[0],
-            times[iters / 2]
-        );
+        time_acting("step infer", &config, &mut learner, iters, &mut rng);
         return;
     }
     if what == "step" && op == "strong" {
         // `strong`'s train step, or that of a configuration on it (`-- step strong 100 FILE`),
         // on a random batch as `invaders bench --config` times it, fractions drawn per step.
-        let text = args.get(4).map(|p| std::fs::read_to_string(p).unwrap());
-        let config =
-            invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), text.as_deref())
-                .unwrap();
+        let config = strong_config(args.get(4));
         let mut learner = Learner::from_config(&config, 6, &mut rng);
         let mut batch = Batch::random(&config, &mut rng);
         let mut step = |rng: &mut ChaCha8Rng| {
@@ -119,10 +141,7 @@ fn run() {
         // Acting as `strong`'s runs act (or a configuration's on it: `-- act strong 300 FILE`):
         // the online network after a few train steps, game frames from random play,
         // `Head::greedy` at batch 1 (an implicit quantile head's `K` policy midpoints).
-        let text = args.get(4).map(|p| std::fs::read_to_string(p).unwrap());
-        let config =
-            invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), text.as_deref())
-                .unwrap();
+        let config = strong_config(args.get(4));
         let mut learner = Learner::from_config(&config, 6, &mut rng);
         let mut batch = Batch::random(&config, &mut rng);
         for _ in 0..5 {
@@ -131,26 +150,14 @@ fn run() {
             }
             learner.train_step(&batch);
         }
-        let frames = invaders::dqn::random_play_inputs(&config, 64, 10, &mut rng).unwrap();
-        let head = invaders::dqn::Head::of(&config);
-        let (times, cpu) = timed(iters, |i| {
-            head.greedy(&mut learner.online, &frames[i % frames.len()], 6);
-        });
-        println!(
-            "act strong: {cpu:.3} ms CPU, min {:.3} median {:.3} per action",
-            times[0],
-            times[iters / 2]
-        );
+        time_acting("act strong", &config, &mut learner, iters, &mut rng);
         return;
     }
     if what == "layers" && op == "strong" {
         // Each layer of `strong`'s network (or a configuration's on it: `-- layers strong 100
         // FILE`) at the train step's batch, with an implicit quantile head's `N` fractions per
         // state: CPU time per call of forward, infer, the weight gradient alone, and dX.
-        let text = args.get(4).map(|p| std::fs::read_to_string(p).unwrap());
-        let config =
-            invaders::dqn::Config::resolve(Some(invaders::dqn::Preset::Strong), text.as_deref())
-                .unwrap();
+        let config = strong_config(args.get(4));
         let mut learner = Learner::from_config(&config, 6, &mut rng);
         let mut batch = Batch::random(&config, &mut rng);
         if let Some(iqn) = config.iqn() {
@@ -166,13 +173,7 @@ fn run() {
         let mut total = [0.0; 4];
         for (i, l) in net.layers_mut().iter_mut().enumerate() {
             let dy = random(inputs[i + 1].shape(), &mut rng);
-            let time = |f: &mut dyn FnMut()| {
-                let t = cpu_seconds();
-                for _ in 0..iters {
-                    f();
-                }
-                (cpu_seconds() - t) * 1e3 / iters as f64
-            };
+            let time = |f: &mut dyn FnMut()| cpu_per_call(iters, f);
             let fwd = time(&mut || l.forward(&inputs[i]));
             let inf = time(&mut || l.infer(&inputs[i]));
             let wg = time(&mut || l.backward(&inputs[i], &dy, false));
@@ -244,14 +245,7 @@ fn run() {
         for (i, l) in layers.iter_mut().enumerate() {
             let dy = random(inputs[i + 1].shape(), &mut rng);
             let flops = 2.0 * l.macs() as f64 * 48.0;
-            // CPU time (clock ticks of 10 ms: give enough iterations), robust to a shared host.
-            let time = |f: &mut dyn FnMut()| {
-                let t = cpu_seconds();
-                for _ in 0..iters {
-                    f();
-                }
-                (cpu_seconds() - t) * 1e3 / iters as f64
-            };
+            let time = |f: &mut dyn FnMut()| cpu_per_call(iters, f);
             let fwd = time(&mut || l.forward(&inputs[i]));
             let wg = time(&mut || l.backward(&inputs[i], &dy, false));
             let both = time(&mut || l.backward(&inputs[i], &dy, true));
