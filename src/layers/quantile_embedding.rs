@@ -47,6 +47,8 @@ pub struct QuantileEmbedding<T> {
     /// same `K` fractions for every sample, so their cosines and products are computed once.
     distinct: Vec<f64>,
     row_of: Vec<usize>,
+    /// Each distinct fraction's bits and its index (kept between passes: no allocation).
+    first: std::collections::HashMap<u64, usize>,
     /// `[U, E]`: the cosines of the distinct fractions of the last pass.
     cos: Vec<T>,
     /// `[B·N, E]`: the cosines row by row, for the weight gradient (built from `cos` only when
@@ -76,6 +78,7 @@ impl<T: Float> QuantileEmbedding<T> {
             taus: Vec::new(),
             distinct: Vec::new(),
             row_of: Vec::new(),
+            first: std::collections::HashMap::new(),
             cos: Vec::new(),
             cos_rows: Vec::new(),
             pre: Vec::new(),
@@ -105,7 +108,8 @@ impl<T: Float> QuantileEmbedding<T> {
         assert_eq!(b * f, x.len(), "{}: input is not [B, {f}]", self.core.name);
         let n = self.per_sample(b);
         let rows = b * n;
-        let mut first = std::collections::HashMap::with_capacity(self.taus.len());
+        let first = &mut self.first;
+        first.clear();
         self.distinct.clear();
         self.row_of.clear();
         for &tau in &self.taus {
