@@ -142,41 +142,35 @@ impl<T: Float> QuantileEmbedding<T> {
             self.phi.resize(rows * f, T::zero());
         }
         let (pre, row_of) = (&self.pre, &self.row_of);
-        // One `[N, F]` block of φ per sample, or none.
-        let phi_blocks: Vec<Option<&mut [T]>> = if keep {
-            self.phi.chunks_exact_mut(n * f).map(Some).collect()
-        } else {
-            (0..b).map(|_| None).collect()
-        };
-        let y = self.core.y.data_mut();
-        y.par_chunks_mut(n * f)
-            .zip(x.data().par_chunks(f))
-            .zip(phi_blocks)
-            .enumerate()
-            .for_each(|(s, ((y, xs), mut phi))| {
-                for (i, y) in y.chunks_exact_mut(f).enumerate() {
-                    let u = row_of[s * n + i];
-                    let p = &pre[u * f..(u + 1) * f];
-                    match phi.as_mut() {
-                        Some(phi) => {
-                            let phi = &mut phi[i * f..(i + 1) * f];
-                            for ((y, phi), ((&xv, &pv), &bv)) in
-                                y.iter_mut().zip(phi).zip(xs.iter().zip(p).zip(bias))
-                            {
-                                *phi = relu(pv + bv);
-                                *y = xv * *phi;
-                            }
-                        }
-                        None => {
-                            for (y, ((&xv, &pv), &bv)) in
-                                y.iter_mut().zip(xs.iter().zip(p).zip(bias))
-                            {
-                                *y = xv * relu(pv + bv);
-                            }
-                        }
+        // Sample `s`'s `N` rows of `y` (and of `φ` if kept) from its features `xs`.
+        let fill = |s: usize, y: &mut [T], xs: &[T], mut phi: Option<&mut [T]>| {
+            for (i, y) in y.chunks_exact_mut(f).enumerate() {
+                let u = row_of[s * n + i];
+                let p = &pre[u * f..(u + 1) * f];
+                for (j, (y, ((&xv, &pv), &bv))) in
+                    y.iter_mut().zip(xs.iter().zip(p).zip(bias)).enumerate()
+                {
+                    let v = relu(pv + bv);
+                    if let Some(phi) = phi.as_mut() {
+                        phi[i * f + j] = v;
                     }
+                    *y = xv * v;
                 }
-            });
+            }
+        };
+        let y = self.core.y.data_mut().par_chunks_mut(n * f);
+        let xs = x.data().par_chunks(f);
+        if keep {
+            let phi = self.phi.par_chunks_mut(n * f);
+            y.zip(xs)
+                .zip(phi)
+                .enumerate()
+                .for_each(|(s, ((y, xs), phi))| fill(s, y, xs, Some(phi)));
+        } else {
+            y.zip(xs)
+                .enumerate()
+                .for_each(|(s, (y, xs))| fill(s, y, xs, None));
+        }
     }
 }
 
