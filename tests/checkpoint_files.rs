@@ -470,3 +470,72 @@ proptest! {
         prop_assert!(checkpoint::replay_from_bytes(&bytes, &c).is_err());
     }
 }
+
+/// A replay memory larger than the loader's read chunk (8 MiB of frames) comes back from its
+/// file exactly, read from the file itself as `train --resume` reads it; a byte flipped in the
+/// last chunk, or a file cut short, is refused.
+#[test]
+fn large_replay_files_stream_back_exactly() {
+    use rand::{Rng, SeedableRng};
+    let mut c = good();
+    c.config.replay_capacity = 1500; // 1 500 frames of 7 040 bytes: two chunks
+    let mut replay = c.config.new_replay();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut frame = vec![0u8; invaders::env::FRAME_LEN];
+    let mut fill = |rng: &mut rand_chacha::ChaCha8Rng| {
+        rng.fill(&mut frame[..]);
+        frame.clone()
+    };
+    replay.push_start(&fill(&mut rng));
+    for i in 0..1700u32 {
+        let done = i % 300 == 299;
+        replay.push_step(i as usize % 6, (i % 3) as f32, done, &fill(&mut rng));
+        if done {
+            replay.push_start(&fill(&mut rng));
+        }
+    }
+    let dir = std::env::temp_dir().join(format!("invaders-stream-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("replay-1.safetensors");
+    c.replay_checksum = Some(checkpoint::save_replay(&path, &replay, &c.counters).unwrap());
+    let open = |p: &std::path::Path| {
+        let f = std::fs::File::open(p).unwrap();
+        let len = f.metadata().unwrap().len();
+        (f, len)
+    };
+    let (f, len) = open(&path);
+    assert!(len > 10 << 20, "{len} bytes: more than one chunk");
+    let back = checkpoint::read_replay(f, len, &c).unwrap();
+    assert_eq!(back.written(), replay.written());
+    assert_eq!(back.parts(), replay.parts());
+    let bytes = std::fs::read(&path).unwrap();
+    assert_eq!(
+        checkpoint::replay_from_bytes(&bytes, &c).unwrap().parts(),
+        replay.parts()
+    );
+
+    // The frames' last byte lies in the second chunk.
+    let frames = Owned::parse(&bytes)
+        .tensors
+        .iter()
+        .find(|t| t.0 == "replay.frames")
+        .map(|t| t.3.len())
+        .unwrap();
+    assert!(frames > 8 << 20);
+    let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+    let end = header_end(&bytes) + header.info("replay.frames").unwrap().data_offsets.1;
+    let mut flipped = bytes.clone();
+    flipped[end - 1] ^= 0x10;
+    std::fs::write(&path, &flipped).unwrap();
+    let (f, len) = open(&path);
+    let e = format!("{:#}", checkpoint::read_replay(f, len, &c).err().unwrap());
+    assert!(e.contains("its contents are damaged"), "{e}");
+    std::fs::write(&path, &bytes[..bytes.len() - 5000]).unwrap();
+    let (f, len) = open(&path);
+    let e = format!("{:#}", checkpoint::read_replay(f, len, &c).err().unwrap());
+    assert!(e.contains("not a safetensors file"), "{e}");
+    // A file that shrinks while it is read (its length taken before) is an error, not a panic.
+    let (f, _) = open(&path);
+    assert!(checkpoint::read_replay(f, bytes.len() as u64, &c).is_err());
+    let _ = std::fs::remove_dir_all(&dir);
+}

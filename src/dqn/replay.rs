@@ -253,17 +253,17 @@ impl Replay {
     }
 
     /// Replaces the contents with `parts` as made by [`parts`](Self::parts) of a memory of the
-    /// same capacity that had written `written` entries. Every length and flag is checked first;
-    /// on error nothing is changed.
+    /// same capacity that had written `written` entries, the frames written by `read_frames`
+    /// straight into the memory's first `len · 88·80` bytes (a loader streams a file into them
+    /// without a second copy of the memory). Every length and flag is checked first; on an error
+    /// from those checks nothing is changed, on one from `read_frames` the frames may be partly
+    /// overwritten (discard the memory).
     pub fn restore(
-        &mut self, written: u64, frames: &[u8], actions: &[u8], rewards: &[f32], flags: &[u8],
+        &mut self, written: u64, actions: &[u8], rewards: &[f32], flags: &[u8],
+        read_frames: impl FnOnce(&mut [u8]) -> Result<(), String>,
     ) -> Result<(), String> {
         let len = written.min(self.capacity as u64) as usize;
-        if frames.len() != len * FRAME_LEN
-            || actions.len() != len
-            || rewards.len() != len
-            || flags.len() != len
-        {
+        if actions.len() != len || rewards.len() != len || flags.len() != len {
             return Err(format!(
                 "{written} entries written into a memory of {} need {len} rows of each array",
                 self.capacity
@@ -278,7 +278,7 @@ impl Replay {
         if let Some(i) = rewards.iter().position(|r| !r.is_finite()) {
             return Err(format!("non-finite reward in row {i}"));
         }
-        self.frames[..len * FRAME_LEN].copy_from_slice(frames);
+        read_frames(&mut self.frames[..len * FRAME_LEN])?;
         self.actions[..len].copy_from_slice(actions);
         self.rewards[..len].copy_from_slice(rewards);
         for (s, &f) in flags.iter().enumerate() {

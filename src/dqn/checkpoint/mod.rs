@@ -38,7 +38,8 @@
 //!
 //! The replay memory's `len = min(written, capacity)` held entries in *slot order*: row `s` holds
 //! entry `g` with `g % capacity = s` (oldest first until the ring wraps), so the file is the
-//! memory's own arrays, written without a copy (up to 7 KB per entry: 141 MB for 20 000).
+//! memory's own arrays, written without a copy (up to 7 KB per entry: 141 MB for 20 000) and
+//! read back the same way, the frames streamed from the file into the memory ([`read_replay`]).
 //!
 //! | tensor | dtype | shape |
 //! | --- | --- | --- |
@@ -125,7 +126,7 @@ pub use super::agent::{AgentState, Counters};
 pub use atomic::{copy_files_atomic, tmp_path, write_atomic, write_atomic_with};
 pub use format::{from_bytes, load, snapshot_to_bytes, tensors_checksum, to_bytes};
 pub use model::{load_model, model_from_bytes, model_to_bytes, Model};
-pub use replay_file::{replay_file_name, replay_from_bytes, save_replay};
+pub use replay_file::{read_replay, replay_file_name, replay_from_bytes, save_replay};
 pub use run_dir::{load_run, save_run, save_snapshot};
 // The files' helpers, for each other.
 use format::*;

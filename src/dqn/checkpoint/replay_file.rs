@@ -2,6 +2,8 @@
 //! checkpoint.
 
 use super::*;
+use safetensors::tensor::{Metadata, TensorInfo};
+use std::io::{Read, Seek, SeekFrom};
 
 /// Whether `name` is a replay file name as [`save_run`] makes them (no directories).
 pub(super) fn is_replay_name(name: &str) -> bool {
@@ -70,25 +72,78 @@ pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow:
     Ok(checksum)
 }
 
-/// Parses a replay file saved with the checkpoint `ckpt`, checking that it belongs to it.
+/// Parses a replay file saved with the checkpoint `ckpt` (its bytes in memory), checking that
+/// it belongs to it: [`read_replay`] over the bytes.
 pub fn replay_from_bytes(bytes: &[u8], ckpt: &Checkpoint) -> anyhow::Result<Replay> {
-    let (st, meta) = parse(bytes)?;
-    let format = meta_get(&meta, "format")?;
-    match (format, ckpt.replay_checksum) {
-        (REPLAY_FORMAT, Some(named)) => {
-            let actual = verify_checksum(&st, &meta)?;
-            if actual != named {
-                bail!(
-                    "it is not the replay memory saved with this checkpoint (checksum {actual:08x}, the checkpoint names {named:08x}): was it copied from another run?"
-                );
-            }
+    read_replay(std::io::Cursor::new(bytes), bytes.len() as u64, ckpt)
+}
+
+/// Bytes of frames read per call while streaming them into the memory.
+const CHUNK: usize = 8 << 20;
+
+/// The largest JSON header accepted (safetensors' own limit).
+const MAX_HEADER: u64 = 100_000_000;
+
+/// Reads a replay file of `file_len` bytes saved with the checkpoint `ckpt` from `source`,
+/// checking that it belongs to it. The frames, nearly all of the file, are read in chunks
+/// straight into the new memory's own buffer while their checksum is computed, so loading holds
+/// the memory once, not the file and the memory (a million entries are 7 GB).
+pub fn read_replay<R: Read + Seek>(
+    mut source: R, file_len: u64, ckpt: &Checkpoint,
+) -> anyhow::Result<Replay> {
+    let not_st = |why: String| anyhow!("not a safetensors file: {why}");
+    // The header: an 8-byte length, then that many bytes of JSON.
+    let mut n = [0u8; 8];
+    source
+        .read_exact(&mut n)
+        .map_err(|_| not_st("shorter than its 8-byte header length".into()))?;
+    let n = u64::from_le_bytes(n);
+    if n > MAX_HEADER || 8 + n > file_len {
+        return Err(not_st(format!(
+            "a header of {n} bytes in a file of {file_len}"
+        )));
+    }
+    let mut header = vec![0u8; n as usize];
+    source.read_exact(&mut header)?;
+    let header: Metadata = std::str::from_utf8(&header)
+        .ok()
+        .and_then(|h| serde_json::from_str(h).ok())
+        .ok_or_else(|| not_st("its header is not valid JSON metadata".into()))?;
+    let data_start = 8 + n;
+    // Every tensor's bytes, in file order, must tile the rest of the file.
+    let mut infos: Vec<(String, &TensorInfo)> = header.tensors().into_iter().collect();
+    infos.sort_by_key(|(_, i)| i.data_offsets);
+    let mut end = 0u64;
+    for (name, info) in &infos {
+        let (a, b) = (info.data_offsets.0 as u64, info.data_offsets.1 as u64);
+        let size = info
+            .shape
+            .iter()
+            .try_fold(info.dtype.size() as u64, |s, &d| s.checked_mul(d as u64));
+        if a != end || Some(b.wrapping_sub(a)) != size || b < a {
+            return Err(not_st(format!("tensor `{name}` has bad offsets")));
         }
-        (REPLAY_FORMAT_V1, None) => {} // both written before checksums
+        end = b;
+    }
+    if data_start + end != file_len {
+        return Err(not_st(format!(
+            "its tensors end at byte {}, the file at {file_len}",
+            data_start + end
+        )));
+    }
+    let meta = header
+        .metadata()
+        .clone()
+        .ok_or_else(|| anyhow!("no metadata"))?;
+    let format = meta_get(&meta, "format")?;
+    let stored = match (format, ckpt.replay_checksum) {
+        (REPLAY_FORMAT, Some(_)) => Some(parse_checksum(meta_get(&meta, "checksum")?)?),
+        (REPLAY_FORMAT_V1, None) => None, // both written before checksums
         (REPLAY_FORMAT | REPLAY_FORMAT_V1, _) => {
             bail!("it is not the replay memory saved with this checkpoint (their formats differ)")
         }
         _ => bail!("unknown replay format `{format}` (expected `{REPLAY_FORMAT}`)"),
-    }
+    };
     let num = |k: &str| -> anyhow::Result<u64> {
         meta_get(&meta, k)?
             .parse()
@@ -109,42 +164,106 @@ pub fn replay_from_bytes(bytes: &[u8], ckpt: &Checkpoint) -> anyhow::Result<Repl
     }
     let written = num("written")?;
     let len = written.min(config.replay_capacity as u64) as usize;
-    let frames = tensor(
-        &st,
-        "replay.frames",
-        Dtype::U8,
-        &[len, FRAME_HEIGHT, FRAME_WIDTH],
-    )?;
-    let actions = tensor(&st, "replay.actions", Dtype::U8, &[len])?;
-    let rewards = tensor(&st, "replay.rewards", Dtype::F32, &[len])?;
-    let flags = tensor(&st, "replay.flags", Dtype::U8, &[len])?;
-    let expected = if config.prioritized { 6 } else { 4 };
-    if st.len() != expected {
-        bail!("replay file has {} tensors, expected {expected}", st.len());
+    let mut expected = vec![
+        (
+            "replay.frames",
+            Dtype::U8,
+            vec![len, FRAME_HEIGHT, FRAME_WIDTH],
+        ),
+        ("replay.actions", Dtype::U8, vec![len]),
+        ("replay.rewards", Dtype::F32, vec![len]),
+        ("replay.flags", Dtype::U8, vec![len]),
+    ];
+    if config.prioritized {
+        expected.push(("replay.priorities", Dtype::F64, vec![len]));
+        expected.push(("replay.max_priority", Dtype::F64, vec![1]));
     }
-    let n_actions = ckpt.learner.n_actions();
-    if let Some(i) = actions.data().iter().position(|&a| a as usize >= n_actions) {
+    for (name, dtype, shape) in &expected {
+        let info = header
+            .info(name)
+            .ok_or_else(|| anyhow!("no tensor `{name}`"))?;
+        if info.dtype != *dtype {
+            bail!(
+                "tensor `{name}` has dtype {:?}, expected {dtype:?}",
+                info.dtype
+            );
+        }
+        if info.shape != *shape {
+            bail!(
+                "tensor `{name}` has shape {:?}, expected {shape:?}",
+                info.shape
+            );
+        }
+    }
+    if infos.len() != expected.len() {
         bail!(
-            "replay action {} in row {i} is out of range",
-            actions.data()[i]
+            "replay file has {} tensors, expected {}",
+            infos.len(),
+            expected.len()
         );
     }
-    let rewards: Vec<f32> = bytemuck::pod_collect_to_vec(rewards.data());
+    // The small arrays into memory; the frames are streamed below.
+    let mut small: HashMap<&str, Vec<u8>> = HashMap::new();
+    for (name, ..) in expected.iter().filter(|e| e.0 != "replay.frames") {
+        let (a, b) = header.info(name).expect("checked").data_offsets;
+        let mut bytes = vec![0u8; b - a];
+        source.seek(SeekFrom::Start(data_start + a as u64))?;
+        source.read_exact(&mut bytes)?;
+        small.insert(name, bytes);
+    }
+    let actions = &small["replay.actions"];
+    let n_actions = ckpt.learner.n_actions();
+    if let Some(i) = actions.iter().position(|&a| a as usize >= n_actions) {
+        bail!("replay action {} in row {i} is out of range", actions[i]);
+    }
+    let rewards: Vec<f32> = bytemuck::pod_collect_to_vec(&small["replay.rewards"]);
+    // The checksum runs over the tensors in name order, the frames' chunks as they arrive.
+    let mut names: Vec<&str> = expected.iter().map(|e| e.0).collect();
+    names.sort();
+    let mut crc = crc32fast::Hasher::new();
     let mut replay = config.new_replay();
     replay
         .restore(
             written,
-            frames.data(),
-            actions.data(),
+            actions,
             &rewards,
-            flags.data(),
+            &small["replay.flags"],
+            |frames| -> Result<(), String> {
+                let io = |e: std::io::Error| format!("cannot read its frames: {e}");
+                for name in names {
+                    crc.update(name.as_bytes());
+                    if name != "replay.frames" {
+                        crc.update(&small[name]);
+                        continue;
+                    }
+                    let at = header.info(name).expect("checked").data_offsets.0 as u64;
+                    source.seek(SeekFrom::Start(data_start + at)).map_err(io)?;
+                    for chunk in frames.chunks_mut(CHUNK) {
+                        source.read_exact(chunk).map_err(io)?;
+                        crc.update(chunk);
+                    }
+                }
+                Ok(())
+            },
         )
         .map_err(|e| anyhow!("bad replay memory: {e}"))?;
+    if let Some(stored) = stored {
+        let actual = crc.finalize();
+        if actual != stored {
+            bail!(
+                "its contents are damaged: checksum {actual:08x}, but the file was written with {stored:08x}"
+            );
+        }
+        let named = ckpt.replay_checksum.expect("matched above");
+        if actual != named {
+            bail!(
+                "it is not the replay memory saved with this checkpoint (checksum {actual:08x}, the checkpoint names {named:08x}): was it copied from another run?"
+            );
+        }
+    }
     if config.prioritized {
-        let values = tensor(&st, "replay.priorities", Dtype::F64, &[len])?;
-        let values: Vec<f64> = bytemuck::pod_collect_to_vec(values.data());
-        let max = tensor(&st, "replay.max_priority", Dtype::F64, &[1])?;
-        let max: f64 = bytemuck::pod_read_unaligned(max.data());
+        let values: Vec<f64> = bytemuck::pod_collect_to_vec(&small["replay.priorities"]);
+        let max: f64 = bytemuck::pod_read_unaligned(&small["replay.max_priority"]);
         replay
             .restore_priorities(&values, max)
             .map_err(|e| anyhow!("bad replay priorities: {e}"))?;

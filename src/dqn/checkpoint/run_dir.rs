@@ -50,10 +50,15 @@ pub fn load_run(dir: &Path) -> anyhow::Result<(Checkpoint, Option<Replay>)> {
         None => None,
         Some(name) => {
             let path = dir.join(name);
-            let bytes = std::fs::read(&path)
-                .with_context(|| format!("cannot read replay memory {}", path.display()))?;
+            // Streamed from the file into the memory: the file is as large as the memory.
+            let cannot = || format!("cannot read replay memory {}", path.display());
+            if !std::fs::metadata(&path).with_context(cannot)?.is_file() {
+                bail!("replay memory {} is not a regular file", path.display());
+            }
+            let file = std::fs::File::open(&path).with_context(cannot)?;
+            let len = file.metadata().with_context(cannot)?.len();
             Some(
-                replay_from_bytes(&bytes, &ckpt)
+                read_replay(file, len, &ckpt)
                     .with_context(|| format!("{} is not a valid replay file", path.display()))?,
             )
         }
