@@ -989,6 +989,31 @@ fn an_input_without_end_does_not_hang() {
         assert!(!said.contains("is kept"), "{said}");
     }
     let _ = std::fs::remove_dir_all(&root);
+
+    // A run's replay file swapped for a FIFO is refused at once, not waited on; and a budget
+    // already met is refused before the replay memory (gigabytes in a real run) is read.
+    let (root, _, run) = trained("endless-replay", 1);
+    let replay = run.join("replay-1.safetensors");
+    std::fs::remove_file(&replay).unwrap();
+    mkfifo(&replay);
+    let (status, err) = run_within(
+        &["train", "--resume", s(&run), "--episodes", "1"],
+        false,
+        30,
+    );
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert!(err.contains("has done 1 episodes"), "{err}");
+    let (status, err) = run_within(
+        &["train", "--resume", s(&run), "--episodes", "2"],
+        false,
+        30,
+    );
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("replay-1.safetensors is not a regular file"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&root);
 }
 
 /// Class 6: messages say what is so.

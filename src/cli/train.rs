@@ -144,7 +144,7 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     }
     // The lock is taken before anything in the directory is read or written.
     let mut lock = None;
-    let (mut config, dir, resumed) = match &args.resume {
+    let (mut config, dir, mut resumed) = match &args.resume {
         Some(dir) => {
             if args.config.is_some() || args.seed.is_some() {
                 bail!("--resume keeps the run's configuration: drop --config and --seed");
@@ -169,14 +169,15 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
             }
             if dir.join(checkpoint::CHECKPOINT_FILE).exists() {
                 lock = Some(guard::RunLock::acquire(dir)?);
-                let (ckpt, replay) = checkpoint::load_run(dir)?;
+                // The replay memory (gigabytes) once the checkpoint has been checked: below.
+                let ckpt = checkpoint::load(&dir.join(checkpoint::CHECKPOINT_FILE))?;
                 if let Some(p) = args.preset {
                     ckpt.expect_preset(p).with_context(|| {
                         format!("cannot resume {} with --preset", dir.display())
                     })?;
                 }
                 SAVED_EPISODE.store(ckpt.counters.episodes, Ordering::SeqCst);
-                (ckpt.config.clone(), dir.clone(), Some((ckpt, replay)))
+                (ckpt.config.clone(), dir.clone(), Some((ckpt, None)))
             } else {
                 let config = restart_unsaved(dir, args.preset)?;
                 lock = Some(guard::RunLock::acquire(dir)?);
@@ -255,6 +256,9 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         }
     } else if lock.is_none() {
         lock = Some(prepare_new_dir(&dir)?);
+    }
+    if let Some((ckpt, replay)) = &mut resumed {
+        *replay = checkpoint::load_run_replay(&dir, ckpt)?;
     }
     let snapshot = match &args.snapshot {
         Some(s) => {

@@ -46,24 +46,28 @@ pub fn save_run<G: Game>(dir: &Path, agent: &Agent<G>) -> anyhow::Result<()> {
 /// Loads a run directory's checkpoint and the replay memory saved with it (if any).
 pub fn load_run(dir: &Path) -> anyhow::Result<(Checkpoint, Option<Replay>)> {
     let ckpt = load(&dir.join(CHECKPOINT_FILE))?;
-    let replay = match &ckpt.replay_file {
-        None => None,
-        Some(name) => {
-            let path = dir.join(name);
-            // Streamed from the file into the memory: the file is as large as the memory.
-            let cannot = || format!("cannot read replay memory {}", path.display());
-            if !std::fs::metadata(&path).with_context(cannot)?.is_file() {
-                bail!("replay memory {} is not a regular file", path.display());
-            }
-            let file = std::fs::File::open(&path).with_context(cannot)?;
-            let len = file.metadata().with_context(cannot)?.len();
-            Some(
-                read_replay(file, len, &ckpt)
-                    .with_context(|| format!("{} is not a valid replay file", path.display()))?,
-            )
-        }
-    };
+    let replay = load_run_replay(dir, &ckpt)?;
     Ok((ckpt, replay))
+}
+
+/// Loads the replay memory that `ckpt`, the checkpoint of the run directory `dir`, names (if
+/// any): what [`load_run`] does after loading the checkpoint, for a caller that checks the
+/// checkpoint before reading a file that may be gigabytes.
+pub fn load_run_replay(dir: &Path, ckpt: &Checkpoint) -> anyhow::Result<Option<Replay>> {
+    let Some(name) = &ckpt.replay_file else {
+        return Ok(None);
+    };
+    let path = dir.join(name);
+    // Streamed from the file into the memory: the file is as large as the memory.
+    let cannot = || format!("cannot read replay memory {}", path.display());
+    if !std::fs::metadata(&path).with_context(cannot)?.is_file() {
+        bail!("replay memory {} is not a regular file", path.display());
+    }
+    let file = std::fs::File::open(&path).with_context(cannot)?;
+    let len = file.metadata().with_context(cannot)?.len();
+    let replay = read_replay(file, len, ckpt)
+        .with_context(|| format!("{} is not a valid replay file", path.display()))?;
+    Ok(Some(replay))
 }
 
 /// Writes the agent's snapshot ([`snapshot_to_bytes`]) to `path`, atomically: a file to keep
