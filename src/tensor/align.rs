@@ -46,17 +46,17 @@ fn is_large(layout: Layout) -> bool {
 /// `vec![0; n]` of 7 GB (a million-entry replay memory) was then resident in full from the
 /// start, and a resume, which builds one memory and loads another, needed twice that. `calloc`
 /// of a large block maps fresh zero pages that cost memory only once written.
+/// `None` where the size with the extra line is too large for any layout: the allocation fails.
 #[inline]
-fn outer(layout: Layout) -> Layout {
-    // A size of at least 1 KiB plus a line cannot overflow a layout of alignment 8.
-    Layout::from_size_align(layout.size() + LINE, 8).expect("valid layout")
+fn outer(layout: Layout) -> Option<Layout> {
+    Layout::from_size_align(layout.size().checked_add(LINE)?, 8).ok()
 }
 
 /// The line-aligned block inside the system's block `raw` of [`outer`]'s layout, with `raw`
 /// stored in the word before it (between 8 and 64 bytes past `raw`).
 ///
 /// # Safety
-/// `raw` is null or a block of `outer(layout)`.
+/// `raw` is null or a block of `outer(layout)` for some large `layout`.
 #[inline]
 unsafe fn inner(raw: *mut u8) -> *mut u8 {
     if raw.is_null() {
@@ -77,27 +77,29 @@ unsafe fn inner(raw: *mut u8) -> *mut u8 {
 // block with the same `outer(layout)`, `is_large` being a function of the layout alone.
 unsafe impl GlobalAlloc for CacheAligned {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if is_large(layout) {
-            inner(System.alloc(outer(layout)))
-        } else {
-            System.alloc(layout)
+        match (is_large(layout), outer(layout)) {
+            (false, _) => System.alloc(layout),
+            (true, Some(o)) => inner(System.alloc(o)),
+            (true, None) => std::ptr::null_mut(),
         }
     }
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        if is_large(layout) {
-            inner(System.alloc_zeroed(outer(layout)))
-        } else {
-            System.alloc_zeroed(layout)
+        match (is_large(layout), outer(layout)) {
+            (false, _) => System.alloc_zeroed(layout),
+            (true, Some(o)) => inner(System.alloc_zeroed(o)),
+            (true, None) => std::ptr::null_mut(),
         }
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        if is_large(layout) {
-            let raw = (ptr as *mut *mut u8).sub(1).read_unaligned();
-            System.dealloc(raw, outer(layout))
-        } else {
-            System.dealloc(ptr, layout)
+        match (is_large(layout), outer(layout)) {
+            (true, Some(o)) => {
+                let raw = (ptr as *mut *mut u8).sub(1).read_unaligned();
+                System.dealloc(raw, o)
+            }
+            // A large layout without an outer one was never allocated here.
+            _ => System.dealloc(ptr, layout),
         }
     }
 
