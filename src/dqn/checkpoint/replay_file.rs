@@ -120,15 +120,14 @@ pub fn read_replay<R: Read + Seek>(
             .shape
             .iter()
             .try_fold(info.dtype.size() as u64, |s, &d| s.checked_mul(d as u64));
-        if a != end || Some(b.wrapping_sub(a)) != size || b < a {
+        if a != end || size.is_none() || b.checked_sub(a) != size {
             return Err(not_st(format!("tensor `{name}` has bad offsets")));
         }
         end = b;
     }
-    if data_start + end != file_len {
+    if data_start.checked_add(end) != Some(file_len) {
         return Err(not_st(format!(
-            "its tensors end at byte {}, the file at {file_len}",
-            data_start + end
+            "its tensors end {end} bytes past its {data_start}-byte header, the file at byte {file_len}"
         )));
     }
     let meta = header
