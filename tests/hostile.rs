@@ -1013,6 +1013,30 @@ fn an_input_without_end_does_not_hang() {
         err.contains("replay-1.safetensors is not a regular file"),
         "{err}"
     );
+
+    // A checkpoint or model that is a device, a FIFO or far larger than any checkpoint (a sparse
+    // file: no disk used) is refused at once, not read without end or waited on.
+    let fifo = root.join("model.fifo");
+    mkfifo(&fifo);
+    let huge = root.join("huge.safetensors");
+    std::fs::File::create(&huge)
+        .unwrap()
+        .set_len(invaders::dqn::checkpoint::MAX_CHECKPOINT_BYTES + 1)
+        .unwrap();
+    for (path, needle) in [
+        ("/dev/zero", "is not a regular file"),
+        (s(&fifo), "is not a regular file"),
+        (s(&huge), "is larger than 1024 MiB"),
+    ] {
+        for args in [
+            vec!["eval", "--checkpoint", path, "--episodes", "1"],
+            vec!["export", "--checkpoint", path, "--out", s(&root.join("m"))],
+        ] {
+            let (status, err) = run_within(&args, false, 30);
+            assert_eq!(status.code(), Some(1), "{args:?}: {err}");
+            assert!(err.contains(needle), "{args:?}: {err}");
+        }
+    }
     let _ = std::fs::remove_dir_all(&root);
 }
 

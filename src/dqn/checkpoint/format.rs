@@ -377,9 +377,47 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     })
 }
 
+/// The most bytes a checkpoint or model file may have: far above any real one (a `strong`
+/// checkpoint, with its target network and Adam's moments, is 16 MB), so that a replay memory
+/// named by mistake, or `/dev/zero`, is an error and not gigabytes read for nothing.
+pub const MAX_CHECKPOINT_BYTES: u64 = 1 << 30;
+
+/// Reads a checkpoint or model file whole (`what` names it in messages). Only a regular file is
+/// read: a FIFO would block until a writer came, and a device (`/dev/zero`) has no end.
+pub(crate) fn read_checkpoint_file(path: &Path, what: &str) -> anyhow::Result<Vec<u8>> {
+    use std::io::Read;
+    let cannot = || format!("cannot read {what} {}", path.display());
+    let meta = std::fs::metadata(path).with_context(cannot)?;
+    if !meta.is_file() {
+        bail!("{what} {} is not a regular file", path.display());
+    }
+    let too_large = || {
+        anyhow!(
+            "{what} {} is larger than {} MiB: not a checkpoint or model this program wrote",
+            path.display(),
+            MAX_CHECKPOINT_BYTES >> 20
+        )
+    };
+    if meta.len() > MAX_CHECKPOINT_BYTES {
+        return Err(too_large());
+    }
+    let file = std::fs::File::open(path).with_context(cannot)?;
+    // Checked again on the open file: the path may have been swapped since.
+    if !file.metadata().with_context(cannot)?.is_file() {
+        bail!("{what} {} is not a regular file", path.display());
+    }
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    file.take(MAX_CHECKPOINT_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .with_context(cannot)?;
+    if bytes.len() as u64 > MAX_CHECKPOINT_BYTES {
+        return Err(too_large());
+    }
+    Ok(bytes)
+}
+
 /// Loads a checkpoint file (not its replay memory: see [`load_run`]).
 pub fn load(path: &Path) -> anyhow::Result<Checkpoint> {
-    let bytes = std::fs::read(path)
-        .with_context(|| format!("cannot read checkpoint {}", path.display()))?;
+    let bytes = read_checkpoint_file(path, "checkpoint")?;
     from_bytes(&bytes).with_context(|| format!("{} is not a valid checkpoint", path.display()))
 }

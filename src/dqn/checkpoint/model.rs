@@ -66,8 +66,7 @@ pub fn model_from_bytes(bytes: &[u8]) -> anyhow::Result<Model> {
 
 /// Loads a network to play with: a model file or a checkpoint.
 pub fn load_model(path: &Path) -> anyhow::Result<Model> {
-    let bytes =
-        std::fs::read(path).with_context(|| format!("cannot read model {}", path.display()))?;
+    let bytes = read_checkpoint_file(path, "model")?;
     model_from_bytes(&bytes)
         .with_context(|| format!("{} is not a valid checkpoint or model", path.display()))
 }
