@@ -382,36 +382,43 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
 /// named by mistake, or `/dev/zero`, is an error and not gigabytes read for nothing.
 pub const MAX_CHECKPOINT_BYTES: u64 = 1 << 30;
 
-/// Reads a checkpoint or model file whole (`what` names it in messages). Only a regular file is
-/// read: a FIFO would block until a writer came, and a device (`/dev/zero`) has no end.
+/// Opens a file that must be a regular one (`what` names it in messages), checked on the path
+/// before opening (opening a FIFO would block until a writer came) and again on the open file
+/// (the path may have been swapped since); returns it with its length.
+pub(crate) fn open_regular_file(path: &Path, what: &str) -> anyhow::Result<(std::fs::File, u64)> {
+    let cannot = || format!("cannot read {what} {}", path.display());
+    let not_regular = || anyhow!("{what} {} is not a regular file", path.display());
+    if !std::fs::metadata(path).with_context(cannot)?.is_file() {
+        return Err(not_regular());
+    }
+    let file = std::fs::File::open(path).with_context(cannot)?;
+    let meta = file.metadata().with_context(cannot)?;
+    if !meta.is_file() {
+        return Err(not_regular());
+    }
+    Ok((file, meta.len()))
+}
+
+/// Reads a checkpoint or model file whole (`what` names it in messages): a regular file only
+/// ([`open_regular_file`]; a device such as `/dev/zero` has no end) of at most
+/// [`MAX_CHECKPOINT_BYTES`].
 pub(crate) fn read_checkpoint_file(path: &Path, what: &str) -> anyhow::Result<Vec<u8>> {
     use std::io::Read;
-    let cannot = || format!("cannot read {what} {}", path.display());
-    let meta = std::fs::metadata(path).with_context(cannot)?;
-    if !meta.is_file() {
-        bail!("{what} {} is not a regular file", path.display());
+    let (file, len) = open_regular_file(path, what)?;
+    let mut bytes = Vec::new();
+    if len <= MAX_CHECKPOINT_BYTES {
+        bytes.reserve_exact(len as usize);
+        // At most one byte more than the limit, should the file have grown since.
+        file.take(MAX_CHECKPOINT_BYTES + 1)
+            .read_to_end(&mut bytes)
+            .with_context(|| format!("cannot read {what} {}", path.display()))?;
     }
-    let too_large = || {
-        anyhow!(
+    if len > MAX_CHECKPOINT_BYTES || bytes.len() as u64 > MAX_CHECKPOINT_BYTES {
+        bail!(
             "{what} {} is larger than {} MiB: not a checkpoint or model this program wrote",
             path.display(),
             MAX_CHECKPOINT_BYTES >> 20
-        )
-    };
-    if meta.len() > MAX_CHECKPOINT_BYTES {
-        return Err(too_large());
-    }
-    let file = std::fs::File::open(path).with_context(cannot)?;
-    // Checked again on the open file: the path may have been swapped since.
-    if !file.metadata().with_context(cannot)?.is_file() {
-        bail!("{what} {} is not a regular file", path.display());
-    }
-    let mut bytes = Vec::with_capacity(meta.len() as usize);
-    file.take(MAX_CHECKPOINT_BYTES + 1)
-        .read_to_end(&mut bytes)
-        .with_context(cannot)?;
-    if bytes.len() as u64 > MAX_CHECKPOINT_BYTES {
-        return Err(too_large());
+        );
     }
     Ok(bytes)
 }

@@ -59,12 +59,7 @@ pub fn load_run_replay(dir: &Path, ckpt: &Checkpoint) -> anyhow::Result<Option<R
     };
     let path = dir.join(name);
     // Streamed from the file into the memory: the file is as large as the memory.
-    let cannot = || format!("cannot read replay memory {}", path.display());
-    if !std::fs::metadata(&path).with_context(cannot)?.is_file() {
-        bail!("replay memory {} is not a regular file", path.display());
-    }
-    let file = std::fs::File::open(&path).with_context(cannot)?;
-    let len = file.metadata().with_context(cannot)?.len();
+    let (file, len) = open_regular_file(&path, "replay memory")?;
     let replay = read_replay(file, len, ckpt)
         .with_context(|| format!("{} is not a valid replay file", path.display()))?;
     Ok(Some(replay))
