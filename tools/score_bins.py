@@ -25,8 +25,11 @@ def main(paths):
     if not paths:
         sys.exit(__doc__.strip().splitlines()[2])
     for path in paths:
-        with open(path, newline="") as f:
-            rows = [(int(row["emulator_frames"]), float(row["reward"])) for row in csv.DictReader(f)]
+        try:
+            with open(path, newline="") as f:
+                rows = [(int(r["emulator_frames"]), float(r["reward"])) for r in csv.DictReader(f)]
+        except (OSError, KeyError, ValueError, TypeError) as e:
+            sys.exit(f"cannot read {path} as a run's metrics.csv: {e!r}")
         print(path)
         print("| frames | episodes | mean | " + " | ".join(name for name, _ in BINS) + " |")
         print("| --- " * (3 + len(BINS)) + "|")
