@@ -277,7 +277,8 @@ fn train_eval_resume_plot() {
             && text.contains("max"),
         "{text}"
     );
-    // Each episode's line and the summary count the mothership's passes and the hits on it.
+    // Each episode's line and the summary count the mothership's passes and the hits on it,
+    // and say how each game ended (the last life, a landing or the step limit).
     assert!(
         text.contains("steps")
             && text
@@ -288,6 +289,31 @@ fn train_eval_resume_plot() {
             && text.contains(", mothership hit in "),
         "{text}"
     );
+    let ended: Vec<&str> = text
+        .lines()
+        .filter(|l| l.starts_with("episode"))
+        .filter_map(|l| l.rsplit(": ").next())
+        .collect();
+    assert!(
+        ended.len() == 2
+            && ended
+                .iter()
+                .all(|e| ["last life", "landing", "step limit"].contains(e)),
+        "{text}"
+    );
+    let summary = text.lines().last().unwrap();
+    let counted: u64 = ["by the last life ", "by a landing ", "by the step limit "]
+        .iter()
+        .map(|k| {
+            let at = summary.find(k).unwrap_or_else(|| panic!("{k}: {summary}")) + k.len();
+            let n: String = summary[at..]
+                .chars()
+                .take_while(char::is_ascii_digit)
+                .collect();
+            n.parse::<u64>().unwrap()
+        })
+        .sum();
+    assert_eq!(counted, 2, "{summary}");
     let bytes = std::fs::read(&gif).unwrap();
     assert!(bytes.starts_with(b"GIF89a") && bytes.len() > 10_000);
     assert_eq!(u16::from_le_bytes([bytes[6], bytes[7]]), 160, "GIF width");

@@ -134,29 +134,33 @@ fn eval(args: &EvalArgs) -> anyhow::Result<()> {
     agent.set_stream(1); // independent of the environment's stream 0
     let n = env.n_actions();
     let mut scores = Vec::with_capacity(plan.episodes as usize);
+    let mut endings = [0u64; 3];
     for episode in 0..plan.episodes {
         if episode > 0 {
             env.reset();
         }
-        let truncated = loop {
+        let mut lives = Lives::default();
+        lives.observe(env.lives());
+        loop {
             let r = env.step(agent.random_range(0..n));
+            lives.observe(r.lives);
             if r.terminal || r.truncated {
-                break r.truncated;
+                break;
             }
-        };
+        }
         let stats = env.episode();
+        let ending = lives.ending(u64::from(stats.steps), config.max_episode_steps);
         out!(
-            "episode {:>3}: score {:>6} steps {:>5} frames {:>6}{}",
+            "episode {:>3}: score {:>6} steps {:>5} frames {:>6} lives {} -> {}: {}",
             episode + 1,
             stats.score,
             stats.steps,
             stats.frames,
-            if truncated {
-                " (cut by the step limit)"
-            } else {
-                ""
-            }
+            lives.before_last,
+            lives.last,
+            ending.describe()
         );
+        endings[ending as usize] += 1;
         scores.push(stats.score);
         if super::streams::stdout_lost() {
             break;
@@ -164,12 +168,13 @@ fn eval(args: &EvalArgs) -> anyhow::Result<()> {
     }
     let s = Summary::of(&scores);
     out!(
-        "random agent, mode {}, {} episodes, seed {}: {s}",
+        "random agent, mode {}, {} episodes, seed {}, games ended {}: {s}",
         mode.to_possible_value()
             .expect("modes are named")
             .get_name(),
         s.n,
         plan.seed,
+        describe_endings(&endings),
     );
     Ok(())
 }
@@ -242,10 +247,12 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     };
     let mut scores = Vec::with_capacity(plan.episodes as usize);
     let mut ships = Mothership::default();
+    let mut endings = [0u64; 3];
     for episode in 0..plan.episodes {
         let mut recorder = if episode == 0 { gif.as_mut() } else { None };
         let mut record_error = None;
         let mut ship = Mothership::default();
+        let mut lives = Lives::default();
         let (score, steps) = play_evaluation_episode(
             &mut env,
             &mut net,
@@ -257,6 +264,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
             &mut rng,
             |g| {
                 ship.observe(mothership_on_screen(g.screen_rgb()), g.episode().score);
+                lives.observe(g.lives());
                 if let (Some(r), None) = (recorder.as_deref_mut(), &record_error) {
                     if let Err(e) = r.frame(g.screen_rgb()) {
                         record_error = Some(e);
@@ -267,12 +275,17 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         if let Some(e) = record_error {
             return Err(e);
         }
+        let ending = lives.ending(steps, env_config.max_episode_steps);
         out!(
-            "episode {:>3}: score {score:>6} steps {steps:>5} mothership {}/{}",
+            "episode {:>3}: score {score:>6} steps {steps:>5} mothership {}/{} lives {} -> {}: {}",
             episode + 1,
             ship.hits,
-            ship.passes
+            ship.passes,
+            lives.before_last,
+            lives.last,
+            ending.describe()
         );
+        endings[ending as usize] += 1;
         ships.passes += ship.passes;
         ships.hits += ship.hits;
         scores.push(score);
@@ -287,7 +300,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
     }
     let s = Summary::of(&scores);
     out!(
-        "checkpoint {} (preset {}, {} episodes, {} frames trained), mode {}{}, epsilon {}, {} episodes, seed {}, mothership hit in {} of {} passes: {s}",
+        "checkpoint {} (preset {}, {} episodes, {} frames trained), mode {}{}, epsilon {}, {} episodes, seed {}, mothership hit in {} of {} passes, games ended {}: {s}",
         file.display(),
         config.preset.name(),
         model.counters.episodes,
@@ -299,6 +312,7 @@ fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<(
         plan.seed,
         ships.hits,
         ships.passes,
+        describe_endings(&endings),
     );
     Ok(())
 }
@@ -397,6 +411,64 @@ impl std::fmt::Display for Summary {
     }
 }
 
+/// How a game ended: the last life lost to a bomb, the invaders landing (which ends the game
+/// with lives to spare: the score stops wherever the wave was), or the step limit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Ending {
+    LastLife = 0,
+    Landing = 1,
+    StepLimit = 2,
+}
+
+impl Ending {
+    fn describe(self) -> &'static str {
+        match self {
+            Ending::LastLife => "last life",
+            Ending::Landing => "landing",
+            Ending::StepLimit => "step limit",
+        }
+    }
+}
+
+/// The summary's count of each [`Ending`], indexed by it.
+fn describe_endings(endings: &[u64; 3]) -> String {
+    format!(
+        "by the last life {}, by a landing {}, by the step limit {}",
+        endings[Ending::LastLife as usize],
+        endings[Ending::Landing as usize],
+        endings[Ending::StepLimit as usize]
+    )
+}
+
+/// The lives counter over an episode: its value after the last step and before it. A bomb
+/// takes one life a step, so a game that ends with lives left, or that loses more than one in
+/// its last step, ended by a landing. (A landing with one life left cannot be told from a bomb:
+/// it counts as the last life.)
+#[derive(Default)]
+struct Lives {
+    before_last: i32,
+    last: i32,
+}
+
+impl Lives {
+    /// One step (and the reset before the first): the lives shown after it.
+    fn observe(&mut self, lives: i32) {
+        self.before_last = self.last;
+        self.last = lives;
+    }
+
+    /// The episode's end after `steps` agent steps under the game's step limit.
+    fn ending(&self, steps: u64, limit: Option<u32>) -> Ending {
+        if limit.is_some_and(|l| steps >= u64::from(l)) && self.last > 0 {
+            Ending::StepLimit
+        } else if self.last > 0 || self.before_last - self.last > 1 {
+            Ending::Landing
+        } else {
+            Ending::LastLife
+        }
+    }
+}
+
 impl Summary {
     fn of(xs: &[f64]) -> Summary {
         let n = xs.len();
@@ -429,6 +501,25 @@ mod tests {
             m.observe(on == 1, s as f64);
         }
         assert_eq!((m.passes, m.hits), (2, 2));
+    }
+
+    /// A bomb takes one life a step; a game over with lives left, or with two or more lost in
+    /// one step, is a landing; a game still alive at the step limit was cut.
+    #[test]
+    fn endings_follow_the_lives_counter() {
+        use super::{Ending, Lives};
+        let end = |lives: &[i32], steps: u64| {
+            let mut l = Lives::default();
+            for &n in lives {
+                l.observe(n);
+            }
+            l.ending(steps, Some(100))
+        };
+        assert_eq!(end(&[3, 3, 2, 2, 1, 1, 0], 7), Ending::LastLife);
+        assert_eq!(end(&[3, 3, 2, 2, 2], 5), Ending::Landing);
+        assert_eq!(end(&[3, 3, 2, 2, 0], 5), Ending::Landing);
+        assert_eq!(end(&[3, 3, 2, 2, 2], 100), Ending::StepLimit);
+        assert_eq!(end(&[3, 2, 1, 0], 100), Ending::LastLife);
     }
 
     #[test]
