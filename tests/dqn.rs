@@ -271,6 +271,59 @@ fn a_lost_life_ends_bootstrapping_only_when_asked() {
     }
 }
 
+/// Four steps worth 1 each: a bomb takes one of three lives on step 3, and on step 4 the
+/// invaders land, ending the game with the two lives left.
+struct Landing {
+    steps: u32,
+    frame: Vec<u8>,
+}
+
+impl Game for Landing {
+    fn n_actions(&self) -> usize {
+        2
+    }
+    fn reset(&mut self) {
+        self.steps = 0;
+    }
+    fn step(&mut self, _action: usize) -> StepResult {
+        self.steps += 1;
+        StepResult {
+            lives: [3, 3, 2, 0][self.steps as usize - 1],
+            ..common::toy_step(1.0, self.steps == 4, false)
+        }
+    }
+    fn observation(&self) -> &[u8] {
+        &self.frame
+    }
+}
+
+/// `life_penalty` takes its value from the learner's reward once per life lost: once for the
+/// bomb, twice for the landing that takes two lives; the game's score is left alone.
+#[test]
+fn each_lost_life_costs_the_life_penalty() {
+    for (penalty, expect) in [(0.0, [1.0, 1.0, 1.0, 1.0]), (0.25, [1.0, 1.0, 0.75, 0.5])] {
+        let mut c = toy_config();
+        c.life_loss_terminal = true;
+        c.life_penalty = penalty;
+        let mut agent = Agent::new(
+            c,
+            Landing {
+                steps: 0,
+                frame: vec![0; FRAME_LEN],
+            },
+        );
+        let row = agent.play_episode().unwrap();
+        assert_eq!(row.reward, 4.0, "the score counts the game's rewards");
+        let (_, _, rewards, flags) = agent.replay.parts();
+        // Entry `k` holds the frame before step `k + 1` with that step's action, reward and end.
+        assert_eq!(&rewards[..4], &expect, "life_penalty = {penalty}");
+        let done: Vec<usize> = (0..flags.len())
+            .filter(|&i| flags[i] & invaders::dqn::FLAG_DONE != 0)
+            .collect();
+        assert_eq!(done, vec![2, 3]);
+    }
+}
+
 fn frame(v: u8) -> Vec<u8> {
     vec![v; FRAME_LEN]
 }
@@ -628,6 +681,8 @@ fn rewards_are_scaled_then_clipped() {
         "reward_scale = -1.0",
         "reward_clip = 0.0",
         "reward_clip = 1e9",
+        "life_penalty = -1.0",
+        "life_penalty = 1e9",
     ] {
         assert!(
             err(bad).contains(bad.split(' ').next().unwrap()),
@@ -636,6 +691,12 @@ fn rewards_are_scaled_then_clipped() {
         );
     }
     assert!(err("reward_clip = nan").contains("reward_clip"));
+    assert!(err("life_penalty = nan").contains("life_penalty"));
+    // The penalty comes after scaling and clipping: 400 points clip to 1, less 2 lives × 0.5.
+    let c = Config::resolve(Some(Preset::Strong), Some("life_penalty = 0.5")).unwrap();
+    assert_eq!(c.learner_reward(400.0, 2), 0.0);
+    assert_eq!(c.learner_reward(0.0, 1), -0.5);
+    assert_eq!(c.learner_reward(30.0, 0), 1.0);
 }
 
 #[test]

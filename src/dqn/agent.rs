@@ -341,10 +341,11 @@ impl<G: Game> Agent<G> {
             let r = self.game.step(action);
             let frame = self.observer.step(&self.game);
             // ALGO 5: store (a, r, done, new frame). Rewards scaled and clipped (to [-1, 1] in
-            // the Nature DQN) if so configured; done ends the bootstrapping: the game is over,
-            // or (if so configured) a life was lost.
-            let reward = self.config.reward(r.reward);
-            let life_lost = lives.is_some_and(|l| r.lives < l);
+            // the Nature DQN) if so configured, less `life_penalty` per life lost; done ends the
+            // bootstrapping: the game is over, or (if so configured) a life was lost.
+            let lives_lost = lives.map_or(0, |l| l - r.lives);
+            let reward = self.config.learner_reward(r.reward, lives_lost);
+            let life_lost = lives_lost > 0;
             lives = Some(r.lives);
             let done = r.terminal || (self.config.life_loss_terminal && life_lost);
             self.replay.push_step(action, reward, done, frame);

@@ -239,6 +239,14 @@ pub struct Config {
     /// goes on). The article: no.
     #[serde(default)]
     pub life_loss_terminal: bool,
+    /// Each life a step loses costs the learner this much reward (after scaling and clipping;
+    /// default 0). A bomb takes one life; the invaders landing end the game with every life left,
+    /// so a landing with `L` lives costs `L` times as much. With `life_loss_terminal` the target
+    /// stops at the lost life and sees nothing of the lives after it, so without a penalty a
+    /// landing is no worse than a bomb ([`Config::learner_reward`]; docs/strong.md, "The plateau
+    /// is a landing").
+    #[serde(default)]
+    pub life_penalty: f64,
     /// Prioritized replay: transitions drawn in proportion to `(|δ| + ε)^α`, losses weighted by
     /// `(N · P)^(−β)` ([`PRIORITY_EXPONENT`], [`IMPORTANCE_EXPONENT`]; `dqn::Replay`). The
     /// article: uniform.
@@ -328,6 +336,7 @@ impl Config {
             munchausen_clip: munchausen_clip_default(),
             n_step: 1,
             life_loss_terminal: false,
+            life_penalty: 0.0,
             prioritized: false,
             adam_epsilon: ADAM_EPSILON,
             precision: Precision::F32,
@@ -401,6 +410,12 @@ impl Config {
         } else {
             r
         }
+    }
+
+    /// The reward the learner stores for a step that scored `r` and lost `lives_lost` lives:
+    /// [`Config::reward`]`(r) − life_penalty · lives_lost`.
+    pub fn learner_reward(&self, r: f32, lives_lost: i32) -> f32 {
+        self.reward(r) - self.life_penalty as f32 * lives_lost.max(0) as f32
     }
 
     /// Values per action of the network's output: 1, or the quantile head's `quantiles`.
@@ -601,6 +616,9 @@ impl Config {
                 "munchausen_alpha must be in [0, 1], got {}",
                 c.munchausen_alpha
             );
+        }
+        if !(0.0..=1e6).contains(&c.life_penalty) {
+            bail!("life_penalty must be in [0, 1e6], got {}", c.life_penalty);
         }
         for (name, v) in [
             ("reward_scale", c.reward_scale),
