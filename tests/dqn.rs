@@ -221,13 +221,36 @@ fn learns(set: impl FnOnce(&mut Config)) {
     }
 }
 
-/// Six steps, three lives: one lost on step 2, one on step 4, the game over on step 6.
-struct ThreeLives {
-    steps: u32,
+/// A game of scripted lives: step `k` (from 1) shows `lives[k − 1]` and scores 1, and the last
+/// step ends the game.
+struct Scripted {
+    lives: &'static [i32],
+    steps: usize,
     frame: Vec<u8>,
 }
 
-impl Game for ThreeLives {
+impl Scripted {
+    /// Six steps, three lives: one lost on step 2, one on step 4, the game over on step 6.
+    fn three_lives() -> Scripted {
+        Scripted::new(&[3, 2, 2, 1, 1, 0])
+    }
+
+    /// Four steps: a bomb takes one of three lives on step 3, and on step 4 the invaders land,
+    /// ending the game with the two lives left.
+    fn landing() -> Scripted {
+        Scripted::new(&[3, 3, 2, 0])
+    }
+
+    fn new(lives: &'static [i32]) -> Scripted {
+        Scripted {
+            lives,
+            steps: 0,
+            frame: vec![0; FRAME_LEN],
+        }
+    }
+}
+
+impl Game for Scripted {
     fn n_actions(&self) -> usize {
         2
     }
@@ -237,11 +260,8 @@ impl Game for ThreeLives {
     fn step(&mut self, _action: usize) -> StepResult {
         self.steps += 1;
         StepResult {
-            lives: 3
-                - (self.steps >= 2) as i32
-                - (self.steps >= 4) as i32
-                - (self.steps >= 6) as i32,
-            ..common::toy_step(1.0, self.steps == 6, false)
+            lives: self.lives[self.steps - 1],
+            ..common::toy_step(1.0, self.steps == self.lives.len(), false)
         }
     }
     fn observation(&self) -> &[u8] {
@@ -256,11 +276,7 @@ fn a_lost_life_ends_bootstrapping_only_when_asked() {
     for (switch, expect_done) in [(false, vec![5]), (true, vec![1, 3, 5])] {
         let mut c = toy_config();
         c.life_loss_terminal = switch;
-        let game = ThreeLives {
-            steps: 0,
-            frame: vec![0; FRAME_LEN],
-        };
-        let mut agent = Agent::new(c, game);
+        let mut agent = Agent::new(c, Scripted::three_lives());
         let row = agent.play_episode().unwrap();
         assert_eq!(row.length, 6, "the episode goes on after a lost life");
         let (_, _, _, flags) = agent.replay.parts();
@@ -268,32 +284,6 @@ fn a_lost_life_ends_bootstrapping_only_when_asked() {
             .filter(|&i| flags[i] & invaders::dqn::FLAG_DONE != 0)
             .collect();
         assert_eq!(done, expect_done, "life_loss_terminal = {switch}");
-    }
-}
-
-/// Four steps worth 1 each: a bomb takes one of three lives on step 3, and on step 4 the
-/// invaders land, ending the game with the two lives left.
-struct Landing {
-    steps: u32,
-    frame: Vec<u8>,
-}
-
-impl Game for Landing {
-    fn n_actions(&self) -> usize {
-        2
-    }
-    fn reset(&mut self) {
-        self.steps = 0;
-    }
-    fn step(&mut self, _action: usize) -> StepResult {
-        self.steps += 1;
-        StepResult {
-            lives: [3, 3, 2, 0][self.steps as usize - 1],
-            ..common::toy_step(1.0, self.steps == 4, false)
-        }
-    }
-    fn observation(&self) -> &[u8] {
-        &self.frame
     }
 }
 
@@ -305,13 +295,7 @@ fn each_lost_life_costs_the_life_penalty() {
         let mut c = toy_config();
         c.life_loss_terminal = true;
         c.life_penalty = penalty;
-        let mut agent = Agent::new(
-            c,
-            Landing {
-                steps: 0,
-                frame: vec![0; FRAME_LEN],
-            },
-        );
+        let mut agent = Agent::new(c, Scripted::landing());
         let row = agent.play_episode().unwrap();
         assert_eq!(row.reward, 4.0, "the score counts the game's rewards");
         let (_, _, rewards, flags) = agent.replay.parts();
