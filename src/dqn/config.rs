@@ -82,6 +82,9 @@ pub const PRIORITY_EXPONENT: f64 = 0.5;
 /// Prioritized replay's `β`: loss weights `(N · P)^(−β)` (Dopamine's Rainbow: 0.5, fixed).
 pub const IMPORTANCE_EXPONENT: f64 = 0.5;
 
+/// The largest random shift of a sampled state (`random_shift`; DrQ's is 4 on 84x84).
+pub const MAX_RANDOM_SHIFT: usize = 16;
+
 /// The most quantiles a quantile head may have (`quantiles`; QR-DQN used 200).
 pub const MAX_QUANTILES: usize = 1024;
 
@@ -109,6 +112,10 @@ fn munchausen_tau_default() -> f64 {
 
 fn munchausen_clip_default() -> f64 {
     -1.0
+}
+
+fn is_zero(v: &usize) -> bool {
+    *v == 0
 }
 
 fn one_f64() -> f64 {
@@ -252,6 +259,11 @@ pub struct Config {
     /// article: uniform.
     #[serde(default)]
     pub prioritized: bool,
+    /// Random shifts (DrQ, Kostrikov et al. 2021): each sampled state and next state moved by
+    /// up to this many pixels each way, its border repeated (`dqn::Replay::with_random_shift`);
+    /// 0: none (every preset). Acting sees the frames unshifted.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub random_shift: usize,
     /// Adam's ε (TensorFlow's default 1e-8; Rainbow and its data-efficient variants use 1.5e-4,
     /// which damps the steps of parameters with rare gradients).
     #[serde(default = "adam_epsilon_default")]
@@ -338,6 +350,7 @@ impl Config {
             life_loss_terminal: false,
             life_penalty: 0.0,
             prioritized: false,
+            random_shift: 0,
             adam_epsilon: ADAM_EPSILON,
             precision: Precision::F32,
             clip_grad_norm: 0.0,
@@ -447,7 +460,8 @@ impl Config {
     /// `n_step` returns and, if `prioritized`, prioritized sampling.
     pub fn new_replay(&self) -> Replay {
         let replay = Replay::new(self.replay_capacity, self.pipeline.channels())
-            .with_returns(self.n_step as usize, self.gamma as f32);
+            .with_returns(self.n_step as usize, self.gamma as f32)
+            .with_random_shift(self.random_shift);
         if self.prioritized {
             replay.with_priorities(PRIORITY_EXPONENT, IMPORTANCE_EXPONENT)
         } else {
@@ -615,6 +629,12 @@ impl Config {
             bail!(
                 "munchausen_alpha must be in [0, 1], got {}",
                 c.munchausen_alpha
+            );
+        }
+        if c.random_shift > MAX_RANDOM_SHIFT {
+            bail!(
+                "random_shift must be at most {MAX_RANDOM_SHIFT} pixels, got {}",
+                c.random_shift
             );
         }
         if !(0.0..=1e6).contains(&c.life_penalty) {

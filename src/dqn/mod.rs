@@ -18,5 +18,5 @@ pub use config::{
 pub use learner::{argmax, greedy_atoms, greedy_rows, Learner, Munchausen, StepStats};
 pub use precision::{resolve_precision, Resolved};
 pub use qnet::{article_qnet, input_border, midpoints, qnet, Head, Iqn, IqnMerge};
-pub use replay::{Batch, Replay, FLAG_ACTED, FLAG_DONE, FLAG_START, PRIORITY_EPSILON};
+pub use replay::{shift_frame, Batch, Replay, FLAG_ACTED, FLAG_DONE, FLAG_START, PRIORITY_EPSILON};
 pub use sumtree::SumTree;

@@ -25,10 +25,21 @@
 //! `w_i = (N · P(i))^(−β) / max_j w_j` (`N` entries held; `max` over the batch, as Dopamine does).
 //! The priorities live in a [`SumTree`] over the slots; a slot's priority is 0 while its entry
 //! cannot be sampled (not yet acted on, or overwritten).
+//!
+//! # Random shifts
+//!
+//! [`Replay::with_random_shift`] moves each sampled state by a random whole number of pixels,
+//! `dy, dx ∈ [−pad, pad]`, drawn anew for every `s` and every `s'` of a batch (all `k` frames of
+//! one state move together): pixel `(y, x)` of the shifted frame is pixel
+//! `(clamp(y + dy), clamp(x + dx))` of the stored one, i.e. the frame padded by repeating its
+//! border rows and columns `pad` times, then cropped back to 88x80 at a random offset (DrQ,
+//! Kostrikov et al. 2021, whose DQN on Atari pads 84x84 by 4). The learner then fits Q-values
+//! that cannot depend on where exactly the screen sits, only on what is where relative to what;
+//! acting sees the frames as they are.
 
 use super::input_border;
 use super::sumtree::SumTree;
-use crate::env::{write_stacked_input_bordered, FRAME_LEN};
+use crate::env::{write_stacked_input_bordered, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH};
 use crate::tensor::bf16::to_bf16;
 use crate::tensor::{Border, Padding, Tensor};
 use rand::Rng;
@@ -66,6 +77,10 @@ pub struct Replay {
     picks: Vec<u64>,
     /// Prioritized sampling, if on.
     priorities: Option<Priorities>,
+    /// The largest random shift of a sampled state, in pixels (0: none; [`Replay::with_random_shift`]).
+    shift: usize,
+    /// Scratch: one state's shifted frames, `[k, 88·80]`.
+    shifted: Vec<u8>,
 }
 
 /// The state of prioritized sampling ([`Replay::with_priorities`]).
@@ -105,7 +120,20 @@ impl Replay {
             written: 0,
             picks: Vec::new(),
             priorities: None,
+            shift: 0,
+            shifted: Vec::new(),
         }
+    }
+
+    /// The same memory moving each sampled state by up to `pad` pixels each way (module
+    /// documentation, "Random shifts"); 0 leaves states as stored and draws no random numbers.
+    pub fn with_random_shift(mut self, pad: usize) -> Self {
+        assert!(
+            pad < FRAME_HEIGHT.min(FRAME_WIDTH),
+            "a shift smaller than the frame"
+        );
+        self.shift = pad;
+        self
     }
 
     /// The same memory sampling in proportion to `(|δ| + ε)^alpha` with loss weights
@@ -391,20 +419,41 @@ impl Replay {
         let rounded: Option<[u16; 256]> = batch
             .keep_bf16
             .then(|| std::array::from_fn(|v| to_bf16(table[v])));
+        let mut shifted = std::mem::take(&mut self.shifted);
+        shifted.resize(self.k * FRAME_LEN, 0);
+        let pad = self.shift as i64;
         for (i, &g) in picks.iter().enumerate() {
             let (ret, m, done) = self.n_step_return(g);
             batch.actions[i] = self.actions[self.slot(g)] as usize;
             batch.rewards[i] = ret;
             batch.steps[i] = m;
             batch.dones[i] = done;
-            let state = self.state_frames(g).expect("checked");
             let tables = (table, rounded.as_ref());
-            write_state(&state[..self.k], tables, border, i, &mut batch.states);
-            let next = self
-                .state_frames(g + m as u64)
-                .expect("a later entry of the same episode is held");
-            write_state(&next[..self.k], tables, border, i, &mut batch.next_states);
+            let next = g + m as u64;
+            for (entry, out) in [(g, &mut batch.states), (next, &mut batch.next_states)] {
+                let state = self
+                    .state_frames(entry)
+                    .expect("a sampled entry and a later one of its episode are held");
+                if pad == 0 {
+                    write_state(&state[..self.k], tables, border, i, out);
+                } else {
+                    let dy = rng.random_range(-pad..=pad);
+                    let dx = rng.random_range(-pad..=pad);
+                    for (frame, to) in state[..self.k]
+                        .iter()
+                        .zip(shifted.chunks_exact_mut(FRAME_LEN))
+                    {
+                        shift_frame(frame, dy, dx, to);
+                    }
+                    let mut frames: [&[u8]; 4] = [&[]; 4];
+                    for (f, c) in frames.iter_mut().zip(shifted.chunks_exact(FRAME_LEN)) {
+                        *f = c;
+                    }
+                    write_state(&frames[..self.k], tables, border, i, out);
+                }
+            }
         }
+        self.shifted = shifted;
         self.picks = picks;
     }
 
@@ -462,6 +511,23 @@ impl Replay {
         }
         p.max = max;
         Ok(())
+    }
+}
+
+/// One 88x80 frame moved by `(dy, dx)` pixels with its border repeated: `to[y, x] =
+/// frame[clamp(y + dy), clamp(x + dx)]`, the rows and columns clamped into the frame.
+pub fn shift_frame(frame: &[u8], dy: i64, dx: i64, to: &mut [u8]) {
+    let (h, w) = (FRAME_HEIGHT as i64, FRAME_WIDTH as i64);
+    assert!(
+        frame.len() == FRAME_LEN && to.len() == FRAME_LEN,
+        "88x80 frames"
+    );
+    for (y, row) in to.chunks_exact_mut(FRAME_WIDTH).enumerate() {
+        let from = (y as i64 + dy).clamp(0, h - 1) as usize * FRAME_WIDTH;
+        let src = &frame[from..from + FRAME_WIDTH];
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = src[(x as i64 + dx).clamp(0, w - 1) as usize];
+        }
     }
 }
 
