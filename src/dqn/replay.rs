@@ -522,11 +522,17 @@ pub fn shift_frame(frame: &[u8], dy: i64, dx: i64, to: &mut [u8]) {
         frame.len() == FRAME_LEN && to.len() == FRAME_LEN,
         "88x80 frames"
     );
+    // Columns: `d` of them repeat the edge pixel, the rest are one block of the source row.
+    let d = dx.unsigned_abs().min(FRAME_WIDTH as u64 - 1) as usize;
     for (y, row) in to.chunks_exact_mut(FRAME_WIDTH).enumerate() {
         let from = (y as i64 + dy).clamp(0, h - 1) as usize * FRAME_WIDTH;
         let src = &frame[from..from + FRAME_WIDTH];
-        for (x, o) in row.iter_mut().enumerate() {
-            *o = src[(x as i64 + dx).clamp(0, w - 1) as usize];
+        if dx >= 0 {
+            row[..FRAME_WIDTH - d].copy_from_slice(&src[d..]);
+            row[FRAME_WIDTH - d..].fill(src[(w - 1) as usize]);
+        } else {
+            row[d..].copy_from_slice(&src[..FRAME_WIDTH - d]);
+            row[..d].fill(src[0]);
         }
     }
 }
