@@ -457,7 +457,7 @@ impl Config {
     }
 
     /// An empty replay memory as this configuration asks for: its capacity, frames per state,
-    /// `n_step` returns and, if `prioritized`, prioritized sampling.
+    /// `n_step` returns, its `random_shift` and, if `prioritized`, prioritized sampling.
     pub fn new_replay(&self) -> Replay {
         let replay = Replay::new(self.replay_capacity, self.pipeline.channels())
             .with_returns(self.n_step as usize, self.gamma as f32)

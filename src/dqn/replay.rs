@@ -517,7 +517,7 @@ impl Replay {
 /// One 88x80 frame moved by `(dy, dx)` pixels with its border repeated: `to[y, x] =
 /// frame[clamp(y + dy), clamp(x + dx)]`, the rows and columns clamped into the frame.
 pub fn shift_frame(frame: &[u8], dy: i64, dx: i64, to: &mut [u8]) {
-    let (h, w) = (FRAME_HEIGHT as i64, FRAME_WIDTH as i64);
+    let h = FRAME_HEIGHT as i64;
     assert!(
         frame.len() == FRAME_LEN && to.len() == FRAME_LEN,
         "88x80 frames"
@@ -529,7 +529,7 @@ pub fn shift_frame(frame: &[u8], dy: i64, dx: i64, to: &mut [u8]) {
         let src = &frame[from..from + FRAME_WIDTH];
         if dx >= 0 {
             row[..FRAME_WIDTH - d].copy_from_slice(&src[d..]);
-            row[FRAME_WIDTH - d..].fill(src[(w - 1) as usize]);
+            row[FRAME_WIDTH - d..].fill(src[FRAME_WIDTH - 1]);
         } else {
             row[d..].copy_from_slice(&src[..FRAME_WIDTH - d]);
             row[..d].fill(src[0]);
