@@ -15,7 +15,9 @@
 //! 8  until the game is over or the step limit is hit
 //! ```
 //!
-//! The code marks these lines `ALGO 1` … `ALGO 8`.
+//! The code marks these lines `ALGO 1` … `ALGO 8`. One switch beyond the algorithm, off in
+//! every preset, sits beside ALGO 7: at the agent steps `reset_dense_at` lists, the layers after
+//! the convolutions are drawn afresh ([`Learner::reset_dense`]).
 
 use super::{Batch, Config, Head, Learner, Replay, StepStats};
 use crate::env::{Game, Observer, StepResult, FRAME_LEN};
@@ -172,6 +174,10 @@ pub fn play_evaluation_episode<G: Game>(
         }
     }
 }
+
+/// The random streams of the resets of `reset_dense_at`, one per agent step `t`:
+/// `RESET_STREAMS | t`, apart from the initialisation's (1) and the episodes' (2, 3, …).
+const RESET_STREAMS: u64 = 1 << 63;
 
 /// Random streams of a run, all derived from its seed.
 fn stream(seed: u64, id: u64) -> ChaCha8Rng {
@@ -374,6 +380,10 @@ impl<G: Game> Agent<G> {
             if t.is_multiple_of(self.config.target_update) {
                 self.learner.update_target();
             }
+            // Not the algorithm: a reset of the dense layers, if `reset_dense_at` lists `t`.
+            if self.config.reset_dense_at.binary_search(&t).is_ok() {
+                self.reset_dense(t);
+            }
             // ALGO 8: until the game is over or the step limit is hit.
             if r.terminal || r.truncated {
                 break action;
@@ -383,6 +393,20 @@ impl<G: Game> Agent<G> {
             self.push_fake_terminal(last_action);
         }
         Ok(self.finish_episode(start, &metrics))
+    }
+
+    /// Draws the layers after the convolutions afresh at agent step `t`
+    /// ([`Learner::reset_dense`]), from a network initialised as a run's first is, on a random
+    /// stream of its own for each `t` (so a resumed run resets as one never stopped would).
+    fn reset_dense(&mut self, t: u64) {
+        let fresh = super::qnet(
+            self.config.input_shape(),
+            self.game.n_actions(),
+            Head::of(&self.config),
+            &crate::layers::init::VarianceScaling::HE,
+            &mut stream(self.config.seed, RESET_STREAMS | t),
+        );
+        self.learner.reset_dense(&fresh);
     }
 
     /// Counts one agent step (its reward, length, emulator frames); returns the agent step.

@@ -85,6 +85,9 @@ pub const IMPORTANCE_EXPONENT: f64 = 0.5;
 /// The largest random shift of a sampled state (`random_shift`; DrQ's is 4 on 84x84).
 pub const MAX_RANDOM_SHIFT: usize = 16;
 
+/// The most resets a configuration may ask for (`reset_dense_at`).
+pub const MAX_RESETS: usize = 1_000;
+
 /// The most quantiles a quantile head may have (`quantiles`; QR-DQN used 200).
 pub const MAX_QUANTILES: usize = 1024;
 
@@ -264,6 +267,14 @@ pub struct Config {
     /// 0: none (every preset). Acting sees the frames unshifted.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub random_shift: usize,
+    /// Resets against lost plasticity (Nikishin et al. 2022, "The primacy bias in deep
+    /// reinforcement learning"): at each of these agent steps (increasing) every layer after the
+    /// convolutions (dense1, dense2 and what lies between them) is drawn afresh as at a run's
+    /// start, and its Adam first moments are zeroed; the convolutions, the target network and
+    /// the replay memory are kept ([`super::Learner::reset_dense`]). Empty: never (every
+    /// preset).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub reset_dense_at: Vec<u64>,
     /// Adam's ε (TensorFlow's default 1e-8; Rainbow and its data-efficient variants use 1.5e-4,
     /// which damps the steps of parameters with rare gradients).
     #[serde(default = "adam_epsilon_default")]
@@ -351,6 +362,7 @@ impl Config {
             life_penalty: 0.0,
             prioritized: false,
             random_shift: 0,
+            reset_dense_at: Vec::new(),
             adam_epsilon: ADAM_EPSILON,
             precision: Precision::F32,
             clip_grad_norm: 0.0,
@@ -636,6 +648,23 @@ impl Config {
                 "random_shift must be at most {MAX_RANDOM_SHIFT} pixels, got {}",
                 c.random_shift
             );
+        }
+        if c.reset_dense_at.len() > MAX_RESETS {
+            bail!(
+                "reset_dense_at may list at most {MAX_RESETS} agent steps, got {}",
+                c.reset_dense_at.len()
+            );
+        }
+        let mut after = 0;
+        for &t in &c.reset_dense_at {
+            if t <= after || t > MAX_STEPS_KNOB {
+                bail!(
+                    "reset_dense_at must list increasing agent steps in 1..={MAX_STEPS_KNOB}, \
+                     got {:?}",
+                    c.reset_dense_at
+                );
+            }
+            after = t;
         }
         if !(0.0..=1e6).contains(&c.life_penalty) {
             bail!("life_penalty must be in [0, 1e6], got {}", c.life_penalty);

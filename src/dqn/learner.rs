@@ -159,6 +159,38 @@ impl Learner {
         self.target.copy_params_from(&self.online);
     }
 
+    /// Draws the layers after the convolutions afresh (a reset against lost plasticity,
+    /// `Config::reset_dense_at`): each of their parameters takes its value from `fresh`, a
+    /// newly initialised network of the same architecture, and its Adam first moment `m` is
+    /// zeroed, so no step of the old weights' momentum lands on the new ones. The second moments
+    /// `v` stay: they hold the scale of these parameters' gradients, and zeroed under Adam's late
+    /// bias correction (`α_t ≈ lr`) they would make the next steps several times the learning
+    /// rate (`m/√v ≈ 0.1·g/√(0.001·g²) ≈ 3` after one step). The convolutions (`conv1` to
+    /// `conv3`, and `ln1` to `ln3` with layer normalisation), the target network and Adam's step
+    /// count are kept. Returns how many parameters (tensors) were reset.
+    pub fn reset_dense(&mut self, fresh: &Sequential<f32>) -> usize {
+        let trunk = |name: &str| {
+            ["conv1.", "conv2.", "conv3.", "ln1.", "ln2.", "ln3."]
+                .iter()
+                .any(|p| name.starts_with(p))
+        };
+        let mut theirs = fresh.params();
+        let mut reset = 0;
+        for (i, mine) in self.online.params_mut().enumerate() {
+            let p = theirs.next().expect("reset_dense: the same architecture");
+            assert_eq!(mine.name, p.name, "reset_dense: architectures differ");
+            if trunk(&mine.name) {
+                continue;
+            }
+            mine.value.data_mut().copy_from_slice(p.value.data());
+            if let Some(m) = self.adam.m.get_mut(i) {
+                m.fill_zero();
+            }
+            reset += 1;
+        }
+        reset
+    }
+
     /// One DQN update on `batch`: [`Learner::q_step`] for a Q-value or quantile head,
     /// [`Learner::iqn_step`] for an implicit quantile head.
     pub fn train_step(&mut self, batch: &Batch) -> StepStats {
