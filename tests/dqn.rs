@@ -3,75 +3,15 @@
 
 mod common;
 
+use common::corridor::{Corridor, LEN};
 use invaders::dqn::checkpoint;
 use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
-use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN, FRAME_WIDTH};
+use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN};
 use invaders::ops::plan::Precision;
 use invaders::tensor::bf16::to_bf16;
 use invaders::tensor::{Padding, Tensor};
 use proptest::prelude::*;
 use rand::Rng;
-
-/// A corridor of `LEN` cells drawn as a bright vertical band at the agent's cell. Actions: 0 =
-/// left, 1 = right. Reaching the last cell gives reward 1 and ends the episode; every other step
-/// gives 0; episodes are cut after `LIMIT` steps. The optimal policy walks right: return 1 in
-/// `LEN − 1` steps, and `Q*(cell i, right) = γ^(LEN − 2 − i)`.
-struct Corridor {
-    pos: usize,
-    steps: u32,
-    frame: Vec<u8>,
-}
-
-const LEN: usize = 4;
-const LIMIT: u32 = 12;
-
-impl Corridor {
-    fn new() -> Self {
-        let mut c = Corridor {
-            pos: 0,
-            steps: 0,
-            frame: vec![0; FRAME_LEN],
-        };
-        c.draw();
-        c
-    }
-    fn draw(&mut self) {
-        let band = FRAME_WIDTH / LEN;
-        for (i, p) in self.frame.iter_mut().enumerate() {
-            *p = if (i % FRAME_WIDTH) / band == self.pos {
-                255
-            } else {
-                0
-            };
-        }
-    }
-}
-
-impl Game for Corridor {
-    fn n_actions(&self) -> usize {
-        2
-    }
-    fn reset(&mut self) {
-        self.pos = 0;
-        self.steps = 0;
-        self.draw();
-    }
-    fn step(&mut self, action: usize) -> StepResult {
-        self.pos = if action == 1 {
-            self.pos + 1
-        } else {
-            self.pos.saturating_sub(1)
-        };
-        self.steps += 1;
-        self.draw();
-        let terminal = self.pos == LEN - 1;
-        let reward = if terminal { 1.0 } else { 0.0 };
-        common::toy_step(reward, terminal, !terminal && self.steps >= LIMIT)
-    }
-    fn observation(&self) -> &[u8] {
-        &self.frame
-    }
-}
 
 fn toy_config() -> Config {
     let mut c = common::small_config(1_000, 16, 64, 25, 3);

@@ -109,6 +109,54 @@ fn adam_matches_closed_form() {
     assert_eq!(adam.t, 50);
 }
 
+/// Rectified Adam against `torch.optim.RAdam`'s form, computed independently in f64 over 50
+/// steps: `m̂ = m/(1−β₁ᵗ)`; `ρ_t = ρ∞ − 2tβ₂ᵗ/(1−β₂ᵗ)` with `ρ∞ = 2/(1−β₂) − 1`; while
+/// `ρ_t ≤ 5` (steps 1 to 5 at β₂ = 0.999) the step is `lr·m̂`, after it
+/// `lr·m̂·r_t·sqrt(1−β₂ᵗ)/(sqrt(v) + ε)` with `r_t` the variance rectification. Also checks the
+/// first rectified factor against its value worked by hand: at t = 6, `ρ_6 ≈ 5.9942`,
+/// `r_6 ≈ 0.0258`.
+#[test]
+#[allow(clippy::needless_range_loop)] // four parallel arrays, indexed alike
+fn radam_matches_closed_form() {
+    let mut p = Param::<f64>::zeros("w".into(), &[4]);
+    p.value.data_mut().copy_from_slice(&[0.5, -1.0, 2.0, 0.0]);
+    let mut adam = Adam::new(0.01);
+    adam.rectified = true;
+    let (mut w, mut m, mut v) = ([0.5f64, -1.0, 2.0, 0.0], [0.0f64; 4], [0.0f64; 4]);
+    let (b1, b2, lr, eps) = (0.9f64, 0.999f64, 0.01f64, 1e-8f64);
+    let rho_inf = 2.0 / (1.0 - b2) - 1.0;
+    let mut adaptive_steps = 0;
+    for t in 1..=50 {
+        let g: Vec<f64> = (0..4)
+            .map(|i| ((t * 7 + i * 3) as f64).sin() * (i + 1) as f64)
+            .collect();
+        p.grad.data_mut().copy_from_slice(&g);
+        assert!(adam.step(std::iter::once(&mut p)), "step {t}: all finite");
+        let rho = rho_inf - 2.0 * t as f64 * b2.powi(t) / (1.0 - b2.powi(t));
+        let r = ((rho - 4.0) * (rho - 2.0) * rho_inf / ((rho_inf - 4.0) * (rho_inf - 2.0) * rho))
+            .sqrt();
+        if t == 6 {
+            assert!((rho - 5.9942).abs() < 1e-3, "rho_6 = {rho}");
+            assert!((r - 0.0258).abs() < 1e-3, "r_6 = {r}");
+        }
+        adaptive_steps += (rho > 5.0) as u32;
+        for i in 0..4 {
+            m[i] = b1 * m[i] + (1.0 - b1) * g[i];
+            v[i] = b2 * v[i] + (1.0 - b2) * g[i] * g[i];
+            let mh = m[i] / (1.0 - b1.powi(t));
+            w[i] -= if rho > 5.0 {
+                lr * mh * r * (1.0 - b2.powi(t)).sqrt() / (v[i].sqrt() + eps)
+            } else {
+                lr * mh
+            };
+        }
+        for (&ours, &want) in p.value.data().iter().zip(&w) {
+            assert!((ours - want).abs() < 1e-12, "step {t}: {ours} vs {want}");
+        }
+    }
+    assert_eq!(adaptive_steps, 45, "steps 6 to 50 adaptive");
+}
+
 /// `Adam::step` says whether every weight it wrote is finite (the divergence guard's check), and
 /// still updates every weight when one is not: here a NaN gradient in the first of two 20 000-value
 /// parameters' chunks, and an infinite weight in the second's last chunk.

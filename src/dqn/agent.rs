@@ -180,7 +180,7 @@ pub fn play_evaluation_episode<G: Game>(
 const RESET_STREAMS: u64 = 1 << 63;
 
 /// Random streams of a run, all derived from its seed.
-fn stream(seed: u64, id: u64) -> ChaCha8Rng {
+pub(super) fn stream(seed: u64, id: u64) -> ChaCha8Rng {
     let mut r = ChaCha8Rng::seed_from_u64(seed);
     r.set_stream(id);
     r
@@ -435,28 +435,13 @@ impl<G: Game> Agent<G> {
     /// The divergence guard: an error naming the agent step `t` and the train step if the last
     /// gradient step gave a non-finite loss, gradient norm or weight.
     fn check_finite(&self, s: &StepStats, t: u64) -> anyhow::Result<()> {
-        let what = if !s.loss.is_finite() {
-            Some(format!("the loss is {}", s.loss))
-        } else if !s.grad_norm.is_finite() {
-            Some(format!("the gradient norm is {}", s.grad_norm))
-        } else if !s.weights_finite {
-            // Adam saw a non-finite weight as it wrote it: find which, for the message.
-            let p = self.learner.non_finite_param();
-            Some(format!(
-                "weight {} is not finite",
-                p.as_deref().unwrap_or("?")
-            ))
-        } else {
-            None
-        };
-        if let Some(what) = what {
-            bail!(
-                "training diverged at agent step {t}, train step {} (episode {}): {what}",
-                self.counters.train_steps,
-                self.counters.episodes + 1
-            );
-        }
-        Ok(())
+        check_finite(
+            &self.learner,
+            s,
+            t,
+            self.counters.train_steps,
+            self.counters.episodes + 1,
+        )
     }
 
     /// The notebook's extra transition at the end of an episode: the final state again, marked
@@ -486,6 +471,36 @@ impl<G: Game> Agent<G> {
             wall_seconds: self.counters.wall_seconds,
         }
     }
+}
+
+/// The divergence guard: an error naming the agent step `t`, the train step `train_step` and
+/// the `episode` under way if a gradient step of `learner` gave the non-finite loss, gradient
+/// norm or weight that `s` reports.
+pub(super) fn check_finite(
+    learner: &Learner, s: &StepStats, t: u64, train_step: u64, episode: u64,
+) -> anyhow::Result<()> {
+    let what = if !s.loss.is_finite() {
+        Some(format!("the loss is {}", s.loss))
+    } else if !s.grad_norm.is_finite() {
+        Some(format!("the gradient norm is {}", s.grad_norm))
+    } else if !s.weights_finite {
+        // Adam saw a non-finite weight as it wrote it: find which, for the message.
+        let p = learner.non_finite_param();
+        Some(format!(
+            "weight {} is not finite",
+            p.as_deref().unwrap_or("?")
+        ))
+    } else {
+        None
+    };
+    if let Some(what) = what {
+        bail!(
+            "training diverged at agent step {t}, train step {} (episode {}): {what}",
+            train_step,
+            episode
+        );
+    }
+    Ok(())
 }
 
 /// What one episode sums for its metrics row.

@@ -117,6 +117,10 @@ fn munchausen_clip_default() -> f64 {
     -1.0
 }
 
+fn is_false(v: &bool) -> bool {
+    !*v
+}
+
 fn is_zero(v: &usize) -> bool {
     *v == 0
 }
@@ -136,6 +140,85 @@ fn adam_epsilon_default() -> f64 {
 /// `episodes` of a run bounded by frames only: as many as TOML's integers hold (they are i64,
 /// so `u64::MAX` would not serialise into `config.toml`).
 pub const NO_EPISODE_LIMIT: u64 = i64::MAX as u64;
+
+/// PQN's settings (Gallici et al. 2024, "Simplifying Deep Temporal Difference Learning"; the
+/// `[pqn]` table of a config file). Defaults: CleanRL's `pqn_atari_envpool.py`.
+///
+/// Each rollout plays `games` games side by side for `rollout` agent steps each, acting
+/// ε-greedily on the online network (the only network); its `games · rollout` transitions get
+/// Q(λ) returns ([`super::q_lambda_returns`]) bootstrapped from the acting network's own
+/// `max_a Q`, and are learnt in `epochs` passes, each over a fresh shuffle cut into
+/// `minibatches` minibatches; then the rollout is dropped. Under PQN the replay, target and
+/// update-rate keys (`replay_capacity`, `batch_size`, `train_every`, `learning_starts`,
+/// `target_update`, `double_dqn`, `n_step`) are not used; ε and the learning rate follow their
+/// schedules over agent steps, each game's step counting one.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Pqn {
+    /// Games played side by side (CleanRL: 8).
+    #[serde(default = "pqn_games_default")]
+    pub games: usize,
+    /// Agent steps of each game per rollout (CleanRL: 128).
+    #[serde(default = "pqn_rollout_default")]
+    pub rollout: usize,
+    /// Passes over each rollout (CleanRL: 4).
+    #[serde(default = "pqn_epochs_default")]
+    pub epochs: usize,
+    /// Minibatches per pass (CleanRL: 4, so 256 transitions each); they must divide
+    /// `games · rollout`.
+    #[serde(default = "pqn_minibatches_default")]
+    pub minibatches: usize,
+    /// λ of the Q(λ) returns: 0 the one-step target, 1 the Monte-Carlo return (CleanRL: 0.65).
+    #[serde(default = "pqn_lambda_default")]
+    pub lambda: f64,
+}
+
+impl Default for Pqn {
+    fn default() -> Self {
+        Pqn {
+            games: pqn_games_default(),
+            rollout: pqn_rollout_default(),
+            epochs: pqn_epochs_default(),
+            minibatches: pqn_minibatches_default(),
+            lambda: pqn_lambda_default(),
+        }
+    }
+}
+
+impl Pqn {
+    /// Transitions per rollout, `games · rollout`.
+    pub fn transitions(&self) -> usize {
+        self.games * self.rollout
+    }
+
+    /// Transitions per minibatch.
+    pub fn minibatch(&self) -> usize {
+        self.transitions() / self.minibatches
+    }
+}
+
+fn pqn_games_default() -> usize {
+    8
+}
+
+fn pqn_rollout_default() -> usize {
+    128
+}
+
+fn pqn_epochs_default() -> usize {
+    4
+}
+
+fn pqn_minibatches_default() -> usize {
+    4
+}
+
+fn pqn_lambda_default() -> f64 {
+    0.65
+}
+
+/// The most games a PQN run may play side by side.
+pub const MAX_PQN_GAMES: usize = 256;
 
 /// Everything a training run depends on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -279,6 +362,16 @@ pub struct Config {
     /// which damps the steps of parameters with rare gradients).
     #[serde(default = "adam_epsilon_default")]
     pub adam_epsilon: f64,
+    /// Rectified Adam (RAdam, Liu et al. 2020; PQN's optimizer) instead of Adam: the same
+    /// moments, a step without the second moment while its estimate is too young to trust
+    /// ([`crate::optim::Adam::rectified`]). Off in every preset.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub radam: bool,
+    /// PQN (Gallici et al. 2024): Q-learning from rollouts of several games played at once, with
+    /// Q(λ) targets and no replay memory or target network ([`Pqn`], `dqn::PqnAgent`); absent:
+    /// the DQN loop (every preset).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pqn: Option<Pqn>,
     /// Clip gradients to this global norm (0: no clipping).
     pub clip_grad_norm: f64,
     /// The training products' arithmetic: `f32`, or `bf16` operands with f32 sums where the CPU
@@ -364,6 +457,8 @@ impl Config {
             random_shift: 0,
             reset_dense_at: Vec::new(),
             adam_epsilon: ADAM_EPSILON,
+            radam: false,
+            pqn: None,
             precision: Precision::F32,
             clip_grad_norm: 0.0,
             clip_rewards: false,
@@ -706,10 +801,62 @@ impl Config {
         if !(c.clip_grad_norm >= 0.0 && c.clip_grad_norm.is_finite()) {
             bail!("clip_grad_norm must be >= 0, got {}", c.clip_grad_norm);
         }
+        if let Some(p) = &c.pqn {
+            c.validate_pqn(p)?;
+        }
         if c.checkpoint_every == 0 || c.plot_every == 0 {
             bail!("checkpoint_every and plot_every must be at least 1");
         }
         c.env.validate()?;
+        Ok(())
+    }
+
+    /// PQN's own ranges, and the switches it has no place for (they need a replay memory, a
+    /// target network or another head).
+    fn validate_pqn(&self, p: &Pqn) -> anyhow::Result<()> {
+        if !(1..=MAX_PQN_GAMES).contains(&p.games) {
+            bail!("pqn.games must be in 1..={MAX_PQN_GAMES}, got {}", p.games);
+        }
+        if !(1..=MAX_STEPS_KNOB as usize).contains(&p.rollout) || p.transitions() > MAX_BATCH * 64 {
+            bail!(
+                "pqn.rollout must be at least 1, and pqn.games × pqn.rollout at most {}, got {} × {}",
+                MAX_BATCH * 64,
+                p.games,
+                p.rollout
+            );
+        }
+        if !(1..=64).contains(&p.epochs) {
+            bail!("pqn.epochs must be in 1..=64, got {}", p.epochs);
+        }
+        if p.minibatches == 0 || !p.transitions().is_multiple_of(p.minibatches) {
+            bail!(
+                "pqn.minibatches must divide pqn.games × pqn.rollout ({}), got {}",
+                p.transitions(),
+                p.minibatches
+            );
+        }
+        if p.minibatch() > MAX_BATCH {
+            bail!(
+                "a PQN minibatch (pqn.games × pqn.rollout / pqn.minibatches = {}) must be at most {MAX_BATCH}",
+                p.minibatch()
+            );
+        }
+        if !(0.0..=1.0).contains(&p.lambda) {
+            bail!("pqn.lambda must be in [0, 1], got {}", p.lambda);
+        }
+        let unfit = [
+            ("quantiles", self.quantiles > 0),
+            ("iqn_samples", self.iqn_samples > 0),
+            ("munchausen_alpha", self.munchausen_alpha > 0.0),
+            ("prioritized", self.prioritized),
+            ("random_shift", self.random_shift > 0),
+            ("reset_dense_at", !self.reset_dense_at.is_empty()),
+            ("act_with_target_network", self.act_with_target_network),
+            ("fake_terminal_transition", self.fake_terminal_transition),
+        ];
+        if let Some((name, _)) = unfit.iter().find(|(_, on)| *on) {
+            bail!("{name} has no place in PQN (no replay memory, no target network, a Q-value head): drop it or the [pqn] table");
+        }
         Ok(())
     }
 

@@ -110,6 +110,7 @@ impl Learner {
             rng,
         );
         l.adam.eps = config.adam_epsilon as f32;
+        l.adam.rectified = config.radam;
         l.loss = config.loss;
         l.double = config.double_dqn;
         l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm as f32);
@@ -257,6 +258,33 @@ impl Learner {
         let loss = self.regression_loss(batch);
         // 4. Backward from dQ (non-zero at the taken actions only), then one Adam step.
         self.backward_and_step(batch, na * k, k, loss, max_q_sum)
+    }
+
+    /// One regression of `Q(s, a)` towards given targets (PQN's update, whose targets come from
+    /// its rollout: [`super::q_lambda_returns`]): forward `Q_online(batch.states, ·)`, the loss
+    /// `L = mean_b ℓ(Q(s_b, a_b) − y_b)` (MSE or Huber) against `targets` (`[B]`), backward from
+    /// `dQ` (non-zero at the taken actions only), one optimizer step. Of the batch only
+    /// `states` and `actions` are read.
+    ///
+    /// # Panics
+    /// If the network has a quantile head, or `targets` is not one per transition.
+    pub fn regress_step(&mut self, batch: &Batch, targets: &[f32]) -> StepStats {
+        assert!(
+            self.atoms == 1 && self.iqn.is_none(),
+            "regress_step: a Q-value head"
+        );
+        let b = batch.len();
+        assert_eq!(targets.len(), b, "regress_step: one target per transition");
+        self.y.clear();
+        self.y.extend_from_slice(targets);
+        for buf in [&mut self.q_taken, &mut self.dq_taken] {
+            buf.resize(b, 0.0);
+        }
+        let q = self.online.forward(&batch.states);
+        let max_q_sum = taken_values(q.data(), batch, 1, &mut self.q_taken);
+        let loss = self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken);
+        td_errors(&self.q_taken, &self.y, b, &mut self.td);
+        self.backward_and_step(batch, self.n_actions, 1, loss, max_q_sum)
     }
 
     /// The loss of `q_taken` against `y` (MSE or Huber; with a quantile head the quantile Huber

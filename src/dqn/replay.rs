@@ -539,7 +539,7 @@ pub fn shift_frame(frame: &[u8], dy: i64, dx: i64, to: &mut [u8]) {
 
 /// Writes state `i` of a batch's `states` from its frames through `tables`: the values, and
 /// their bf16 roundings as well where a table of those is given.
-fn write_state(
+pub(super) fn write_state(
     frames: &[&[u8]], tables: (&[f32; 256], Option<&[u16; 256]>), border: Border, i: usize,
     states: &mut Tensor<f32>,
 ) {

@@ -18,6 +18,22 @@ use rayon::prelude::*;
 /// paper's "ε̂" form: with `m̂ = m/(1 − β₁ᵗ)` and `v̂ = v/(1 − β₂ᵗ)` it is `θ ← θ − lr·m̂/(sqrt(v̂) + ε̂)`
 /// with `ε̂ = ε/sqrt(1 − β₂ᵗ)`, so ε matters slightly more early on than in the paper's Algorithm 1. Defaults are
 /// TensorFlow 1's (`tf.train.AdamOptimizer`): lr 1e-3, β₁ 0.9, β₂ 0.999, ε 1e-8.
+///
+/// # Rectified Adam
+///
+/// With [`Adam::rectified`] the step is RAdam's (Liu et al. 2020, "On the variance of the
+/// adaptive learning rate and beyond"; `torch.optim.RAdam`). Early on, `v` averages so few
+/// squared gradients that `1/sqrt(v̂)` has a large variance, so RAdam rectifies it by the ratio
+/// of its variance to its limit. With `ρ∞ = 2/(1 − β₂) − 1` and
+/// `ρ_t = ρ∞ − 2t·β₂ᵗ/(1 − β₂ᵗ)` (the length of the simple moving average `v` amounts to):
+/// ```text
+/// m̂ = m/(1 − β₁ᵗ)
+/// ρ_t > 5:  r_t = sqrt((ρ_t − 4)(ρ_t − 2)ρ∞ / ((ρ∞ − 4)(ρ∞ − 2)ρ_t))
+///           θ ← θ − lr · r_t · m̂ · sqrt(1 − β₂ᵗ) / (sqrt(v) + ε)
+/// else:     θ ← θ − lr · m̂                 (momentum SGD: v is not trusted yet)
+/// ```
+/// `r_t` rises from about 0.026 at the first adaptive step (`t = 6` for β₂ = 0.999) towards 1:
+/// a warm-up derived from β₂ rather than tuned.
 #[derive(Clone, Debug)]
 pub struct Adam<T> {
     /// Learning rate.
@@ -28,6 +44,8 @@ pub struct Adam<T> {
     pub beta2: T,
     /// Added to `sqrt(v)` to keep the step finite.
     pub eps: T,
+    /// Rectified Adam (RAdam) instead of Adam (above).
+    pub rectified: bool,
     /// Updates done so far.
     pub t: u64,
     /// First moments, one per parameter, in the network's order.
@@ -44,6 +62,7 @@ impl<T: Float> Adam<T> {
             beta1: T::of(0.9),
             beta2: T::of(0.999),
             eps: T::of(1e-8),
+            rectified: false,
             t: 0,
             m: Vec::new(),
             v: Vec::new(),
@@ -56,9 +75,10 @@ impl<T: Float> Adam<T> {
     /// second pass over the weights (for `hidden = 512`, 14 MB a step).
     pub fn step<'a>(&mut self, params: impl Iterator<Item = &'a mut Param<T>>) -> bool {
         self.t += 1;
-        let t = self.t as i32;
         let one = T::one();
-        let alpha = self.lr * (one - self.beta2.powi(t)).sqrt() / (one - self.beta1.powi(t));
+        // The step is `alpha · m / (sqrt(v) + eps)`, or `alpha · m` (`adaptive` false: RAdam's
+        // early steps).
+        let (alpha, adaptive) = self.step_size();
         let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
         let mut finite = true;
         for (i, p) in params.enumerate() {
@@ -89,7 +109,11 @@ impl<T: Float> Adam<T> {
                         for ((w, &g), (m, v)) in it {
                             *m = b1 * *m + (one - b1) * g;
                             *v = b2 * *v + (one - b2) * g * g;
-                            *w -= alpha * *m / (v.sqrt() + eps);
+                            *w -= if adaptive {
+                                alpha * *m / (v.sqrt() + eps)
+                            } else {
+                                alpha * *m
+                            };
                             ok &= w.is_finite();
                         }
                         ok
@@ -98,5 +122,30 @@ impl<T: Float> Adam<T> {
                 .reduce(|| true, |a, b| a & b);
         }
         finite
+    }
+
+    /// The step size of update `self.t` and whether it divides by `sqrt(v) + ε`: Adam's
+    /// `(lr·sqrt(1 − β₂ᵗ)/(1 − β₁ᵗ), true)`; RAdam's the same times `r_t` once `ρ_t > 5`, else
+    /// `(lr/(1 − β₁ᵗ), false)`.
+    pub fn step_size(&self) -> (T, bool) {
+        let t = self.t as i32;
+        let one = T::one();
+        let (b1t, b2t) = (self.beta1.powi(t), self.beta2.powi(t));
+        let adam = self.lr * (one - b2t).sqrt() / (one - b1t);
+        if !self.rectified {
+            return (adam, true);
+        }
+        let two = T::of(2.0);
+        let four = T::of(4.0);
+        let rho_inf = two / (one - self.beta2) - one;
+        let rho = rho_inf - two * T::of(self.t as f64) * b2t / (one - b2t);
+        if rho > T::of(5.0) {
+            let r = ((rho - four) * (rho - two) * rho_inf
+                / ((rho_inf - four) * (rho_inf - two) * rho))
+                .sqrt();
+            (adam * r, true)
+        } else {
+            (self.lr / (one - b1t), false)
+        }
     }
 }

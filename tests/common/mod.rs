@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 pub mod cli;
+pub mod corridor;
 
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::Precision;

@@ -1,0 +1,95 @@
+//! A toy game for the learning tests.
+
+use invaders::env::{Game, StepResult, FRAME_LEN, FRAME_WIDTH};
+
+/// A corridor of `LEN` cells drawn as a bright vertical band at the agent's cell. Actions: 0 =
+/// left, 1 = right. Reaching the last cell gives reward 1 and ends the episode; every other step
+/// gives 0; episodes are cut after `LIMIT` steps. The optimal policy walks right: return 1 in
+/// `LEN − 1` steps, and `Q*(cell i, right) = γ^(LEN − 2 − i)`.
+pub struct Corridor {
+    /// The agent's cell.
+    pub pos: usize,
+    steps: u32,
+    frame: Vec<u8>,
+}
+
+/// Cells.
+pub const LEN: usize = 4;
+/// Steps before an episode is cut.
+pub const LIMIT: u32 = 12;
+
+impl Corridor {
+    /// The agent at cell 0.
+    pub fn new() -> Self {
+        let mut c = Corridor {
+            pos: 0,
+            steps: 0,
+            frame: vec![0; FRAME_LEN],
+        };
+        c.draw();
+        c
+    }
+    /// Redraws the frame after `pos` changed.
+    pub fn draw(&mut self) {
+        let band = FRAME_WIDTH / LEN;
+        for (i, p) in self.frame.iter_mut().enumerate() {
+            *p = if (i % FRAME_WIDTH) / band == self.pos {
+                255
+            } else {
+                0
+            };
+        }
+    }
+}
+
+impl Game for Corridor {
+    fn n_actions(&self) -> usize {
+        2
+    }
+    fn reset(&mut self) {
+        self.pos = 0;
+        self.steps = 0;
+        self.draw();
+    }
+    fn step(&mut self, action: usize) -> StepResult {
+        self.pos = if action == 1 {
+            self.pos + 1
+        } else {
+            self.pos.saturating_sub(1)
+        };
+        self.steps += 1;
+        self.draw();
+        let terminal = self.pos == LEN - 1;
+        let reward = if terminal { 1.0 } else { 0.0 };
+        super::toy_step(reward, terminal, !terminal && self.steps >= LIMIT)
+    }
+    fn observation(&self) -> &[u8] {
+        &self.frame
+    }
+    fn save_state(&self) -> Option<Vec<u8>> {
+        Some(
+            [
+                [self.pos as u8],
+                self.steps.to_le_bytes()[..1].try_into().unwrap(),
+            ]
+            .concat(),
+        )
+    }
+    fn restore_state(&mut self, state: &[u8]) -> Result<(), invaders::env::EnvError> {
+        let [pos, steps] = state else {
+            return Err(invaders::env::EnvError::BadState(
+                "a corridor's state is 2 bytes".into(),
+            ));
+        };
+        self.pos = *pos as usize;
+        self.steps = *steps as u32;
+        self.draw();
+        Ok(())
+    }
+}
+
+impl Default for Corridor {
+    fn default() -> Self {
+        Corridor::new()
+    }
+}

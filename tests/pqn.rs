@@ -1,0 +1,287 @@
+//! PQN: the Q(λ) returns against a hand computation and their limits, the configuration's
+//! `[pqn]` table, and the agent learning a toy game, deterministically and resumably.
+
+mod common;
+
+use common::corridor::{Corridor, LEN};
+use invaders::dqn::{argmax, q_lambda_returns, Config, Learner, Pqn, PqnAgent, Preset};
+use invaders::env::{Observer, Pipeline};
+use invaders::ops::plan::Precision;
+use invaders::tensor::Tensor;
+use proptest::prelude::*;
+
+/// Two games, three steps, γ = 0.9, λ = 0.5, worked by hand. Game 0 ends bootstrapping after
+/// its step 1 (rewards 1, 0, 2; `max Q` 10, 4, 6 and 8 at the end):
+/// `G_2 = 2 + 0.9·(0.5·8 + 0.5·8) = 9.2`, `G_1 = 0` (done: nothing after it counts),
+/// `G_0 = 1 + 0.9·(0.5·G_1 + 0.5·4) = 2.8`. Game 1 never ends (rewards 0; `max Q` 0, 1, 2, 3):
+/// `G_2 = 0.9·3 = 2.7`, `G_1 = 0.9·(0.5·2.7 + 0.5·2) = 2.115`,
+/// `G_0 = 0.9·(0.5·2.115 + 0.5·1) = 1.40175`.
+#[test]
+fn q_lambda_returns_match_a_hand_computation() {
+    // [T, G]: row t holds the two games' step t.
+    let rewards = [1.0, 0.0, 0.0, 0.0, 2.0, 0.0];
+    let dones = [false, false, true, false, false, false];
+    let max_q = [10.0, 0.0, 4.0, 1.0, 6.0, 2.0, 8.0, 3.0];
+    let mut returns = [f32::NAN; 6];
+    q_lambda_returns(&rewards, &dones, &max_q, 2, 0.9, 0.5, &mut returns);
+    let want = [2.8, 1.40175, 0.0, 2.115, 9.2, 2.7];
+    for (i, (&g, &w)) in returns.iter().zip(&want).enumerate() {
+        assert!((g - w).abs() < 1e-5, "returns[{i}] = {g}, want {w}");
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(common::cases(64)))]
+
+    /// λ = 0 is the one-step target `r_t + γ(1 − done_t) max Q(s_{t+1})`; λ = 1 the discounted
+    /// return to the episode's end or, without one, to the rollout's end bootstrapped there.
+    #[test]
+    fn q_lambda_returns_reach_their_limits(
+        games in 1usize..4,
+        steps in 1usize..9,
+        seed in any::<u64>(),
+        gamma in 0.5f32..1.0,
+    ) {
+        let mut rng = common::rng(seed);
+        use rand::Rng;
+        let n = games * steps;
+        let rewards: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let dones: Vec<bool> = (0..n).map(|_| rng.random_bool(0.25)).collect();
+        let max_q: Vec<f32> = (0..n + games).map(|_| rng.random_range(-5.0..5.0)).collect();
+        let mut one_step = vec![0.0; n];
+        q_lambda_returns(&rewards, &dones, &max_q, games, gamma, 0.0, &mut one_step);
+        let mut monte_carlo = vec![0.0; n];
+        q_lambda_returns(&rewards, &dones, &max_q, games, gamma, 1.0, &mut monte_carlo);
+        for t in 0..steps {
+            for g in 0..games {
+                let i = t * games + g;
+                let cont = if dones[i] { 0.0 } else { 1.0 };
+                let want = rewards[i] + gamma * cont * max_q[i + games];
+                prop_assert!((one_step[i] - want).abs() < 1e-4, "λ = 0 at {i}");
+                // Forward from t: rewards until a done, else the bootstrap at T.
+                let (mut ret, mut discount) = (0.0f32, 1.0f32);
+                let mut ended = false;
+                for u in t..steps {
+                    let j = u * games + g;
+                    ret += discount * rewards[j];
+                    discount *= gamma;
+                    if dones[j] {
+                        ended = true;
+                        break;
+                    }
+                }
+                if !ended {
+                    ret += discount * max_q[steps * games + g];
+                }
+                prop_assert!((monte_carlo[i] - ret).abs() < 1e-4, "λ = 1 at {i}");
+            }
+        }
+    }
+}
+
+/// The `[pqn]` table: CleanRL's defaults for what a file leaves out, its ranges, and the
+/// switches PQN has no place for refused by name.
+#[test]
+fn the_pqn_table_has_defaults_ranges_and_refusals() {
+    let c = Config::resolve(Some(Preset::Strong), Some("[pqn]\ngames = 4")).unwrap();
+    assert_eq!(
+        c.pqn,
+        Some(Pqn {
+            games: 4,
+            ..Pqn::default()
+        })
+    );
+    assert_eq!(Pqn::default().minibatch(), 256);
+    assert_eq!(Config::preset(Preset::Strong).pqn, None);
+    // A run's recorded configuration keeps it; one without it writes no table.
+    let again = Config::resolve(None, Some(&c.to_toml())).unwrap();
+    assert_eq!(again, c);
+    assert!(!Config::preset(Preset::Strong).to_toml().contains("pqn"));
+    let err = |text: &str| {
+        format!(
+            "{:#}",
+            Config::resolve(Some(Preset::Strong), Some(text)).unwrap_err()
+        )
+    };
+    assert!(err("[pqn]\ngames = 0").contains("pqn.games"));
+    assert!(err("[pqn]\nminibatches = 3").contains("divide"));
+    assert!(err("[pqn]\nlambda = 1.5").contains("pqn.lambda"));
+    assert!(err("[pqn]\nepochs = 0").contains("pqn.epochs"));
+    assert!(err("[pqn]\nbatch = 3").contains("batch"));
+    assert!(err("prioritized = true\n[pqn]").contains("prioritized"));
+    assert!(err("iqn_samples = 8\n[pqn]").contains("iqn_samples"));
+    assert!(err("munchausen_alpha = 0.9\n[pqn]").contains("munchausen_alpha"));
+}
+
+/// A PQN configuration for the corridor: 4 games of 16 steps a rollout, 4 passes of 4
+/// minibatches of 16, layer normalisation, RAdam, one frame per state.
+fn toy_config() -> Config {
+    let mut c = common::small_config(1_000, 16, 64, 25, 3);
+    c.gamma = 0.9;
+    c.epsilon_decay_steps = 1_000;
+    c.epsilon_end = 0.05;
+    c.learning_rate = 1e-3;
+    c.layer_norm = true;
+    c.radam = true;
+    c.precision = Precision::F32;
+    c.pqn = Some(Pqn {
+        games: 4,
+        rollout: 16,
+        epochs: 4,
+        minibatches: 4,
+        lambda: 0.65,
+    });
+    c.validate().unwrap();
+    c
+}
+
+fn corridors(n: usize) -> Vec<Corridor> {
+    (0..n).map(|_| Corridor::new()).collect()
+}
+
+/// `max_a Q` and the greedy action of a corridor cell by `agent`'s network.
+fn q_of(agent: &mut PqnAgent<Corridor>, cell: usize) -> Vec<f32> {
+    let mut game = Corridor::new();
+    game.pos = cell;
+    game.draw();
+    let mut observer = Observer::new(Pipeline::Vanilla);
+    observer.reset(&game);
+    let table = agent.config.normalization.table();
+    let mut input = Tensor::zeros(&[1, 88, 80, 1]);
+    observer.write_input(&table, input.data_mut());
+    agent.learner.online.forward(&input).data().to_vec()
+}
+
+/// Rollouts, Q(λ) returns, minibatches and RAdam together: PQN learns the corridor's optimal
+/// policy and values near `γ^k` without a replay memory or a target network.
+#[test]
+fn pqn_learns_a_toy_corridor() {
+    let mut agent = PqnAgent::new(toy_config(), corridors(4)).unwrap();
+    while agent.counters.agent_steps < 4_000 {
+        agent.play_rollout().unwrap();
+    }
+    assert_eq!(agent.counters.agent_steps % 64, 0);
+    assert_eq!(
+        agent.counters.train_steps,
+        agent.counters.agent_steps / 64 * 16
+    );
+    for cell in 0..LEN - 1 {
+        let q = q_of(&mut agent, cell);
+        let want = 0.9f32.powi((LEN - 2 - cell) as i32);
+        assert_eq!(argmax(&q), 1, "cell {cell}: Q = {q:?}");
+        assert!(
+            (q[1] - want).abs() < 0.15,
+            "cell {cell}: Q(right) = {}, want about {want}",
+            q[1]
+        );
+    }
+    // Late episodes walk straight to the goal (ε = 0.05 aside): the rows of the rollouts
+    // played so far are handed out first, oldest first.
+    let early = agent.pending();
+    assert!(early > 300, "{early} episodes in 4 000 agent steps");
+    for _ in 0..early {
+        agent.play_episode().unwrap();
+    }
+    let mut lengths = Vec::new();
+    while lengths.len() < 40 {
+        let row = agent.play_episode().unwrap();
+        assert!(row.episode as usize > lengths.len());
+        lengths.push(row.length);
+    }
+    let straight = lengths.iter().filter(|&&l| l == LEN as u64 - 1).count();
+    assert!(straight >= 30, "episode lengths {lengths:?}");
+}
+
+/// Rows are numbered in the order the games end their episodes, each counting its own steps,
+/// and are handed out one by one.
+#[test]
+fn pqn_rows_count_every_game_s_episodes() {
+    let mut agent = PqnAgent::new(toy_config(), corridors(4)).unwrap();
+    let mut rows = Vec::new();
+    for _ in 0..50 {
+        rows.push(agent.play_episode().unwrap());
+    }
+    assert_eq!(agent.counters.episodes, 50);
+    for (i, row) in rows.iter().enumerate() {
+        assert_eq!(row.episode, i as u64 + 1);
+        assert!((LEN as u64 - 1..=12).contains(&row.length), "{row:?}");
+        assert!(row.agent_steps <= agent.counters.agent_steps);
+    }
+    assert!(rows
+        .windows(2)
+        .all(|w| w[0].agent_steps <= w[1].agent_steps));
+    // Every agent step is some game's: the finished episodes' and those in progress.
+    let finished: u64 = rows.iter().map(|r| r.length).sum();
+    assert!(finished <= agent.counters.agent_steps);
+}
+
+/// The same seed gives the same run; an agent resumed from another's state, learner and
+/// counters between rollouts continues exactly as the original does.
+#[test]
+fn pqn_is_deterministic_and_resumes_exactly() {
+    let mut a = PqnAgent::new(toy_config(), corridors(4)).unwrap();
+    let mut b = PqnAgent::new(toy_config(), corridors(4)).unwrap();
+    for _ in 0..5 {
+        a.play_rollout().unwrap();
+        b.play_rollout().unwrap();
+    }
+    let steady = |c: &invaders::dqn::checkpoint::Counters| {
+        (c.episodes, c.agent_steps, c.frames, c.train_steps)
+    };
+    assert_eq!(steady(&a.counters), steady(&b.counters));
+    // Everything but the rows' wall times (the states kept out of the message: frames are
+    // big).
+    let timeless = |mut s: invaders::dqn::PqnState| {
+        for r in &mut s.finished {
+            r.wall_seconds = 0.0;
+            // NaN (no gradient step in the episode) is not equal to itself.
+            for v in [&mut r.mean_loss, &mut r.mean_max_q] {
+                if v.is_nan() {
+                    *v = -1.0;
+                }
+            }
+        }
+        s
+    };
+    assert!(
+        timeless(a.state()) == timeless(b.state()),
+        "two runs of one seed differ"
+    );
+    // Resume c from a's state (a copy of its learner: weights and optimizer).
+    let mut learner = Learner::from_config(&a.config, 2, &mut common::rng(99));
+    learner.online.copy_params_from(&a.learner.online);
+    learner.adam = a.learner.adam.clone();
+    let mut c = PqnAgent::resume(
+        corridors(4),
+        a.config.clone(),
+        a.counters,
+        learner,
+        a.state(),
+    )
+    .unwrap();
+    let rows_a: Vec<_> = (0..30).map(|_| a.play_episode().unwrap()).collect();
+    let rows_c: Vec<_> = (0..30).map(|_| c.play_episode().unwrap()).collect();
+    // Wall times differ; everything else is the same.
+    let strip = |rows: &[invaders::dqn::EpisodeRow]| {
+        rows.iter()
+            .map(|r| {
+                (
+                    r.episode,
+                    r.agent_steps,
+                    r.reward,
+                    r.length,
+                    r.mean_loss.to_bits(),
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(strip(&rows_a), strip(&rows_c));
+    for (p, q) in a.learner.online.params().zip(c.learner.online.params()) {
+        assert_eq!(p.value, q.value, "{}", p.name);
+    }
+    // A wrong number of games, or a configuration without the table, is refused.
+    assert!(PqnAgent::new(toy_config(), corridors(3)).is_err());
+    let mut dqn = toy_config();
+    dqn.pqn = None;
+    assert!(PqnAgent::new(dqn, corridors(4)).is_err());
+}
