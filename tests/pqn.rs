@@ -4,7 +4,8 @@
 mod common;
 
 use common::corridor::{Corridor, LEN};
-use invaders::dqn::{argmax, q_lambda_returns, Config, Learner, Pqn, PqnAgent, Preset};
+use invaders::dqn::checkpoint::Counters;
+use invaders::dqn::{argmax, checkpoint, q_lambda_returns, Config, Learner, Pqn, PqnAgent, Preset};
 use invaders::env::{Observer, Pipeline};
 use invaders::ops::plan::Precision;
 use invaders::tensor::Tensor;
@@ -231,7 +232,7 @@ fn pqn_is_deterministic_and_resumes_exactly() {
     assert_eq!(steady(&a.counters), steady(&b.counters));
     // Everything but the rows' wall times (the states kept out of the message: frames are
     // big).
-    let timeless = |mut s: invaders::dqn::PqnState| {
+    let timeless = |mut s: invaders::dqn::AgentState| {
         for r in &mut s.finished {
             r.wall_seconds = 0.0;
             // NaN (no gradient step in the episode) is not equal to itself.
@@ -284,4 +285,108 @@ fn pqn_is_deterministic_and_resumes_exactly() {
     let mut dqn = toy_config();
     dqn.pqn = None;
     assert!(PqnAgent::new(dqn, corridors(4)).is_err());
+}
+
+/// A PQN checkpoint holds every game (observers, saved states, episodes in progress) and the
+/// rows not yet handed out: the agent it loads into continues exactly as the saved one. A
+/// checkpoint missing that state, or a DQN configuration's checkpoint given it, is refused.
+#[test]
+fn pqn_checkpoints_round_trip() {
+    let mut a = PqnAgent::new(toy_config(), corridors(4)).unwrap();
+    for _ in 0..3 {
+        a.play_rollout().unwrap();
+    }
+    // Rows pending, and a NaN mean among them (episodes before the first gradient step).
+    assert!(a.pending() > 0);
+    let state = a.state();
+    assert!(state.finished.iter().any(|r| r.mean_loss.is_nan()));
+    assert_eq!(state.other_games.len(), 3);
+    let bytes = checkpoint::to_bytes(&a.config, &a.counters, &a.learner, &state, None).unwrap();
+    let back = checkpoint::from_bytes(&bytes).unwrap();
+    assert_eq!(back.counters, a.counters);
+    assert_eq!(back.agent.players, state.players);
+    assert_eq!(back.agent.other_games, state.other_games);
+    assert_eq!(back.agent.finished.len(), state.finished.len());
+    let mut c = back.into_pqn_agent(corridors(4)).unwrap();
+    for _ in 0..40 {
+        let (ra, rc) = (a.play_episode().unwrap(), c.play_episode().unwrap());
+        assert_eq!(
+            (
+                ra.episode,
+                ra.agent_steps,
+                ra.reward,
+                ra.length,
+                ra.wall_seconds > 0.0
+            ),
+            (rc.episode, rc.agent_steps, rc.reward, rc.length, true)
+        );
+        assert_eq!(ra.mean_loss.to_bits(), rc.mean_loss.to_bits());
+    }
+    for (p, q) in a.learner.online.params().zip(c.learner.online.params()) {
+        assert_eq!(p.value, q.value, "{}", p.name);
+    }
+    // The state is checked against the configuration both ways.
+    let mut dqn = a.config.clone();
+    dqn.pqn = None;
+    let wrong = checkpoint::to_bytes(&dqn, &a.counters, &a.learner, &a.state(), None).unwrap();
+    assert!(
+        checkpoint::from_bytes(&wrong).is_err(),
+        "PQN tensors in a DQN checkpoint"
+    );
+    let mut fewer = a.config.clone();
+    fewer.pqn = Some(Pqn {
+        games: 2,
+        ..fewer.pqn.unwrap()
+    });
+    let wrong = checkpoint::to_bytes(&fewer, &a.counters, &a.learner, &a.state(), None).unwrap();
+    let err = format!("{:#}", checkpoint::from_bytes(&wrong).err().unwrap());
+    assert!(err.contains("games"), "{err}");
+}
+
+/// A PQN run of Space Invaders from the command line: two games, rollouts of 32 steps.
+const PQN_RUN: &str = "preset = \"strong\"
+precision = \"f32\"
+layer_norm = true
+radam = true
+checkpoint_every = 1
+[pqn]
+games = 2
+rollout = 32
+epochs = 1
+minibatches = 2
+";
+
+/// `train` runs PQN from a config's `[pqn]` table: stopped after 2 episodes and resumed to 4 it
+/// ends as the run never stopped (metrics rows, weights), with no replay file, and `eval` plays
+/// its checkpoint.
+#[test]
+fn a_pqn_run_resumes_exactly_from_the_command_line() {
+    use common::cli::{metrics_but_wall_time, online_weights};
+    let (root, cfg) = common::cli::tmp_with_file("invaders-pqn", "resume", "config.toml", PQN_RUN);
+    let (straight, split) = common::cli::straight_and_resumed(&root, &cfg, 4, 2, 4);
+    assert_eq!(
+        metrics_but_wall_time(&straight),
+        metrics_but_wall_time(&split)
+    );
+    let load =
+        |dir: &std::path::Path| checkpoint::load(&dir.join("checkpoint.safetensors")).unwrap();
+    let (a, b) = (load(&straight), load(&split));
+    assert!(a.counters.train_steps > 20, "learning ran");
+    assert_eq!(
+        a.counters,
+        Counters {
+            wall_seconds: a.counters.wall_seconds,
+            ..b.counters
+        }
+    );
+    assert_eq!(online_weights(&a), online_weights(&b));
+    assert!(a.replay_file.is_none());
+    let names: Vec<String> = std::fs::read_dir(&straight)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(!names.iter().any(|n| n.starts_with("replay")), "{names:?}");
+    let out = common::cli::eval(&straight.join("checkpoint.safetensors"), "1");
+    assert!(out.contains("mean"), "{out}");
+    let _ = std::fs::remove_dir_all(&root);
 }

@@ -14,7 +14,9 @@ use clap::Args;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use invaders::dqn::{checkpoint, random_play_inputs, Agent, Batch, Config, Learner, Preset};
+use invaders::dqn::{
+    checkpoint, game_seed, random_play_inputs, Agent, Batch, Config, Learner, PqnAgent, Preset,
+};
 use invaders::env::{Observer, SpaceInvaders};
 use invaders::layers::Sequential;
 use invaders::ops::plan::{self, Precision, Product};
@@ -180,6 +182,20 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         e2e.precision = precision;
         e2e.learning_starts = 500;
         e2e.replay_capacity = 5_000;
+        if let Some(pqn) = e2e.pqn {
+            // PQN: whole rollouts (one to warm up), at least 2 000 agent steps timed.
+            let games = (0..pqn.games)
+                .map(|g| SpaceInvaders::new(&e2e.env, game_seed(0, g)))
+                .collect::<Result<Vec<_>, _>>()
+                .context("cannot start Space Invaders")?;
+            let mut agent = PqnAgent::new(e2e, games)?;
+            agent.play_rollout()?;
+            let (s0, t0) = (agent.counters.agent_steps, Instant::now());
+            while agent.counters.agent_steps < s0 + 2_000 {
+                agent.play_rollout()?;
+            }
+            return Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64());
+        }
         let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
         let mut agent = Agent::new(e2e, env);
         while agent.counters.agent_steps < 600 {
@@ -199,14 +215,24 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         Some(c) => {
             let mut l = Learner::from_config(c, 6, &mut rng);
             l.set_precision(precision);
-            let mut b = Batch::random(c, &mut rng);
+            // PQN's step is a regression on one of its minibatches.
+            let mut shaped = c.clone();
+            if let Some(p) = c.pqn {
+                shaped.batch_size = p.minibatch();
+            }
+            let mut b = Batch::random(&shaped, &mut rng);
+            let targets = b.rewards.clone();
             let times: Vec<f64> = (0..args.steps.max(1) + 3)
                 .map(|_| {
                     if let Some(iqn) = c.iqn() {
                         b.draw_fractions(&mut rng, iqn.samples, iqn.target_samples);
                     }
                     let t = Instant::now();
-                    l.train_step(&b);
+                    if c.pqn.is_some() {
+                        l.regress_step(&b, &targets);
+                    } else {
+                        l.train_step(&b);
+                    }
                     t.elapsed().as_secs_f64() * 1e3
                 })
                 .collect();

@@ -29,7 +29,9 @@ use invaders::dqn::checkpoint::{self, write_atomic};
 
 use super::figures::{plot_rewards, Curve};
 use super::guard;
-use invaders::dqn::{Agent, Config, EpisodeRow, Preset, NO_EPISODE_LIMIT};
+use invaders::dqn::{
+    game_seed, Agent, Config, EpisodeRow, PqnAgent, Preset, Trainer, NO_EPISODE_LIMIT,
+};
 use invaders::env::SpaceInvaders;
 use invaders::ops::plan::Precision;
 
@@ -232,7 +234,13 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
                 "note: the checkpoint was written where the kernels `{then}` ran, and `{here}` run here: the run continues, but not bit for bit with one never stopped (docs/runs.md)"
             );
         }
-        if ckpt.snapshot {
+        if ckpt.snapshot && config.pqn.is_some() {
+            say!(
+                "note: {} holds a snapshot, not a full checkpoint: the run continues from episode {} with Adam started anew (docs/runs.md)",
+                dir.display(),
+                ckpt.counters.episodes
+            );
+        } else if ckpt.snapshot {
             say!(
                 "note: {} holds a snapshot, not a full checkpoint: the run continues from episode {} with an empty replay memory (learning waits until it holds {} entries again), the target network as a copy of the online one and Adam started anew (docs/runs.md)",
                 dir.display(),
@@ -273,21 +281,42 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
     // config.toml always says what runs, the budget included.
     write_atomic(&dir.join("config.toml"), config.to_toml().as_bytes())?;
     let _lock = lock;
-    let env =
-        SpaceInvaders::new(&config.env, config.seed).context("cannot start Space Invaders")?;
     if resumed.is_none() {
         check_memory(&config)?;
     }
-    let mut agent = match resumed {
-        Some((mut ckpt, replay)) => {
+    let mut agent: Box<dyn Trainer> = match (resumed, config.pqn) {
+        (Some((mut ckpt, replay)), pqn) => {
             // A longer budget given on the command line is part of the resumed config.
             ckpt.config = config.clone();
-            ckpt.into_agent(env, replay)
-                .with_context(|| format!("cannot resume {}", dir.display()))?
+            let resume = || format!("cannot resume {}", dir.display());
+            match pqn {
+                None => Box::new(
+                    ckpt.into_agent(new_game(&config, 0)?, replay)
+                        .with_context(resume)?,
+                ),
+                Some(_) => Box::new(
+                    ckpt.into_pqn_agent(pqn_games(&config)?)
+                        .with_context(resume)?,
+                ),
+            }
         }
-        None => Agent::new(config.clone(), env),
+        (None, None) => Box::new(Agent::new(config.clone(), new_game(&config, 0)?)),
+        (None, Some(_)) => Box::new(PqnAgent::new(config.clone(), pqn_games(&config)?)?),
     };
-    train_loop(&mut agent, &dir, snapshot.as_deref(), args.log_rss)
+    train_loop(agent.as_mut(), &dir, snapshot.as_deref(), args.log_rss)
+}
+
+/// Game `g` of a run (a DQN run plays game 0 only): Space Invaders with the run's environment
+/// settings and the emulator seed [`game_seed`] gives it.
+fn new_game(config: &Config, g: usize) -> anyhow::Result<SpaceInvaders> {
+    SpaceInvaders::new(&config.env, game_seed(config.seed, g))
+        .context("cannot start Space Invaders")
+}
+
+/// A PQN run's games.
+fn pqn_games(config: &Config) -> anyhow::Result<Vec<SpaceInvaders>> {
+    let n = config.pqn.map_or(1, |p| p.games);
+    (0..n).map(|g| new_game(config, g)).collect()
 }
 
 /// The files a snapshot directory holds ([`write_snapshot`]).
@@ -388,7 +417,7 @@ fn note_continued(dir: &Path, counters: &checkpoint::Counters) -> anyhow::Result
 /// Writes the run's snapshot into `snap` after a checkpoint: `metrics.csv`, `config.toml` and
 /// (if the run has one) [`CONTINUED_FILE`] first, then the snapshot's `checkpoint.safetensors`
 /// (each atomically), so the snapshot there always has the rows it needs.
-fn write_snapshot(snap: &Path, run: &Path, agent: &Agent<SpaceInvaders>) -> anyhow::Result<()> {
+fn write_snapshot(snap: &Path, run: &Path, agent: &dyn Trainer) -> anyhow::Result<()> {
     checkpoint::copy_files_atomic(run, snap, &SNAPSHOT_FILES[1..], &[CONTINUED_FILE])?;
     checkpoint::save_snapshot(&snap.join(checkpoint::CHECKPOINT_FILE), agent)
 }
@@ -722,13 +751,13 @@ fn catch_signals() {
 }
 
 fn train_loop(
-    agent: &mut Agent<SpaceInvaders>, dir: &Path, snapshot: Option<&Path>, log_rss: Option<u64>,
+    agent: &mut dyn Trainer, dir: &Path, snapshot: Option<&Path>, log_rss: Option<u64>,
 ) -> anyhow::Result<()> {
-    let config = agent.config.clone();
+    let config = agent.config().clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
-    let mut saved_episode = agent.counters.episodes;
+    let mut saved_episode = agent.counters().episodes;
     let (mut metrics, mut points) =
-        reopen_metrics(&dir.join("metrics.csv"), agent.counters.episodes)?;
+        reopen_metrics(&dir.join("metrics.csv"), agent.counters().episodes)?;
     // From here a signal stops the run after its episode, with a checkpoint.
     TRAINING.store(true, Ordering::SeqCst);
     let tty = std::io::stderr().is_terminal();
@@ -768,7 +797,7 @@ fn train_loop(
     let mut events = if config.tensorboard {
         match invaders::dqn::tensorboard::EventWriter::create(
             dir,
-            agent.counters.agent_steps as i64 + 1,
+            agent.counters().agent_steps as i64 + 1,
         ) {
             Ok(w) => Some(w),
             Err(e) => {
@@ -780,12 +809,8 @@ fn train_loop(
         None
     };
     let started = Instant::now();
-    let steps_at_start = agent.counters.agent_steps;
-    let done = |a: &Agent<SpaceInvaders>| {
-        a.counters.episodes >= config.episodes
-            || (config.max_frames > 0 && a.counters.frames >= config.max_frames)
-    };
-    while !done(agent) {
+    let steps_at_start = agent.counters().agent_steps;
+    while !agent.finished() {
         let row = agent.play_episode().with_context(|| {
             if ckpt_path.exists() {
                 format!(
@@ -800,8 +825,8 @@ fn train_loop(
         points.push((row.episode as f64, row.reward));
         let last100 = &points[points.len().saturating_sub(100)..];
         let mean100 = last100.iter().map(|p| p.1).sum::<f64>() / last100.len() as f64;
-        let sps =
-            (agent.counters.agent_steps - steps_at_start) as f64 / started.elapsed().as_secs_f64();
+        let sps = (agent.counters().agent_steps - steps_at_start) as f64
+            / started.elapsed().as_secs_f64();
         if let Some(w) = &mut events {
             let lr = config.learning_rate(row.agent_steps);
             if let Err(e) = w.scalars(
@@ -828,7 +853,7 @@ fn train_loop(
             say!("{msg}");
         }
         let interrupted = SIGNALS.load(Ordering::SeqCst) > 0;
-        let finished = done(agent) || interrupted;
+        let finished = agent.finished() || interrupted;
         if finished || row.episode.is_multiple_of(config.checkpoint_every) {
             checkpoint::save_run(dir, agent).with_context(|| {
                 format!("cannot save the checkpoint of episode {}", row.episode)
@@ -860,7 +885,7 @@ fn train_loop(
         if finished || row.episode.is_multiple_of(config.plot_every) {
             write_plot(dir, &config, &points);
         }
-        if interrupted && !done(agent) {
+        if interrupted && !agent.finished() {
             bar.finish();
             say!(
                 "stopped at episode {} with a checkpoint; continue with --resume {}",
@@ -877,10 +902,10 @@ fn train_loop(
     let last100 = &points[points.len().saturating_sub(100)..];
     say!(
         "done: {} episodes, {} agent steps, {} frames, {:.0} s; mean reward of the last {} episodes {:.1}",
-        agent.counters.episodes,
-        agent.counters.agent_steps,
-        agent.counters.frames,
-        agent.counters.wall_seconds,
+        agent.counters().episodes,
+        agent.counters().agent_steps,
+        agent.counters().frames,
+        agent.counters().wall_seconds,
         last100.len(),
         last100.iter().map(|p| p.1).sum::<f64>() / last100.len().max(1) as f64
     );

@@ -57,6 +57,24 @@ pub struct AgentState {
     pub stack: Vec<u8>,
     /// The game's saved state, if it can be saved.
     pub game: Option<Vec<u8>>,
+    /// PQN only (else empty): its games after the first, each as the fields above hold the
+    /// first ([`super::PqnAgent`]).
+    pub other_games: Vec<GameSlot>,
+    /// PQN only: every game's episode in progress.
+    pub players: Vec<super::Player>,
+    /// PQN only: finished episodes whose rows have not been handed out yet, oldest first.
+    pub finished: Vec<EpisodeRow>,
+}
+
+/// One game's part of an [`AgentState`]: its observer and its saved state.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GameSlot {
+    /// The composer's latest composite frame (88·80 bytes).
+    pub composite: Vec<u8>,
+    /// The frame stack, oldest first (`k`·88·80 bytes).
+    pub stack: Vec<u8>,
+    /// The game's saved state, if it can be saved.
+    pub game: Option<Vec<u8>>,
 }
 
 /// One row of a run's `metrics.csv`.
@@ -254,6 +272,10 @@ impl<G: Game> Agent<G> {
                 game.n_actions()
             );
         }
+        if !state.other_games.is_empty() || !state.players.is_empty() || !state.finished.is_empty()
+        {
+            bail!("the saved state is a PQN agent's, not a DQN agent's");
+        }
         let mut agent = Self::with_learner(config, game, learner, counters);
         if let Some(r) = replay {
             if r.capacity() != agent.replay.capacity()
@@ -292,6 +314,9 @@ impl<G: Game> Agent<G> {
                 .flat_map(|i| stack.get(i).to_vec())
                 .collect(),
             game: self.game.save_state(),
+            other_games: Vec::new(),
+            players: Vec::new(),
+            finished: Vec::new(),
         }
     }
 

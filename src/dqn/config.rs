@@ -882,9 +882,12 @@ impl Config {
     }
 
     /// Bytes the replay memory takes when full: one 88x80 frame and 8 bytes of transition data
-    /// per entry.
+    /// per entry. Under PQN, which has none, its rollout's: every transition's `k` frames.
     pub fn replay_bytes(&self) -> u64 {
-        self.replay_capacity as u64 * (crate::env::FRAME_LEN as u64 + 8)
+        match self.pqn {
+            Some(p) => (p.transitions() * self.pipeline.channels() * crate::env::FRAME_LEN) as u64,
+            None => self.replay_capacity as u64 * (crate::env::FRAME_LEN as u64 + 8),
+        }
     }
 
     /// The network input shape `[88, 80, k]`.

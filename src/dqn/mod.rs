@@ -10,15 +10,19 @@ mod qnet;
 mod replay;
 mod sumtree;
 pub mod tensorboard;
+mod trainer;
 
-pub use agent::{greedy, play_evaluation_episode, random_play_inputs, Agent, EpisodeRow};
+pub use agent::{
+    greedy, play_evaluation_episode, random_play_inputs, Agent, AgentState, EpisodeRow, GameSlot,
+};
 pub use config::{
     merge_toml, Config, Pqn, Preset, ARTICLE_HIDDEN, IMPORTANCE_EXPONENT, MAX_PQN_GAMES,
     NO_EPISODE_LIMIT, PRIORITY_EXPONENT, STRONG_FRAMES,
 };
 pub use learner::{argmax, greedy_atoms, greedy_rows, Learner, Munchausen, StepStats};
-pub use pqn::{game_seed, q_lambda_returns, Player, PqnAgent, PqnState};
+pub use pqn::{game_seed, q_lambda_returns, Player, PqnAgent};
 pub use precision::{resolve_precision, Resolved};
 pub use qnet::{article_qnet, input_border, midpoints, qnet, Head, Iqn, IqnMerge};
 pub use replay::{shift_frame, Batch, Replay, FLAG_ACTED, FLAG_DONE, FLAG_START, PRIORITY_EPSILON};
 pub use sumtree::SumTree;
+pub use trainer::Trainer;

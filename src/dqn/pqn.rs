@@ -30,7 +30,7 @@
 //! schedules over them. An episode's row goes out when its game ends ([`PqnAgent::play_episode`]
 //! plays rollouts until one has), so a run's `metrics.csv` reads as a DQN run's.
 
-use super::agent::{check_finite, stream, Counters, EpisodeRow};
+use super::agent::{check_finite, stream, AgentState, Counters, EpisodeRow, GameSlot};
 use super::config::Pqn;
 use super::replay::write_state;
 use super::{Batch, Config, Learner};
@@ -158,26 +158,6 @@ impl Rollout {
     }
 }
 
-/// What a PQN agent needs, besides its learner and counters, to continue exactly: it is only
-/// ever saved between rollouts, when nothing of a rollout is held.
-#[derive(Clone, Debug, PartialEq)]
-pub struct PqnState {
-    /// ε-greedy coin flips and random actions.
-    pub explore_rng: ChaCha8Rng,
-    /// The shuffles of the rollouts' transitions.
-    pub shuffle_rng: ChaCha8Rng,
-    /// Each game's episode in progress.
-    pub players: Vec<Player>,
-    /// Each game's composite frame (88·80 bytes).
-    pub composites: Vec<Vec<u8>>,
-    /// Each game's frame stack, oldest first (`k`·88·80 bytes).
-    pub stacks: Vec<Vec<u8>>,
-    /// Each game's saved state, if it can be saved.
-    pub games: Vec<Option<Vec<u8>>>,
-    /// Episodes finished whose rows have not been handed out yet.
-    pub finished: Vec<EpisodeRow>,
-}
-
 /// A PQN agent: `G` games, their observers, and one network that acts and learns.
 pub struct PqnAgent<G: Game> {
     /// The run's configuration (with its `pqn` table).
@@ -276,63 +256,68 @@ impl<G: Game> PqnAgent<G> {
     }
 
     /// Continues a run from a checkpoint: its learner and counters, the random generators, every
-    /// game's observer, episode and saved state. The games must be built with the checkpoint's
-    /// environment settings.
+    /// game's observer, episode and saved state (`state`, as [`PqnAgent::state`] made it). The
+    /// games must be built with the checkpoint's environment settings.
     pub fn resume(
-        games: Vec<G>, config: Config, counters: Counters, learner: Learner, state: PqnState,
+        games: Vec<G>, config: Config, counters: Counters, learner: Learner, state: AgentState,
     ) -> anyhow::Result<Self> {
         let mut agent = Self::with_learner(config, games, learner, counters)?;
         let n = agent.pqn.games;
-        if state.players.len() != n
-            || state.composites.len() != n
-            || state.stacks.len() != n
-            || state.games.len() != n
-        {
-            bail!("the saved PQN state is not of {n} games");
+        if state.other_games.len() + 1 != n || state.players.len() != n {
+            bail!("the saved state is not of the {n} games PQN plays");
         }
+        let first = GameSlot {
+            composite: state.composite,
+            stack: state.stack,
+            game: state.game,
+        };
         let k = agent.config.pipeline.channels();
-        for (g, game) in agent.games.iter_mut().enumerate() {
-            match &state.games[g] {
-                Some(saved) => game
+        for (g, slot) in std::iter::once(&first)
+            .chain(&state.other_games)
+            .enumerate()
+        {
+            match &slot.game {
+                Some(saved) => agent.games[g]
                     .restore_state(saved)
                     .with_context(|| format!("cannot restore game {g}'s saved state"))?,
-                None => game.reset(),
+                None => agent.games[g].reset(),
             }
-            if state.composites[g].len() != FRAME_LEN || state.stacks[g].len() != k * FRAME_LEN {
+            if slot.composite.len() != FRAME_LEN || slot.stack.len() != k * FRAME_LEN {
                 bail!("the saved observer of game {g} does not match the configuration");
             }
-            let frames: Vec<&[u8]> = state.stacks[g].chunks_exact(FRAME_LEN).collect();
-            agent.observers[g].restore(&state.composites[g], &frames);
+            let frames: Vec<&[u8]> = slot.stack.chunks_exact(FRAME_LEN).collect();
+            agent.observers[g].restore(&slot.composite, &frames);
         }
         agent.players = state.players;
         agent.explore_rng = state.explore_rng;
-        agent.shuffle_rng = state.shuffle_rng;
+        agent.shuffle_rng = state.sample_rng;
         agent.finished = state.finished.into();
         Ok(agent)
     }
 
     /// Everything besides the learner and counters that a checkpoint needs to continue this
-    /// agent exactly (taken between rollouts, as [`PqnAgent::play_episode`] leaves it).
-    pub fn state(&self) -> PqnState {
-        PqnState {
+    /// agent exactly, taken between rollouts (as [`PqnAgent::play_episode`] leaves it): game 0
+    /// in the fields a DQN agent fills, the others in `other_games`, the shuffles' generator as
+    /// `sample_rng`.
+    pub fn state(&self) -> AgentState {
+        let mut slots = self.games.iter().zip(&self.observers).map(|(game, o)| {
+            let mut stack = vec![0; o.stack().len() * FRAME_LEN];
+            copy_stack(o, &mut stack);
+            GameSlot {
+                composite: o.composer_frame().to_vec(),
+                stack,
+                game: game.save_state(),
+            }
+        });
+        let first = slots.next().expect("at least one game");
+        AgentState {
             explore_rng: self.explore_rng.clone(),
-            shuffle_rng: self.shuffle_rng.clone(),
+            sample_rng: self.shuffle_rng.clone(),
+            composite: first.composite,
+            stack: first.stack,
+            game: first.game,
+            other_games: slots.collect(),
             players: self.players.clone(),
-            composites: self
-                .observers
-                .iter()
-                .map(|o| o.composer_frame().to_vec())
-                .collect(),
-            stacks: self
-                .observers
-                .iter()
-                .map(|o| {
-                    let mut bytes = vec![0; o.stack().len() * FRAME_LEN];
-                    copy_stack(o, &mut bytes);
-                    bytes
-                })
-                .collect(),
-            games: self.games.iter().map(|g| g.save_state()).collect(),
             finished: self.finished.iter().copied().collect(),
         }
     }

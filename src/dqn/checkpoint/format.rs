@@ -10,6 +10,63 @@ pub(super) struct Rngs {
     sample: ChaCha8Rng,
 }
 
+/// A PQN checkpoint's `pqn` metadata: every game's episode in progress and the finished
+/// episodes' rows not yet handed out.
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PqnMeta {
+    players: Vec<crate::dqn::Player>,
+    finished: Vec<RowWire>,
+}
+
+/// An [`EpisodeRow`] in JSON: a NaN mean (no gradient step in the episode) as `null`.
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RowWire {
+    episode: u64,
+    agent_steps: u64,
+    frames: u64,
+    reward: f64,
+    length: u64,
+    epsilon: f32,
+    mean_loss: Option<f32>,
+    mean_max_q: Option<f32>,
+    wall_seconds: f64,
+}
+
+impl From<&EpisodeRow> for RowWire {
+    fn from(r: &EpisodeRow) -> Self {
+        let finite = |v: f32| (!v.is_nan()).then_some(v);
+        RowWire {
+            episode: r.episode,
+            agent_steps: r.agent_steps,
+            frames: r.frames,
+            reward: r.reward,
+            length: r.length,
+            epsilon: r.epsilon,
+            mean_loss: finite(r.mean_loss),
+            mean_max_q: finite(r.mean_max_q),
+            wall_seconds: r.wall_seconds,
+        }
+    }
+}
+
+impl From<RowWire> for EpisodeRow {
+    fn from(r: RowWire) -> Self {
+        EpisodeRow {
+            episode: r.episode,
+            agent_steps: r.agent_steps,
+            frames: r.frames,
+            reward: r.reward,
+            length: r.length,
+            epsilon: r.epsilon,
+            mean_loss: r.mean_loss.unwrap_or(f32::NAN),
+            mean_max_q: r.mean_max_q.unwrap_or(f32::NAN),
+            wall_seconds: r.wall_seconds,
+        }
+    }
+}
+
 pub(super) fn view(t: &Tensor<f32>) -> Result<TensorView<'_>, safetensors::SafeTensorError> {
     TensorView::new(
         Dtype::F32,
@@ -72,6 +129,10 @@ fn encode(
     config: &Config, counters: &Counters, learner: &Learner, agent: &AgentState,
     replay: Option<(&str, u32)>, snapshot: bool,
 ) -> anyhow::Result<Vec<u8>> {
+    // PQN's games after the first, as one array each (declared before the views of them).
+    let others = &agent.other_games;
+    let other_composites: Vec<u8> = others.iter().flat_map(|g| g.composite.clone()).collect();
+    let other_stacks: Vec<u8> = others.iter().flat_map(|g| g.stack.clone()).collect();
     let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
     let nets: &[(&str, &Sequential<f32>)] = if snapshot {
         &[("online", &learner.online)]
@@ -107,6 +168,32 @@ fn encode(
             TensorView::new(Dtype::U8, vec![g.len()], g)?,
         ));
     }
+    if !others.is_empty() {
+        tensors.push((
+            "pqn.observer.composite".into(),
+            TensorView::new(
+                Dtype::U8,
+                vec![others.len(), FRAME_HEIGHT, FRAME_WIDTH],
+                &other_composites,
+            )?,
+        ));
+        tensors.push((
+            "pqn.observer.stack".into(),
+            TensorView::new(
+                Dtype::U8,
+                vec![others.len(), k, FRAME_HEIGHT, FRAME_WIDTH],
+                &other_stacks,
+            )?,
+        ));
+    }
+    for (i, slot) in others.iter().enumerate() {
+        if let Some(g) = &slot.game {
+            tensors.push((
+                format!("pqn.game.state.{}", i + 1),
+                TensorView::new(Dtype::U8, vec![g.len()], g)?,
+            ));
+        }
+    }
     let rngs = Rngs {
         explore: agent.explore_rng.clone(),
         sample: agent.sample_rng.clone(),
@@ -115,6 +202,13 @@ fn encode(
     let mut meta = make_header(FORMAT, &tensors, config, counters, adam_steps)?;
     if snapshot {
         meta.insert("contents".to_string(), SNAPSHOT_CONTENTS.to_string());
+    }
+    if config.pqn.is_some() {
+        let pqn = PqnMeta {
+            players: agent.players.clone(),
+            finished: agent.finished.iter().map(RowWire::from).collect(),
+        };
+        meta.insert("pqn".to_string(), serde_json::to_string(&pqn)?);
     }
     meta.extend([
         ("rngs".to_string(), serde_json::to_string(&rngs)?),
@@ -337,6 +431,9 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         }
         Err(_) => None,
     };
+    let (other_games, players, finished) = read_pqn(&st, &meta, &config)?;
+    let pqn_tensors = other_games.iter().filter(|g| g.game.is_some()).count()
+        + if other_games.is_empty() { 0 } else { 2 };
     let copies = if snapshot {
         1
     } else if adam_steps > 0 {
@@ -345,7 +442,7 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
         2
     };
     let nets = copies * learner.online.params().count();
-    let expected = nets + 2 + game.is_some() as usize;
+    let expected = nets + 2 + game.is_some() as usize + pqn_tensors;
     if st.len() != expected {
         let mut names = st.names();
         names.sort();
@@ -369,12 +466,80 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
             composite,
             stack,
             game,
+            other_games,
+            players,
+            finished,
         },
         replay_file,
         replay_checksum,
         kernels,
         snapshot,
     })
+}
+
+/// A PQN checkpoint's games after the first, every game's episode in progress and the rows not
+/// yet handed out (the `pqn.*` tensors and the `pqn` metadata); all empty for a DQN run, whose
+/// checkpoint must have none of them.
+#[allow(clippy::type_complexity)]
+fn read_pqn(
+    st: &SafeTensors<'_>, meta: &HashMap<String, String>, config: &Config,
+) -> anyhow::Result<(Vec<GameSlot>, Vec<crate::dqn::Player>, Vec<EpisodeRow>)> {
+    let Some(pqn) = config.pqn else {
+        if meta.contains_key("pqn") {
+            bail!("the checkpoint holds a PQN agent's state, and its config has no [pqn] table");
+        }
+        return Ok((Vec::new(), Vec::new(), Vec::new()));
+    };
+    let saved: PqnMeta =
+        serde_json::from_str(meta_get(meta, "pqn")?).context("checkpoint's PQN state")?;
+    if saved.players.len() != pqn.games {
+        bail!(
+            "the checkpoint's PQN state has {} games, its config {}",
+            saved.players.len(),
+            pqn.games
+        );
+    }
+    let n = pqn.games - 1;
+    let mut others = Vec::with_capacity(n);
+    if n > 0 {
+        let k = config.pipeline.channels();
+        let composites = tensor(
+            st,
+            "pqn.observer.composite",
+            Dtype::U8,
+            &[n, FRAME_HEIGHT, FRAME_WIDTH],
+        )?;
+        let stacks = tensor(
+            st,
+            "pqn.observer.stack",
+            Dtype::U8,
+            &[n, k, FRAME_HEIGHT, FRAME_WIDTH],
+        )?;
+        for (g, (composite, stack)) in composites
+            .data()
+            .chunks_exact(FRAME_LEN)
+            .zip(stacks.data().chunks_exact(k * FRAME_LEN))
+            .enumerate()
+        {
+            let name = format!("pqn.game.state.{}", g + 1);
+            let game = match st.tensor(&name) {
+                Ok(v) if v.dtype() == Dtype::U8 && v.shape().len() == 1 => Some(v.data().to_vec()),
+                Ok(v) => bail!(
+                    "tensor `{name}` has dtype {:?} and shape {:?}, expected U8 [n]",
+                    v.dtype(),
+                    v.shape()
+                ),
+                Err(_) => None,
+            };
+            others.push(GameSlot {
+                composite: composite.to_vec(),
+                stack: stack.to_vec(),
+                game,
+            });
+        }
+    }
+    let finished = saved.finished.into_iter().map(EpisodeRow::from).collect();
+    Ok((others, saved.players, finished))
 }
 
 /// The most bytes a checkpoint or model file may have: far above any real one (a `strong`

@@ -24,6 +24,8 @@
 //! | `observer.composite` | U8 | `[88, 80]`: the composer's latest composite frame |
 //! | `observer.stack` | U8 | `[C, 88, 80]`: the frame stack, oldest first |
 //! | `game.state` | U8 | `[n]`: the emulator's saved state (`SpaceInvaders::save_state`); absent for games that cannot be saved |
+//! | `pqn.observer.composite`, `pqn.observer.stack` | U8 | PQN with `G > 1` games only: games 1 to `G − 1`'s, `[G − 1, 88, 80]` and `[G − 1, C, 88, 80]` (game 0's are the two above) |
+//! | `pqn.game.state.g` | U8 | PQN only: game `g`'s saved state (`g` = 1 to `G − 1`), as `game.state` |
 //!
 //! Metadata (strings): `format` (`invaders-checkpoint-3`), `checksum` (below), `config` (the run's resolved TOML),
 //! `counters` (JSON: episodes, agent steps, emulator frames, train steps, Adam's step count, wall
@@ -32,7 +34,11 @@
 //! replay file's name in the same directory, or empty), `replay_checksum` (that file's
 //! `checksum`, or empty) and `kernels` (the kernels the products ran on,
 //! [`crate::ops::plan::kernels`]: a run resumed where others run continues, but not bit for bit,
-//! and `train --resume` says so; absent in older checkpoints, which load as before).
+//! and `train --resume` says so; absent in older checkpoints, which load as before). A PQN
+//! run's checkpoint (its config has a `[pqn]` table) also has `pqn` (JSON: every game's episode
+//! in progress, and the finished episodes' rows not yet written to `metrics.csv`, a NaN mean as
+//! `null`); its `sample` generator is the one that shuffles the rollouts. A PQN agent is saved
+//! only between rollouts, so nothing of a rollout is held, and it has no replay memory to save.
 //!
 //! # `replay-E.safetensors` (format `invaders-replay-2`)
 //!
@@ -122,7 +128,7 @@ mod model;
 mod replay_file;
 mod run_dir;
 
-pub use super::agent::{AgentState, Counters};
+pub use super::agent::{AgentState, Counters, EpisodeRow, GameSlot};
 pub use atomic::{copy_files_atomic, tmp_path, write_atomic, write_atomic_with};
 pub use format::{
     from_bytes, load, snapshot_to_bytes, tensors_checksum, to_bytes, MAX_CHECKPOINT_BYTES,
@@ -134,7 +140,7 @@ pub use run_dir::{load_run, load_run_replay, save_run, save_snapshot};
 use format::*;
 use replay_file::*;
 
-use super::{Agent, Config, Learner, Preset, Replay};
+use super::{Agent, Config, Learner, PqnAgent, Preset, Replay, Trainer};
 use crate::env::{Game, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH};
 use crate::layers::Sequential;
 use crate::tensor::Tensor;
@@ -198,6 +204,12 @@ impl Checkpoint {
             self.agent,
             replay,
         )
+    }
+
+    /// The PQN agent that continues this run on `games` (built with the checkpoint's
+    /// environment settings, [`crate::dqn::game_seed`]): [`PqnAgent::resume`].
+    pub fn into_pqn_agent<G: Game>(self, games: Vec<G>) -> anyhow::Result<PqnAgent<G>> {
+        PqnAgent::resume(games, self.config, self.counters, self.learner, self.agent)
     }
 
     /// Refuses a checkpoint trained with another preset than `expected`.

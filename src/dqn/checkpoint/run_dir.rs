@@ -2,28 +2,22 @@
 
 use super::*;
 
-/// Writes the agent's checkpoint into `dir`: the replay file first (if the config asks for it),
-/// then `checkpoint.safetensors` naming it, then deletes replay files no longer named. A crash at
-/// any point leaves a consistent pair; an error leaves the previous pair intact.
-pub fn save_run<G: Game>(dir: &Path, agent: &Agent<G>) -> anyhow::Result<()> {
-    let replay_name = agent
-        .config
-        .checkpoint_replay
-        .then(|| replay_file_name(&agent.counters));
-    let replay = match &replay_name {
-        Some(name) => Some((
+/// Writes the agent's checkpoint into `dir`: the replay file first (if the agent has a replay
+/// memory and the config asks for it), then `checkpoint.safetensors` naming it, then deletes
+/// replay files no longer named. A crash at any point leaves a consistent pair; an error leaves
+/// the previous pair intact.
+pub fn save_run<T: Trainer + ?Sized>(dir: &Path, agent: &T) -> anyhow::Result<()> {
+    let (config, counters) = (agent.config(), agent.counters());
+    let memory = agent.replay().filter(|_| config.checkpoint_replay);
+    let replay_name = memory.map(|_| replay_file_name(counters));
+    let replay = match (&replay_name, memory) {
+        (Some(name), Some(memory)) => Some((
             name.as_str(),
-            save_replay(&dir.join(name), &agent.replay, &agent.counters)?,
+            save_replay(&dir.join(name), memory, counters)?,
         )),
-        None => None,
+        _ => None,
     };
-    let bytes = to_bytes(
-        &agent.config,
-        &agent.counters,
-        &agent.learner,
-        &agent.state(),
-        replay,
-    )?;
+    let bytes = to_bytes(config, counters, agent.learner(), &agent.state(), replay)?;
     if let Err(e) = write_atomic(&dir.join(CHECKPOINT_FILE), &bytes) {
         if let Some(name) = &replay_name {
             let _ = std::fs::remove_file(dir.join(name));
@@ -67,11 +61,11 @@ pub fn load_run_replay(dir: &Path, ckpt: &Checkpoint) -> anyhow::Result<Option<R
 
 /// Writes the agent's snapshot ([`snapshot_to_bytes`]) to `path`, atomically: a file to keep
 /// where the run directory is not (the module's "Snapshots").
-pub fn save_snapshot<G: Game>(path: &Path, agent: &Agent<G>) -> anyhow::Result<()> {
+pub fn save_snapshot<T: Trainer + ?Sized>(path: &Path, agent: &T) -> anyhow::Result<()> {
     let bytes = snapshot_to_bytes(
-        &agent.config,
-        &agent.counters,
-        &agent.learner,
+        agent.config(),
+        agent.counters(),
+        agent.learner(),
         &agent.state(),
     )?;
     write_atomic(path, &bytes)

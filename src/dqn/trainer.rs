@@ -1,0 +1,89 @@
+//! What a training run drives and a checkpoint saves, whichever algorithm learns: the DQN agent
+//! ([`Agent`], one game and a replay memory) or the PQN agent ([`PqnAgent`], several games and
+//! rollouts).
+
+use super::agent::Counters;
+use super::{Agent, AgentState, Config, EpisodeRow, Learner, PqnAgent, Replay};
+use crate::env::Game;
+
+/// A run's agent as `train` and the checkpoints see it.
+pub trait Trainer {
+    /// The run's configuration.
+    fn config(&self) -> &Config;
+    /// Its progress.
+    fn counters(&self) -> &Counters;
+    /// Its networks and optimizer.
+    fn learner(&self) -> &Learner;
+    /// Everything else a checkpoint needs to continue it exactly, but the replay memory.
+    fn state(&self) -> AgentState;
+    /// The replay memory, if it learns from one.
+    fn replay(&self) -> Option<&Replay>;
+    /// Plays (and learns) until the next episode ends; that episode's row.
+    ///
+    /// # Errors
+    /// If training diverges.
+    fn play_episode(&mut self) -> anyhow::Result<EpisodeRow>;
+    /// Whether the run is over: its budget of episodes or frames is spent, and every finished
+    /// episode's row has been handed out.
+    fn finished(&self) -> bool;
+}
+
+/// Whether `counters` meet `config`'s budget of episodes or frames.
+fn budget_spent(config: &Config, counters: &Counters) -> bool {
+    counters.episodes >= config.episodes
+        || (config.max_frames > 0 && counters.frames >= config.max_frames)
+}
+
+impl<G: Game> Trainer for Agent<G> {
+    fn config(&self) -> &Config {
+        &self.config
+    }
+    fn counters(&self) -> &Counters {
+        &self.counters
+    }
+    fn learner(&self) -> &Learner {
+        &self.learner
+    }
+    fn state(&self) -> AgentState {
+        Agent::state(self)
+    }
+    fn replay(&self) -> Option<&Replay> {
+        Some(&self.replay)
+    }
+    fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
+        Agent::play_episode(self)
+    }
+    fn finished(&self) -> bool {
+        budget_spent(&self.config, &self.counters)
+    }
+}
+
+impl<G: Game> Trainer for PqnAgent<G> {
+    fn config(&self) -> &Config {
+        &self.config
+    }
+    fn counters(&self) -> &Counters {
+        &self.counters
+    }
+    fn learner(&self) -> &Learner {
+        &self.learner
+    }
+    fn state(&self) -> AgentState {
+        PqnAgent::state(self)
+    }
+    fn replay(&self) -> Option<&Replay> {
+        None
+    }
+    fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
+        PqnAgent::play_episode(self)
+    }
+    /// A rollout overshoots a frame budget by up to one rollout; the rows of the episodes it
+    /// finished still go out.
+    fn finished(&self) -> bool {
+        let c = &self.counters;
+        c.episodes >= self.config.episodes
+            || (self.config.max_frames > 0
+                && c.frames >= self.config.max_frames
+                && self.pending() == 0)
+    }
+}
