@@ -77,8 +77,9 @@ impl<G: Game> Trainer for PqnAgent<G> {
     fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
         PqnAgent::play_episode(self)
     }
-    /// A rollout overshoots a frame budget by up to one rollout; the rows of the episodes it
-    /// finished still go out.
+    /// Rollouts overshoot a frame budget: the rollout that crosses it finishes, and the rows of
+    /// the episodes it finished still go out; a call of `play_episode` plays on until some game
+    /// ends an episode (at most one episode's length of the longest game in play).
     fn finished(&self) -> bool {
         let c = &self.counters;
         c.episodes >= self.config.episodes
