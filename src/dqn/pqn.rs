@@ -142,6 +142,9 @@ struct Rollout {
     max_q: Vec<f32>,
     /// The Q(λ) returns ([`q_lambda_returns`]).
     returns: Vec<f32>,
+    /// The learning passes' shuffled order of the transitions, and one minibatch's returns.
+    order: Vec<usize>,
+    targets: Vec<f32>,
 }
 
 impl Rollout {
@@ -154,6 +157,8 @@ impl Rollout {
             dones: vec![false; n],
             max_q: vec![0.0; n + pqn.games],
             returns: vec![0.0; n],
+            order: (0..n).collect(),
+            targets: vec![0.0; pqn.minibatch()],
         }
     }
 }
@@ -437,28 +442,30 @@ impl<G: Game> PqnAgent<G> {
     fn learn(&mut self) -> anyhow::Result<()> {
         let t = self.counters.agent_steps;
         self.learner.adam.lr = self.config.learning_rate(t) as f32;
-        let (n, mb) = (self.pqn.transitions(), self.pqn.minibatch());
-        let state_len = self.config.pipeline.channels() * FRAME_LEN;
-        let mut order: Vec<usize> = (0..n).collect();
-        let mut targets = vec![0.0f32; mb];
+        let mb = self.pqn.minibatch();
+        let k = self.config.pipeline.channels();
+        assert!(k <= 4, "states of at most 4 frames");
         let tables = (&self.table, self.rounded.as_ref());
+        let r = &mut self.rollout;
+        // Each rollout's shuffles start from the transitions in order.
+        for (j, o) in r.order.iter_mut().enumerate() {
+            *o = j;
+        }
         for _ in 0..self.pqn.epochs {
-            order.shuffle(&mut self.shuffle_rng);
-            for picks in order.chunks_exact(mb) {
+            r.order.shuffle(&mut self.shuffle_rng);
+            for picks in r.order.chunks_exact(mb) {
                 for (b, &i) in picks.iter().enumerate() {
-                    let state = &self.rollout.states[i * state_len..(i + 1) * state_len];
-                    let frames: Vec<&[u8]> = state.chunks_exact(FRAME_LEN).collect();
-                    write_state(
-                        &frames,
-                        tables,
-                        self.batch.border,
-                        b,
-                        &mut self.batch.states,
-                    );
-                    self.batch.actions[b] = self.rollout.actions[i];
-                    targets[b] = self.rollout.returns[i];
+                    let state = &r.states[i * k * FRAME_LEN..(i + 1) * k * FRAME_LEN];
+                    let mut frames: [&[u8]; 4] = [&[]; 4];
+                    for (f, c) in frames.iter_mut().zip(state.chunks_exact(FRAME_LEN)) {
+                        *f = c;
+                    }
+                    let border = self.batch.border;
+                    write_state(&frames[..k], tables, border, b, &mut self.batch.states);
+                    self.batch.actions[b] = r.actions[i];
+                    r.targets[b] = r.returns[i];
                 }
-                let stats = self.learner.regress_step(&self.batch, &targets);
+                let stats = self.learner.regress_step(&self.batch, &r.targets);
                 self.counters.train_steps += 1;
                 let episode = self.counters.episodes + self.finished.len() as u64 + 1;
                 check_finite(&self.learner, &stats, t, self.counters.train_steps, episode)?;
