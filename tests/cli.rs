@@ -600,22 +600,29 @@ fn strong_preset_export_and_protocol() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// The shipped player (`models/strong/`, README "A trained player") loads and plays on a fresh
-/// clone, by the file's own configuration; it holds no training state, so `--resume` refuses it.
+/// The shipped players (`models/strong/`, `models/every-8-cap/`, README "Trained players") load
+/// and play on a fresh clone, by the file's own configuration; they hold no training state, so
+/// `--resume` refuses them.
 #[test]
 fn the_shipped_model_plays() {
-    let text = ok(&invaders(&[
-        "eval",
-        "--checkpoint",
-        SHIPPED_MODEL,
-        "--episodes",
-        "1",
-        "--epsilon",
-        "0.01",
-        "--threads",
-        "1",
-    ]));
-    assert!(text.contains("preset strong"), "{text}");
+    let every_8_cap = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/every-8-cap/model.safetensors"
+    );
+    for model in [SHIPPED_MODEL, every_8_cap] {
+        let text = ok(&invaders(&[
+            "eval",
+            "--checkpoint",
+            model,
+            "--episodes",
+            "1",
+            "--epsilon",
+            "0.01",
+            "--threads",
+            "1",
+        ]));
+        assert!(text.contains("preset strong"), "{model}: {text}");
+    }
     // The directory holds the model beside its config.toml: not a run stopped before its first
     // checkpoint, so not started again (which would clear its metrics.csv).
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/models/strong");
