@@ -7,7 +7,7 @@
 //! the dense layers (`reset_dense_at`) treat.
 //!
 //! `cargo run --release --example dormant -- FILE...`: the states are every 4th step of
-//! episodes of `models/strong/model.safetensors` playing at ε = 0.05 (emulator seed 7), 1 024 of
+//! episodes of `models/strong-v1/model.safetensors` playing at ε = 0.05 (emulator seed 7), 1 024 of
 //! them; each FILE (a checkpoint or a model) is then run on them in f32.
 
 use anyhow::Context;
@@ -33,7 +33,7 @@ fn main() -> anyhow::Result<()> {
         !files.is_empty(),
         "usage: dormant FILE... (checkpoints or models)"
     );
-    let states = collect_states(Path::new("models/strong/model.safetensors"))?;
+    let states = collect_states(Path::new("models/strong-v1/model.safetensors"))?;
     println!("| network | frames | conv1 | conv2 | conv3 | dense1 |");
     println!("| --- | --- | --- | --- | --- | --- |");
     for f in &files {

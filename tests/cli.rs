@@ -192,6 +192,7 @@ fn train_by_frames() {
         "env_frames_per_s",
         "agent_steps_per_s",
         "strong_agent_steps_per_s",
+        "strong_v1_agent_steps_per_s",
     ] {
         let v = json[key].as_f64().unwrap_or(-1.0);
         assert!(v > 0.0 && v.is_finite(), "{key} in {text}");
@@ -600,16 +601,20 @@ fn strong_preset_export_and_protocol() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// The shipped players (`models/strong/`, `models/every-8-cap/`, README "Trained players") load
-/// and play on a fresh clone, by the file's own configuration; they hold no training state, so
-/// `--resume` refuses them.
+/// The shipped players (`models/strong/`, `models/strong-v1/`, `models/every-8-cap/`, README
+/// "Trained players") load and play on a fresh clone, by the file's own configuration; they hold
+/// no training state, so `--resume` refuses them.
 #[test]
 fn the_shipped_model_plays() {
     let every_8_cap = concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/models/every-8-cap/model.safetensors"
     );
-    for model in [SHIPPED_MODEL, every_8_cap] {
+    let strong_v1 = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/models/strong-v1/model.safetensors"
+    );
+    for model in [SHIPPED_MODEL, strong_v1, every_8_cap] {
         let text = ok(&invaders(&[
             "eval",
             "--checkpoint",

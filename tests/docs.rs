@@ -425,8 +425,9 @@ fn toml_files(path: &Path, out: &mut Vec<PathBuf>) {
 /// The configuration files the repository ships (lever files, experiment records, the shipped
 /// model's) are ones `--config` accepts: a misspelt key or an out-of-range value in a committed
 /// file fails here, not hours into someone's run. A file that names no preset is resolved on
-/// `strong`, as `invaders experiment strong --config FILE` applies the lever files (the others
-/// that name none set only keys every preset takes); a record names its own.
+/// `strong` and on `strong-v1`, as `invaders experiment strong [--preset strong-v1] --config
+/// FILE` applies the lever files (the others that name none set only keys every preset takes);
+/// a record names its own.
 #[test]
 fn every_shipped_config_file_resolves() {
     use invaders::dqn::{Config, Preset};
@@ -437,9 +438,14 @@ fn every_shipped_config_file_resolves() {
     for f in &files {
         let text = std::fs::read_to_string(root().join(f)).expect("readable");
         let named = text.lines().any(|l| l.trim_start().starts_with("preset"));
-        let preset = (!named).then_some(Preset::Strong);
-        if let Err(e) = Config::resolve(preset, Some(&text)) {
-            errors.push(format!("{}: {e:#}", f.display()));
+        let presets = match named {
+            true => vec![None],
+            false => vec![Some(Preset::Strong), Some(Preset::StrongV1)],
+        };
+        for preset in presets {
+            if let Err(e) = Config::resolve(preset, Some(&text)) {
+                errors.push(format!("{}: {e:#}", f.display()));
+            }
         }
     }
     assert!(files.len() >= 10, "config files found: {files:?}");

@@ -81,6 +81,53 @@ fn valid_convolutions_learn_a_toy_corridor() {
     });
 }
 
+/// `strong` is `strong-v1` with every-16-cap's keys (issue #43's best), its precision left to
+/// the host (`auto`): that lever file over `strong` resolves to the configuration its kept
+/// records hold, so they and a run of it still count as that arm; over `strong-v1` it is the
+/// arm as it was run. Nothing else of `strong-v1` moved.
+#[test]
+fn strong_is_strong_v1_learning_every_16_steps_to_40m_frames() {
+    let file = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/docs/strong/levers/every-16-cap.toml"
+    );
+    let lever = std::fs::read_to_string(file).unwrap();
+    let strong = Config::preset(Preset::Strong);
+    let (v1, on_strong, on_v1) = (
+        Config::preset(Preset::StrongV1),
+        Config::resolve(Some(Preset::Strong), Some(&lever)).unwrap(),
+        Config::resolve(Some(Preset::StrongV1), Some(&lever)).unwrap(),
+    );
+    assert_eq!(
+        (strong.preset, v1.preset),
+        (Preset::Strong, Preset::StrongV1)
+    );
+    assert_eq!((strong.max_frames, v1.max_frames), (40_000_000, 13_500_000));
+    assert_eq!((strong.train_every, v1.train_every), (16, 4));
+    assert_eq!(
+        (strong.precision, on_strong.precision),
+        (Precision::Auto, Precision::Bf16)
+    );
+    let record = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/docs/strong/levers/every-16-cap/strong-seed1/config.toml"
+    );
+    let record = Config::resolve(None, Some(&std::fs::read_to_string(record).unwrap())).unwrap();
+    let same = |c: &Config| Config {
+        seed: record.seed,
+        max_frames: record.max_frames,
+        preset: record.preset,
+        ..c.clone()
+    };
+    assert_eq!(same(&on_strong).to_toml(), record.to_toml());
+    assert_eq!(same(&on_v1).to_toml(), record.to_toml());
+    let as_run = Config {
+        precision: Precision::Bf16,
+        ..strong.clone()
+    };
+    assert_eq!(same(&as_run).to_toml(), record.to_toml());
+}
+
 /// `padding` is `same` unless a file says `valid`; anything else is refused, naming the key.
 #[test]
 fn padding_is_same_unless_asked() {

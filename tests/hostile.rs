@@ -1186,3 +1186,41 @@ fn every_knob_has_a_bound() {
     assert!(!root.join("e").exists());
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// `experiment strong` and `experiment ablation` start from a strong preset only: another
+/// `--preset` is refused by name before anything is written.
+#[test]
+fn experiments_take_only_the_strong_presets() {
+    let root = tmp("strong-presets");
+    for experiment in ["strong", "ablation"] {
+        let out = root.join(experiment);
+        let got = invaders(&[
+            "experiment",
+            experiment,
+            "--preset",
+            "article",
+            "--out",
+            s(&out),
+        ]);
+        let err = String::from_utf8_lossy(&got.stderr);
+        assert_eq!(got.status.code(), Some(2), "a usage error: {err}");
+        assert!(err.contains("`strong` or `strong-v1`"), "{err}");
+        assert!(!out.exists(), "{experiment}: {} written", out.display());
+    }
+    let out = root.join("v1");
+    fails_with(
+        &invaders(&[
+            "experiment",
+            "strong",
+            "--preset",
+            "strong-v1",
+            "--frames",
+            "0",
+            "--out",
+            s(&out),
+        ]),
+        &["--frames"],
+    );
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&root);
+}

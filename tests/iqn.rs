@@ -11,7 +11,7 @@ use common::cli::{eval, invaders, ok, resumed_like_straight};
 fn iqn_munchausen_run_resumes_exactly_and_plays() {
     let (root, straight, [(ca, _), _]) = resumed_like_straight(
         "invaders-iqn",
-        "preset = \"strong\"\niqn_samples = 4\niqn_target_samples = 5\niqn_policy_samples = 3\niqn_embedding = 8\nmunchausen_alpha = 0.9\nprioritized = true\nhidden = 16\nlearning_starts = 40\nreplay_capacity = 150\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\nmax_frames = 0\nepisodes = 10\n[env]\nmax_episode_steps = 60\n",
+        "preset = \"strong-v1\"\niqn_samples = 4\niqn_target_samples = 5\niqn_policy_samples = 3\niqn_embedding = 8\nmunchausen_alpha = 0.9\nprioritized = true\nhidden = 16\nlearning_starts = 40\nreplay_capacity = 150\nbatch_size = 8\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\nmax_frames = 0\nepisodes = 10\n[env]\nmax_episode_steps = 60\n",
     );
     assert!(
         ca.learner.online.params().any(|p| p.name == "iqn.weight"),

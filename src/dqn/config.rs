@@ -30,12 +30,18 @@ pub enum Preset {
     /// The notebook's behaviour on purpose: running-max composition, inputs in [-2, 0), actions
     /// picked by the lagged (target) network, a fake terminal transition stored per episode.
     ArticleAsWritten,
-    /// Beyond the article, chosen by measurement to play well within an afternoon on a 2-core
-    /// machine: the `v5` game, Double DQN with a dueling head, 3-step returns, life loss ending
-    /// bootstrapping, clipped rewards, Huber loss, a 400 000-transition memory, a slower target,
-    /// a faster ε schedule, a learning rate falling to a tenth, the faster of f32 and bf16
-    /// products on the host (`auto`) and 13.5 million frames (`docs/strong.md`).
+    /// The best player found for issue #43's budget (`docs/strong.md`): `strong-v1` learning
+    /// once every 16 agent steps instead of 4, so the same compute plays 40 million frames
+    /// (10 million agent steps, 625 000 updates) with a 1 M-transition memory, the target copied
+    /// every 8 000 agent steps (500 updates) and the learning rate falling over the whole run.
     Strong,
+    /// The first `strong` (until 2026-12), chosen by measurement to play well within an afternoon
+    /// on a 2-core machine: the `v5` game, Double DQN with a dueling head, 3-step returns, life
+    /// loss ending bootstrapping, clipped rewards, Huber loss, a 400 000-transition memory, a
+    /// slower target, a faster ε schedule, a learning rate falling to a tenth, the faster of f32
+    /// and bf16 products on the host (`auto`) and 13.5 million frames. Its published results
+    /// (`docs/strong/three-seeds/`, the levers tried on it) reproduce under this name.
+    StrongV1,
 }
 
 impl Preset {
@@ -46,6 +52,7 @@ impl Preset {
             Preset::ArticleVanilla => "article-vanilla",
             Preset::ArticleAsWritten => "article-as-written",
             Preset::Strong => "strong",
+            Preset::StrongV1 => "strong-v1",
         }
     }
 }
@@ -53,9 +60,13 @@ impl Preset {
 /// Adam's ε unless a config says otherwise (TensorFlow 1's default).
 pub const ADAM_EPSILON: f64 = 1e-8;
 
-/// The `strong` preset's budget in emulator frames: 3.375 million agent steps, about 2.3 hours
-/// alone on two threads of this machine in bf16 (docs/strong.md).
-pub const STRONG_FRAMES: u64 = 13_500_000;
+/// The `strong` preset's budget in emulator frames: 10 million agent steps, learning every 16,
+/// about what `strong-v1`'s 3.65 million agent steps cost (issue #43's cap; docs/strong.md).
+pub const STRONG_FRAMES: u64 = 40_000_000;
+
+/// The `strong-v1` preset's budget in emulator frames: 3.375 million agent steps, about 2.3 hours
+/// alone on two threads of a Zen 5 machine in bf16 (docs/strong.md).
+pub const STRONG_V1_FRAMES: u64 = 13_500_000;
 
 /// The bound of every knob counted in agent steps or episodes (`train_every`, `learning_starts`,
 /// `target_update`, `epsilon_decay_steps`, `checkpoint_every`, `plot_every`): ten billion, beyond
@@ -486,8 +497,17 @@ impl Config {
                 ..article
             },
             Preset::Strong => Config {
-                episodes: NO_EPISODE_LIMIT,
+                preset: p,
                 max_frames: STRONG_FRAMES,
+                replay_capacity: 1_000_000,
+                train_every: 16,
+                target_update: 8_000,
+                learning_rate_decay: [940_000, 10_000_000],
+                ..Config::preset(Preset::StrongV1)
+            },
+            Preset::StrongV1 => Config {
+                episodes: NO_EPISODE_LIMIT,
+                max_frames: STRONG_V1_FRAMES,
                 replay_capacity: 400_000,
                 batch_size: 32,
                 learning_rate: 1e-4,

@@ -1,4 +1,5 @@
-//! `experiment ablation`: the `strong` preset with each of its components switched off in turn.
+//! `experiment ablation`: the `strong` preset (or `strong-v1`) with each of its components
+//! switched off in turn.
 
 use super::*;
 
@@ -17,7 +18,8 @@ pub struct Ablation {
 
 /// The ablation's arms; the first, with no keys, is the preset itself. The others are the
 /// preset's on/off components and its replay size; its other settings (Adam's, the target
-/// period, the batch, one update per 4 agent steps) are the published agents' and not ablated.
+/// period, the batch, the update rate) are the published agents' or measured at full budget
+/// (docs/strong.md), and not ablated.
 /// The falling learning rate is left out too: its schedule starts at agent step 250 000 (1 M
 /// frames) and has barely moved by the ablation's budget, so it is measured at full budget
 /// instead (docs/strong.md).
@@ -72,7 +74,7 @@ pub const ABLATIONS: &[Ablation] = &[
     },
     Ablation {
         name: "small-replay",
-        what: "the 400 000-transition replay (100 000 instead)",
+        what: "the preset's replay memory (100 000 transitions instead)",
         keys: "replay_capacity = 100000",
         switches: |a, p| a.replay_capacity < p.replay_capacity,
     },
@@ -88,6 +90,10 @@ pub const ABLATIONS: &[Ablation] = &[
 
 #[derive(Debug, Args)]
 pub struct AblationArgs {
+    /// The preset the arms (and `--config`'s keys) start from: `strong`, or `strong-v1` (the
+    /// first `strong`, whose ablation is docs/strong/ablation/).
+    #[arg(long, default_value = "strong", value_parser = parse_strong_preset)]
+    preset: Preset,
     /// The training seed of every arm (not 1 000 000, the seed the protocol plays on).
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -143,7 +149,7 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
     let text = read_overrides(args.config.as_deref())?;
     let overrides: toml::Table = text.parse().context("--config is not valid TOML")?;
     let preset =
-        Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
+        Config::resolve(Some(args.preset), Some(&text)).context("configuration of the runs")?;
     Config {
         seed: args.seed,
         max_frames: args.frames,
@@ -161,7 +167,7 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
             arm.keys.parse().expect("ABLATIONS' keys are TOML"),
         );
         let arm_text = toml::to_string(&table)?;
-        let config = Config::resolve(Some(Preset::Strong), Some(&arm_text))
+        let config = Config::resolve(Some(args.preset), Some(&arm_text))
             .with_context(|| format!("configuration of {}", arm.name))?;
         if !(arm.switches)(&config, &preset) {
             bail!(
@@ -172,7 +178,7 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         }
         check_reuse(
             &args.out.join(format!("{}-seed{}", arm.name, args.seed)),
-            Preset::Strong,
+            args.preset,
             &arm_text,
             args.seed,
         )?;
@@ -188,7 +194,7 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
             .with_context(|| format!("cannot write {}", cfg.display()))?;
         jobs.push(Job {
             label: arm.name,
-            preset: Preset::Strong,
+            preset: args.preset,
             seed: args.seed,
             cfg,
             dir: args.out.join(format!("{}-seed{}", arm.name, args.seed)),
@@ -238,12 +244,15 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         });
     }
     let title = format!(
-        "Space Invaders, strong preset ablation: seed {}, {} frames",
-        args.seed, args.frames
+        "Space Invaders, {} preset ablation: seed {}, {} frames",
+        args.preset.name(),
+        args.seed,
+        args.frames
     );
     plot_groups_frames(&groups, &[], &title, 100, &args.out.join("rewards.png"))?;
+    let name = args.preset.name();
     let table = format!(
-        "# The strong preset, each component switched off in turn\n\nCommand: `{}`\n\nBudget: {} frames per run, seed {}, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}. Δ: against the preset (`strong`).\n\n| arm | switched off | frames | wall hours | agent steps/s | training return, last 100 episodes | Δ | protocol score: mean ± std (min–max) | Δ |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n{}\n\nOne seed per arm: one network's protocol score moves by about ±50 from one checkpoint to the next, and seeds of one configuration differed by up to about 90 in training return at 1.5 M frames (docs/strong.md), so only larger differences say something. Figure: `rewards.png`.\n",
+        "# The {name} preset, each component switched off in turn\n\nCommand: `{}`\n\nBudget: {} frames per run, seed {}, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}. Δ: against the preset (`{name}`).\n\n| arm | switched off | frames | wall hours | agent steps/s | training return, last 100 episodes | Δ | protocol score: mean ± std (min–max) | Δ |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n{}\n\nOne seed per arm: one network's protocol score moves by about ±50 from one checkpoint to the next, and seeds of one configuration differed by up to about 90 in training return at 1.5 M frames (docs/strong.md), so only larger differences say something. Figure: `rewards.png`.\n",
         command_line(),
         args.frames,
         args.seed,
@@ -265,14 +274,20 @@ mod tests {
         config_leaves(c).into_iter().collect()
     }
 
-    /// Each arm over the bare preset changes exactly the one setting its keys name, and its
-    /// check says it switches that off; over an arm's own keys the check refuses it.
+    /// Each arm over either bare preset (`--preset`) changes exactly the one setting its keys
+    /// name, and its check says it switches that off; over an arm's own keys the check refuses it.
     #[test]
     fn every_arm_switches_off_one_setting_of_the_preset() {
-        let preset = Config::preset(Preset::Strong);
+        for p in [Preset::Strong, Preset::StrongV1] {
+            arms_switch_off_one_setting_of(p);
+        }
+    }
+
+    fn arms_switch_off_one_setting_of(p: Preset) {
+        let preset = Config::preset(p);
         assert!(ABLATIONS[0].keys.is_empty() && ABLATIONS[0].name == "strong");
         for arm in &ABLATIONS[1..] {
-            let config = Config::resolve(Some(Preset::Strong), Some(arm.keys)).unwrap();
+            let config = Config::resolve(Some(p), Some(arm.keys)).unwrap();
             let changed: Vec<String> = leaves(&config)
                 .into_iter()
                 .zip(leaves(&preset))

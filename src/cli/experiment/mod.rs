@@ -65,7 +65,7 @@ use super::train::CONTINUED_FILE;
 use super::Interrupted;
 use ablation::{ablation, AblationArgs};
 use invaders::dqn::checkpoint;
-use invaders::dqn::{merge_toml, Config, Preset, STRONG_FRAMES};
+use invaders::dqn::{merge_toml, Config, Preset};
 use invaders::env::{Downsample, Pipeline};
 use invaders::layers::loss::LossKind;
 use preprocessing::{preprocessing, PreprocessingArgs};
@@ -77,9 +77,10 @@ use strong::{strong, StrongArgs};
 pub enum Experiment {
     /// Vanilla against stacked and composed inputs (the article's figures).
     Preprocessing(PreprocessingArgs),
-    /// The `strong` preset over several training seeds, each evaluated by the protocol.
+    /// The `strong` preset (or `strong-v1`) over several training seeds, each evaluated by the
+    /// protocol.
     Strong(StrongArgs),
-    /// The `strong` preset with each of its components switched off in turn.
+    /// The `strong` preset (or `strong-v1`) with each of its components switched off in turn.
     Ablation(AblationArgs),
 }
 
@@ -110,6 +111,19 @@ fn parse_jobs(s: &str) -> Result<usize, String> {
         return Err(format!("must be in 1..={MAX_JOBS}"));
     }
     Ok(n)
+}
+
+/// `--preset` of the experiments on the strong presets: `strong` or `strong-v1`.
+fn parse_strong_preset(s: &str) -> Result<Preset, String> {
+    match s {
+        "strong" => Ok(Preset::Strong),
+        "strong-v1" => Ok(Preset::StrongV1),
+        _ => Err(
+            "must be `strong` or `strong-v1` (the article's presets: experiment \
+                  preprocessing)"
+                .into(),
+        ),
+    }
 }
 
 /// `--jobs`, or one per core.

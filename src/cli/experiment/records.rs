@@ -145,13 +145,16 @@ pub(super) fn check_reuse(
 }
 
 /// The keys whose values differ between two configurations, as `key: A, not B` (`[env]`'s keys as
-/// `env.KEY`), leaving out the budget (`episodes`, `max_frames`), and the precision where `asked`
-/// says `auto`.
+/// `env.KEY`), leaving out the budget (`episodes`, `max_frames`), the preset's name, and the
+/// precision where `asked` says `auto`.
 pub(super) fn config_differences(had: &Config, asked: &Config) -> Vec<String> {
     let flat = |c: &Config| {
         let mut out = config_leaves(c);
         out.remove("episodes");
         out.remove("max_frames");
+        // A name, not a setting: every knob is compared. (`strong-v1` ran as `strong` until
+        // 2026-12; its snapshots keep that name.)
+        out.remove("preset");
         // `auto` asks for whichever precision the run measured faster: either answers it.
         if asked.precision == invaders::ops::plan::Precision::Auto {
             out.remove("precision");

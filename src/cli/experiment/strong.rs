@@ -1,21 +1,26 @@
-//! `experiment strong`: the `strong` preset (or any overrides of it) over training seeds 1..=N,
-//! each evaluated by the protocol.
+//! `experiment strong`: the `strong` preset (or `strong-v1`, or any overrides of either) over
+//! training seeds 1..=N, each evaluated by the protocol.
 
 use super::*;
 
 #[derive(Debug, Args)]
 pub struct StrongArgs {
+    /// The preset the runs (and `--config`'s keys) start from: `strong`, or `strong-v1`, the
+    /// first `strong`, whose published results (docs/strong.md) reproduce under that name.
+    #[arg(long, default_value = "strong", value_parser = parse_strong_preset)]
+    preset: Preset,
     /// Training seeds 1, 2, … (the protocol plays on seed 1 000 000).
     #[arg(long, default_value_t = 3)]
     seeds: u64,
-    /// Emulator frames per run.
-    #[arg(long, default_value_t = STRONG_FRAMES)]
-    frames: u64,
+    /// Emulator frames per run (default: the preset's, 40 million for `strong`, 13.5 million for
+    /// `strong-v1`).
+    #[arg(long)]
+    frames: Option<u64>,
     /// Runs trained at once (default: the cores divided by `--threads`, at least one).
     #[arg(long, value_parser = parse_jobs)]
     jobs: Option<usize>,
-    /// Kernel threads per run: 2 for one run alone on a 2-core machine (the preset's 13.5 million
-    /// frames took 2.25–2.32 hours so on an AVX512-BF16 host), 1 for runs side by side.
+    /// Kernel threads per run: 2 for one run alone on a 2-core machine (`strong-v1`'s 13.5
+    /// million frames took 2.25–2.32 hours so on an AVX512-BF16 host), 1 for runs side by side.
     #[arg(long, default_value_t = 2)]
     threads: usize,
     /// Protocol episodes per final network (at least 100).
@@ -44,7 +49,11 @@ pub struct StrongArgs {
 
 /// `experiment strong`: the preset with seeds 1..=N, each evaluated by the protocol.
 pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
-    if args.seeds == 0 || args.frames == 0 || args.threads == 0 {
+    let preset = args.preset;
+    let frames = args
+        .frames
+        .unwrap_or_else(|| Config::preset(preset).max_frames);
+    if args.seeds == 0 || frames == 0 || args.threads == 0 {
         bail!("--seeds, --frames and --threads must be at least 1");
     }
     if args.eval_episodes < PROTOCOL_EPISODES {
@@ -53,11 +62,10 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         );
     }
     let text = read_overrides(args.config.as_deref())?;
-    let config =
-        Config::resolve(Some(Preset::Strong), Some(&text)).context("configuration of the runs")?;
+    let config = Config::resolve(Some(preset), Some(&text)).context("configuration of the runs")?;
     Config {
         seed: args.seeds,
-        max_frames: args.frames,
+        max_frames: frames,
         ..config
     }
     .validate()
@@ -73,7 +81,7 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     for seed in 1..=args.seeds {
         check_reuse(
             &args.out.join(format!("strong-seed{seed}")),
-            Preset::Strong,
+            preset,
             &text,
             seed,
         )?;
@@ -84,7 +92,7 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     let jobs: Vec<Job<'_>> = (1..=args.seeds)
         .map(|seed| Job {
             label: "strong",
-            preset: Preset::Strong,
+            preset,
             seed,
             cfg: cfg.clone(),
             dir: args.out.join(format!("strong-seed{seed}")),
@@ -94,7 +102,7 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     say!(
         "{} runs of {} frames, into {}",
         jobs.len(),
-        args.frames,
+        frames,
         args.out.display()
     );
     // Runs at once: as many as the cores hold at `--threads` each, unless `--jobs` says.
@@ -103,7 +111,7 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|| worker_count(None) / args.threads)
         .max(1);
     let keep = args.keep.as_deref();
-    let finished = run_for_frames(&exe, &jobs, workers, args.frames, args.eval_episodes, keep)?;
+    let finished = run_for_frames(&exe, &jobs, workers, frames, args.eval_episodes, keep)?;
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
     for (job, run) in jobs.iter().zip(&finished) {
         let (r, s) = (summarize(run)?, run.record.protocol);
@@ -120,13 +128,13 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         seeds.push(r.points);
     }
     let groups = [Group {
-        label: "strong".to_string(),
+        label: preset.name().to_string(),
         seeds,
     }];
     // What the runs are: the preset, or the preset with the keys of `--config`.
     let what = match &args.config {
-        Some(path) => format!("strong preset with {}", path.display()),
-        None => "strong preset".to_string(),
+        Some(path) => format!("{} preset with {}", preset.name(), path.display()),
+        None => format!("{} preset", preset.name()),
     };
     let title = format!("Space Invaders, {what}: {} seed(s)", args.seeds);
     plot_groups_frames(
@@ -140,7 +148,7 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         "# The {what} over {} seeds\n\nCommand: `{}`\n\nBudget: {} frames per run, {} thread(s) each, {} at a time. Evaluation: the protocol, {} episodes of `v5` with ε = {PROTOCOL_EPSILON} on seed {PROTOCOL_SEED}.\n\n| seed | frames | wall hours | agent steps/s | training return, last 100 episodes | protocol score: mean ± std (min–max) |\n| --- | --- | --- | --- | --- | --- |\n{}\n\nMean protocol score over the seeds: {}. Figure: `rewards.png`.\n",
         args.seeds,
         command_line(),
-        args.frames,
+        frames,
         args.threads,
         workers,
         args.eval_episodes,
