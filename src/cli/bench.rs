@@ -39,8 +39,8 @@ pub struct BenchArgs {
     /// Train steps to time.
     #[arg(long, default_value_t = 30)]
     steps: usize,
-    /// Also time acting with a trained network (a run directory, its `checkpoint.safetensors`
-    /// or a weights-only model file such as models/strong/model.safetensors), besides a newly
+    /// Also time acting with a trained network (a run directory, its `checkpoint.safetensors`,
+    /// a weights-only model file or a shipped model's folder such as models/strong), besides a newly
     /// initialised one. A trained network's activations are mostly zeros, which acting skips.
     #[arg(long, value_name = "PATH")]
     checkpoint: Option<PathBuf>,
@@ -70,11 +70,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let mut trained = match &args.checkpoint {
         None => None,
         Some(path) => {
-            let file = if path.is_dir() {
-                path.join(checkpoint::CHECKPOINT_FILE)
-            } else {
-                path.clone()
-            };
+            let file = checkpoint::network_file(path)?;
             Some(checkpoint::load_model(&file)?)
         }
     };

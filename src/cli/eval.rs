@@ -21,7 +21,8 @@ pub struct EvalArgs {
     /// Play uniformly random actions (the baseline every agent must beat).
     #[arg(long)]
     random: bool,
-    /// A checkpoint to evaluate (`RUN_DIR/checkpoint.safetensors`, or the run directory).
+    /// A checkpoint to evaluate (`RUN_DIR/checkpoint.safetensors`, or the run directory), or a
+    /// model (a model file, or a shipped model's folder such as models/strong).
     #[arg(long, value_name = "PATH", conflicts_with = "random")]
     checkpoint: Option<PathBuf>,
     /// Refuse a checkpoint trained with another preset (its network's input shape differs for
@@ -181,11 +182,7 @@ fn eval(args: &EvalArgs) -> anyhow::Result<()> {
 
 /// Plays the planned episodes with the online network of a checkpoint or model file, ε-greedy.
 fn run_checkpoint(args: &EvalArgs, plan: &Plan, path: &Path) -> anyhow::Result<()> {
-    let file = if path.is_dir() {
-        path.join(checkpoint::CHECKPOINT_FILE)
-    } else {
-        path.to_path_buf()
-    };
+    let file = checkpoint::network_file(path)?;
     let gif_out = match &args.gif {
         Some(gif) => Some(super::guard::OutputFile::check(
             gif,

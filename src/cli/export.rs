@@ -9,7 +9,8 @@ use invaders::dqn::checkpoint;
 
 #[derive(Debug, Args)]
 pub struct ExportArgs {
-    /// The run to export (`RUN_DIR/checkpoint.safetensors`, or the run directory).
+    /// The run to export (`RUN_DIR/checkpoint.safetensors`, or the run directory), or a model
+    /// (a model file, or a shipped model's folder such as models/strong).
     #[arg(long, value_name = "PATH")]
     checkpoint: PathBuf,
     /// The model file to write (format `invaders-model-1`: the online network, the run's
@@ -24,14 +25,20 @@ pub struct ExportArgs {
 }
 
 pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
-    let file = if args.checkpoint.is_dir() {
-        args.checkpoint.join(checkpoint::CHECKPOINT_FILE)
-    } else {
-        args.checkpoint.clone()
-    };
+    let file = checkpoint::network_file(&args.checkpoint)?;
     let out = super::guard::OutputFile::check(&args.out, args.force, &[&file], "--out")?;
-    let ckpt = checkpoint::load(&file)?;
-    let bytes = checkpoint::model_to_bytes(&ckpt.config, &ckpt.counters, &ckpt.learner)?;
+    let raw = std::fs::read(&file).with_context(|| format!("cannot read {}", file.display()))?;
+    // A model file (a shipped model's folder) is already what export writes: checked, then
+    // written as it is.
+    let (bytes, counters) = if checkpoint::is_model_bytes(&raw) {
+        let model = checkpoint::model_from_bytes(&raw)
+            .with_context(|| format!("{} is not a valid model", file.display()))?;
+        (raw, model.counters)
+    } else {
+        let ckpt = checkpoint::load(&file)?;
+        let bytes = checkpoint::model_to_bytes(&ckpt.config, &ckpt.counters, &ckpt.learner)?;
+        (bytes, ckpt.counters)
+    };
     out.write(&bytes)
         .with_context(|| format!("cannot export to {}", args.out.display()))?;
     out!(
@@ -39,8 +46,8 @@ pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
         args.out.display(),
         bytes.len(),
         file.display(),
-        ckpt.counters.episodes,
-        ckpt.counters.frames
+        counters.episodes,
+        counters.frames
     );
     Ok(())
 }

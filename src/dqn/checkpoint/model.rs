@@ -3,6 +3,36 @@
 
 use super::*;
 
+/// The network file of a shipped model's folder (`models/strong/model.safetensors`).
+pub const MODEL_FILE: &str = "model.safetensors";
+
+/// The network file that `path` names for `eval`, `export` and `bench --checkpoint`: `path`
+/// itself when it is a file; in a folder, a run's checkpoint ([`CHECKPOINT_FILE`]) or else a
+/// shipped model's network ([`MODEL_FILE`]). A folder holding neither is an error naming both.
+pub fn network_file(path: &Path) -> anyhow::Result<std::path::PathBuf> {
+    if !path.is_dir() {
+        return Ok(path.to_path_buf());
+    }
+    let run = path.join(CHECKPOINT_FILE);
+    let model = path.join(MODEL_FILE);
+    if run.exists() || !model.exists() {
+        if !run.exists() {
+            bail!(
+                "{} holds no network: neither a run's {CHECKPOINT_FILE} nor a model's {MODEL_FILE}",
+                path.display()
+            );
+        }
+        return Ok(run);
+    }
+    Ok(model)
+}
+
+/// Whether `bytes` are a weights-only model file (format [`MODEL_FORMAT`]) rather than a
+/// checkpoint; nothing else is checked.
+pub fn is_model_bytes(bytes: &[u8]) -> bool {
+    parse(bytes).is_ok_and(|(_, meta)| meta_get(&meta, "format").is_ok_and(|f| f == MODEL_FORMAT))
+}
+
 /// A trained network for playing: from a checkpoint or a weights-only model file.
 pub struct Model {
     /// The configuration it was trained with (input pipeline, normalisation, game).
