@@ -1,6 +1,7 @@
 //! The documentation names only files and functions that exist.
 //!
-//! Checked files: `README.md` and every `docs/*.md`. What counts as a reference:
+//! Checked files: `README.md`, `in-progress/README.md` and every `.md` under `docs/` at any
+//! depth. What counts as a reference:
 //!
 //! - **Links.** Every Markdown link or image target `[text](target)` that is not a URL (`://`,
 //!   `mailto:`) or a bare `#anchor`. It is resolved against the Markdown file's folder (any
@@ -12,7 +13,9 @@
 //!   `/` (an absolute path: the reader's machine) or `runs/` (what the commands write) are left
 //!   out; so are, by that rule, formulas such as `x/128` and benchmark filters such as
 //!   `sparse_act/conv1`. It is resolved against the repository root and must exist inside the
-//!   repository (a folder must hold a file: git keeps no empty folder, so a clone lacks it): a path through `../` to a neighbour that a clone does not have fails. A word
+//!   repository (a folder must hold a file: git keeps no empty folder, so a clone lacks it): a path through `../` to a neighbour that a clone does not have fails. In a
+//!   page below `docs/` (a records folder's README), a path that exists relative to the page's
+//!   own folder passes too. A word
 //!   ending in `/` must be a folder; a `*` in the last component must match at least one file.
 //! - **Examples and benchmarks.** Every `--example NAME` and `--bench NAME` must name
 //!   `examples/NAME.rs` or `benches/NAME.rs`.
@@ -36,19 +39,29 @@ fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
-/// `README.md` and `docs/*.md`, relative to the root.
+/// `README.md`, `in-progress/README.md` and every `.md` under `docs/` at any depth (the records
+/// folders' READMEs included), relative to the root.
 fn documents() -> Vec<PathBuf> {
+    fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
+        for entry in std::fs::read_dir(dir).expect("a readable folder") {
+            let path = entry.expect("entry").path();
+            if path.is_dir() {
+                walk(&path, out);
+            } else if path.extension().is_some_and(|e| e == "md") {
+                out.push(
+                    path.strip_prefix(root())
+                        .expect("under the root")
+                        .to_path_buf(),
+                );
+            }
+        }
+    }
     let mut docs = vec![PathBuf::from("README.md")];
-    let mut more: Vec<PathBuf> = std::fs::read_dir(root().join("docs"))
-        .expect("docs/ exists")
-        .map(|e| e.expect("entry").path())
-        .filter(|p| p.is_file() && p.extension().is_some_and(|e| e == "md"))
-        .map(|p| {
-            p.strip_prefix(root())
-                .expect("under the root")
-                .to_path_buf()
-        })
-        .collect();
+    if root().join("in-progress/README.md").is_file() {
+        docs.push(PathBuf::from("in-progress/README.md"));
+    }
+    let mut more = Vec::new();
+    walk(&root().join("docs"), &mut more);
     more.sort();
     docs.extend(more);
     docs
@@ -306,7 +319,14 @@ fn stale_references(doc: &Path, text: &str, sources: &[(PathBuf, String)]) -> Ve
     let words: Vec<&str> = words.collect();
     for w in &words {
         if is_path_word(w) {
-            check_path(doc, Path::new(""), w, &mut errors);
+            // A records README below `docs/` names its own files (`strong-seed1/result.toml`)
+            // from its folder; every other path is the repository's.
+            let own = base.components().count() > 1
+                && resolve(base, w.trim_end_matches('/'))
+                    .is_some_and(|rel| exists(&rel, w.ends_with('/')));
+            if !own {
+                check_path(doc, Path::new(""), w, &mut errors);
+            }
         }
     }
     for pair in words.windows(2) {
@@ -449,5 +469,77 @@ fn every_shipped_config_file_resolves() {
         }
     }
     assert!(files.len() >= 10, "config files found: {files:?}");
+    assert!(errors.is_empty(), "{}", errors.join("\n"));
+}
+
+/// The pages stay short enough to read, and the index reaches them all (issue #96):
+/// - no page over 600 lines, and `docs/strong.md` (the `strong` presets: the table of levers
+///   and the commands; each run's story lives in its records folder) at most 300;
+/// - `README.md` at most 10 240 bytes, with the two commands (the training run and the tests)
+///   in its first 40 lines;
+/// - every `.md` under `docs/` reached from `docs/README.md` by following links between pages.
+#[test]
+fn pages_stay_short() {
+    let mut errors = Vec::new();
+    for doc in documents() {
+        let text = std::fs::read_to_string(root().join(&doc)).expect("readable");
+        let lines = text.lines().count();
+        let limit = if doc == Path::new("docs/strong.md") {
+            300
+        } else {
+            600
+        };
+        if lines > limit {
+            errors.push(format!("{}: {lines} lines, over {limit}", doc.display()));
+        }
+    }
+    let readme = std::fs::read_to_string(root().join("README.md")).expect("README.md");
+    if readme.len() > 10_240 {
+        errors.push(format!("README.md: {} bytes, over 10 240", readme.len()));
+    }
+    let head: String = readme.lines().take(40).collect::<Vec<_>>().join("\n");
+    for command in ["cargo run --release -- train", "cargo test --release"] {
+        if !head.contains(command) {
+            errors.push(format!(
+                "README.md: `{command}` is not in its first 40 lines"
+            ));
+        }
+    }
+    // Every page under docs/ is reached from the index through links between Markdown pages.
+    let mut reached = BTreeSet::new();
+    let mut todo = vec![PathBuf::from("docs/README.md")];
+    while let Some(page) = todo.pop() {
+        if !reached.insert(page.clone()) {
+            continue;
+        }
+        let Ok(text) = std::fs::read_to_string(root().join(&page)) else {
+            continue;
+        };
+        let base = page.parent().unwrap_or(Path::new("")).to_path_buf();
+        for target in link_targets(&parse(&text).prose) {
+            if target.contains("://") || target.starts_with('#') {
+                continue;
+            }
+            let target = target.split('#').next().unwrap_or_default();
+            if let Some(rel) = resolve(&base, target) {
+                let rel = if root().join(&rel).is_dir() {
+                    rel.join("README.md")
+                } else {
+                    rel
+                };
+                if rel.extension().is_some_and(|e| e == "md") && rel.starts_with("docs") {
+                    todo.push(rel);
+                }
+            }
+        }
+    }
+    for doc in documents() {
+        if doc.starts_with("docs") && !reached.contains(&doc) {
+            errors.push(format!(
+                "{}: no chain of links from docs/README.md reaches it",
+                doc.display()
+            ));
+        }
+    }
     assert!(errors.is_empty(), "{}", errors.join("\n"));
 }
