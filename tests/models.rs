@@ -4,23 +4,14 @@
 
 mod common;
 
-use common::cli::{fails_with, invaders, ok, s, tmp_dir};
+use common::cli::{eval, fails_with, invaders, ok, s, tmp_dir};
+use std::path::Path;
 
 const STRONG: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/models/strong");
 
 #[test]
 fn a_models_folder_is_read_where_a_network_is() {
-    let text = ok(&invaders(&[
-        "eval",
-        "--checkpoint",
-        STRONG,
-        "--episodes",
-        "1",
-        "--epsilon",
-        "0.01",
-        "--threads",
-        "1",
-    ]));
+    let text = eval(Path::new(STRONG), "1");
     assert!(text.contains("preset strong"), "{text}");
 
     // Export of a model writes the model as it is, once checked.
