@@ -18,10 +18,12 @@ use invaders::dqn::{qnet, Head, Iqn, IqnMerge};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::loss::{huber, mse, quantile_huber, quantile_huber_at};
 use invaders::layers::{
-    Conv2d, Dense, Dueling, Flatten, Layer, LayerNorm, QuantileEmbedding, Relu,
+    Conv2d, Dense, Dueling, Flatten, Layer, LayerNorm, MaxPool2d, QuantileEmbedding, Relu,
+    Sequential,
 };
 use invaders::tensor::{Border, ConvGeom, Padding, Tensor};
 use proptest::prelude::*;
+use rand::seq::SliceRandom;
 
 fn padding() -> impl Strategy<Value = Padding> {
     prop_oneof![Just(Padding::Same), Just(Padding::Valid)]
@@ -289,6 +291,31 @@ proptest! {
         }
     }
 
+    /// Max pooling: windows 2 and 3 (height and width drawn separately), strides 1 and 2
+    /// (separately), SAME and VALID, 1..3 channels, batch 1..2. The input's values are distinct,
+    /// at least `2/len` apart (a shuffled grid), so every window has one maximum that a step of
+    /// `±H` does not move: there the pooling is linear in each value and the central
+    /// difference is exact, so a gradient routed to a wrong input is off by a whole `dY`.
+    #[test]
+    fn max_pool_gradients(
+        kh in 2usize..=3, kw in 2usize..=3, sh in 1usize..=2, sw in 1usize..=2,
+        extra_h in 0usize..5, extra_w in 0usize..5, c in 1usize..=3, n in 1usize..=2,
+        pad in padding(), seed in any::<u64>(),
+    ) {
+        let (h, w) = (kh + extra_h, kw + extra_w);
+        let g = ConvGeom::new(h, w, c, c, kh, kw, (sh, sw), pad).unwrap();
+        let mut layer = MaxPool2d::<f64>::new("pool", g);
+        prop_assert_eq!(layer.output_shape(), vec![g.oh, g.ow, c]);
+        let mut r = rng(seed);
+        let len = n * h * w * c;
+        let mut order: Vec<usize> = (0..len).collect();
+        order.shuffle(&mut r);
+        let values = order.iter().map(|&i| 2.0 * (i as f64 + 0.5) / len as f64 - 1.0).collect();
+        let x = Tensor::from_vec(&[n, h, w, c], values);
+        let dy = uniform(&[n, g.oh, g.ow, c], &mut r);
+        check_layer(&mut layer, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+
     #[test]
     fn flatten_gradients(h in 1usize..6, w in 1usize..6, c in 1usize..4, n in 1usize..=3, seed in any::<u64>()) {
         let mut layer = Flatten::<f64>::new("flatten", &[h, w, c]);
@@ -352,6 +379,157 @@ fn losses_known_values() {
     let l: f64 = huber(&[1.0, 2.0, 3.0], &[1.0, 1.5, 6.0], 1.0, &mut g);
     assert!((l - (0.0 + 0.125 + 2.5) / 3.0).abs() < 1e-12);
     assert_eq!(g, [0.0, 0.5 / 3.0, -1.0 / 3.0]);
+}
+
+/// A 3x3 stride-2 SAME max pool by hand on one 4x4 channel. `OH = OW = ⌈4/2⌉ = 2`; the total
+/// padding `(2 − 1)·2 + 3 − 4 = 1` goes below and right, so the windows cover rows (and
+/// columns) 0..=2 and 2..=3:
+///
+/// ```text
+///  x:  1  9  2  3      window (0,0): rows 0-2, cols 0-2, max 15 at (1,2)
+///      8  4 15  6      window (0,1): rows 0-2, cols 2-3, max 15 at (1,2) again
+///      5 13  7 10      window (1,0): rows 2-3, cols 0-2, max 14 at (3,2)
+///     12 11 14 16      window (1,1): rows 2-3, cols 2-3, max 16 at (3,3)
+/// ```
+///
+/// so `y = [15, 15; 14, 16]`, and `dY = [1, 10; 100, 1000]` routes `1 + 10` to (1,2) (two
+/// overlapping windows share it), 100 to (3,2), 1000 to (3,3), and 0 everywhere else.
+#[test]
+fn max_pool_known_values() {
+    #[rustfmt::skip]
+    let x = Tensor::<f64>::from_vec(&[1, 4, 4, 1], vec![
+        1.0, 9.0, 2.0, 3.0,
+        8.0, 4.0, 15.0, 6.0,
+        5.0, 13.0, 7.0, 10.0,
+        12.0, 11.0, 14.0, 16.0,
+    ]);
+    let mut pool = MaxPool2d::<f64>::square("pool", [4, 4, 1], 3, 2, Padding::Same);
+    assert_eq!(pool.output_shape(), [2, 2, 1]);
+    pool.forward(&x);
+    assert_eq!(pool.output().shape(), [1, 2, 2, 1]);
+    assert_eq!(pool.output().data(), [15.0, 15.0, 14.0, 16.0]);
+    let dy = Tensor::from_vec(&[1, 2, 2, 1], vec![1.0, 10.0, 100.0, 1000.0]);
+    pool.backward(&x, &dy, true);
+    #[rustfmt::skip]
+    let want = [
+        0.0, 0.0, 0.0, 0.0,
+        0.0, 0.0, 11.0, 0.0,
+        0.0, 0.0, 0.0, 0.0,
+        0.0, 0.0, 100.0, 1000.0,
+    ];
+    assert_eq!(pool.input_grad().shape(), [1, 4, 4, 1]);
+    assert_eq!(pool.input_grad().data(), want);
+}
+
+/// Ties: the first maximum in the window's row-major order wins, as in TensorFlow, channel by
+/// channel; and SAME padding never wins, even over values below zero.
+#[test]
+fn max_pool_ties_go_to_the_first() {
+    // 2x2 stride-1 VALID over 3x3, two channels: channel 0 ties everywhere at 5 (one 1 and one
+    // 0 apart), channel 1 is constant.
+    #[rustfmt::skip]
+    let c0 = [
+        5.0, 5.0, 1.0,
+        5.0, 5.0, 5.0,
+        0.0, 5.0, 5.0,
+    ];
+    let x = Tensor::<f64>::from_vec(&[1, 3, 3, 2], c0.iter().flat_map(|&v| [v, 7.0]).collect());
+    let mut pool = MaxPool2d::<f64>::square("pool", [3, 3, 2], 2, 1, Padding::Valid);
+    pool.forward(&x);
+    assert_eq!(
+        pool.output().data(),
+        [5.0, 7.0, 5.0, 7.0, 5.0, 7.0, 5.0, 7.0]
+    );
+    let dy = Tensor::from_vec(
+        &[1, 2, 2, 2],
+        vec![1.0, 2.0, 10.0, 20.0, 100.0, 200.0, 1000.0, 2000.0],
+    );
+    pool.backward(&x, &dy, true);
+    // Each window's first pixel: (0,0), (0,1), (1,0), (1,1), in both channels (the last
+    // maximum would send window (0,0)'s gradient to (1,1), and so on).
+    #[rustfmt::skip]
+    let want = [
+        1.0, 2.0,     10.0, 20.0,     0.0, 0.0,
+        100.0, 200.0, 1000.0, 2000.0, 0.0, 0.0,
+        0.0, 0.0,     0.0, 0.0,       0.0, 0.0,
+    ];
+    assert_eq!(pool.input_grad().data(), want);
+
+    // A constant −1 under a 3x3 stride-2 SAME pool of 4x4 (padding below and right): the
+    // padding (−∞) never wins, so y is −1 and each window's gradient goes to its first pixel
+    // inside the image, (0,0), (0,2), (2,0), (2,2).
+    let x = Tensor::<f64>::from_vec(&[1, 4, 4, 1], vec![-1.0; 16]);
+    let mut pool = MaxPool2d::<f64>::square("pool", [4, 4, 1], 3, 2, Padding::Same);
+    pool.forward(&x);
+    assert_eq!(pool.output().data(), [-1.0; 4]);
+    pool.backward(&x, &Tensor::from_vec(&[1, 2, 2, 1], vec![1.0; 4]), true);
+    #[rustfmt::skip]
+    let want = [
+        1.0, 0.0, 1.0, 0.0,
+        0.0, 0.0, 0.0, 0.0,
+        1.0, 0.0, 1.0, 0.0,
+        0.0, 0.0, 0.0, 0.0,
+    ];
+    assert_eq!(pool.input_grad().data(), want);
+}
+
+/// A max pool inside a `Sequential` (conv 3x3 SAME, pool 3x3 stride 2 SAME, dense), against
+/// finite differences of the whole network for the input and every parameter. The values the
+/// pool sees are continuous draws, so a tie within the step `H` is improbable, and seed 3 has
+/// none.
+#[test]
+fn max_pool_in_sequential_gradients() {
+    let mut r = rng(3);
+    let g = ConvGeom::input(7, 6, 2).filters(3, 3, 3).same().unwrap();
+    let mut conv = Conv2d::<f64>::new("conv", g);
+    randomise(&mut conv, 4);
+    let pool = MaxPool2d::<f64>::square("pool", [7, 6, 3], 3, 2, Padding::Same);
+    let mut dense = Dense::<f64>::new("dense", 4 * 3 * 3, 5);
+    randomise(&mut dense, 5);
+    let mut net = Sequential::new();
+    net.push(conv);
+    net.push(pool);
+    net.push(dense);
+    assert_eq!(net.output_shape(), [5]);
+    let x = uniform::<f64>(&[2, 7, 6, 2], &mut r);
+    let dy = uniform::<f64>(&[2, 5], &mut r);
+    net.zero_grad();
+    net.forward(&x);
+    let dx = net.backward(&x, &dy, true).unwrap().clone();
+    let grads: Vec<Tensor<f64>> = net.params().map(|p| p.grad.clone()).collect();
+    let objective =
+        |net: &mut Sequential<f64>, x: &Tensor<f64>| dot(net.forward(x).data(), dy.data());
+    let mut xp = x.clone();
+    for i in 0..x.len() {
+        let v = xp.data()[i];
+        xp.data_mut()[i] = v + H;
+        let sp = objective(&mut net, &xp);
+        xp.data_mut()[i] = v - H;
+        let sm = objective(&mut net, &xp);
+        xp.data_mut()[i] = v;
+        let num = (sp - sm) / (2.0 * H);
+        assert!(
+            close(dx.data()[i], num, ATOL, RTOL),
+            "dx[{i}]: {} vs {num}",
+            dx.data()[i]
+        );
+    }
+    for (k, grad) in grads.iter().enumerate() {
+        for i in 0..grad.len() {
+            let v = net.params().nth(k).unwrap().value.data()[i];
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v + H;
+            let sp = objective(&mut net, &x);
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v - H;
+            let sm = objective(&mut net, &x);
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v;
+            let num = (sp - sm) / (2.0 * H);
+            assert!(
+                close(grad.data()[i], num, ATOL, RTOL),
+                "param {k}[{i}]: {} vs {num}",
+                grad.data()[i]
+            );
+        }
+    }
 }
 
 /// The whole article Q-network (conv 32@8x8/4, 64@4x4/2, 64@3x3/1, SAME, ReLU, dense 128, dense 6)
