@@ -8,7 +8,7 @@
 //! The numbers depend on the CPU (which kernels run), so they are compared between two builds on
 //! one machine, never stored in the repository.
 
-use invaders::dqn::{article_qnet, Batch, Learner};
+use invaders::dqn::{article_qnet, Batch, Learner, TargetRule};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::Sequential;
 use invaders::ops::plan::Precision;
@@ -141,7 +141,11 @@ fn train(threads: usize, precision: Precision) {
     let mut rng = ChaCha8Rng::seed_from_u64(24);
     let mut learner = Learner::new(input, 6, 1e-3, 0.99, &mut rng);
     learner.set_precision(precision);
-    learner.double = threads == 2;
+    learner.rule = if threads == 2 {
+        TargetRule::Double
+    } else {
+        TargetRule::Max
+    };
     for step in 0..4 {
         let mut batch = if step % 2 == 0 {
             Batch::padded(32, input, Padding::Same)

@@ -5,7 +5,9 @@
 
 mod common;
 
-use invaders::dqn::{greedy_atoms, Agent, Batch, Config, Head, Learner, FLAG_ACTED, FLAG_DONE};
+use invaders::dqn::{
+    greedy_atoms, Agent, Batch, Config, Head, Learner, TargetRule, FLAG_ACTED, FLAG_DONE,
+};
 use invaders::env::{Game, StepResult, FRAME_LEN};
 use invaders::layers::loss::LossKind;
 use invaders::layers::Sequential;
@@ -163,7 +165,7 @@ fn double_dqn_evaluates_the_online_argmax_with_the_target() {
         (false, [1.0 + 0.5 * 2.0, 0.5 * 0.25]),
     ] {
         let mut l = learner(0.5, online, target);
-        l.double = double;
+        l.rule = rule(double);
         l.train_step(&batch(&ts));
         assert_eq!(l.targets(), y, "double_dqn = {double}");
     }
@@ -247,8 +249,8 @@ fn the_learner_clips_gradients_by_global_norm() {
     assert!(loose == free, "under the limit nothing changes");
 }
 
-/// The configuration's switches reach the learner: Double DQN, the loss, the clipping norm
-/// (0 meaning none), γ and Adam's ε.
+/// The configuration's switches reach the learner: Double DQN (or Munchausen, which replaces
+/// it), the loss, the clipping norm (0 meaning none), γ and Adam's ε.
 #[test]
 fn the_learner_takes_its_switches_from_the_config() {
     let mut c = common::vanilla_config();
@@ -260,9 +262,9 @@ fn the_learner_takes_its_switches_from_the_config() {
         c.adam_epsilon = 1e-4;
         let l = Learner::from_config(&c, 4, &mut common::rng(2));
         assert_eq!(
-            (l.double, l.loss, l.clip_norm, l.gamma, l.adam.eps),
+            (l.rule, l.loss, l.clip_norm, l.gamma, l.adam.eps),
             (
-                double,
+                rule(double),
                 loss,
                 (clip > 0.0).then_some(clip as f32),
                 0.75,
@@ -270,6 +272,11 @@ fn the_learner_takes_its_switches_from_the_config() {
             )
         );
     }
+    // Munchausen's soft target has no max for Double DQN to pick: it replaces both.
+    c.double_dqn = true;
+    c.munchausen_alpha = 0.9;
+    let l = Learner::from_config(&c, 4, &mut common::rng(2));
+    assert_eq!(l.rule, TargetRule::Munchausen(c.munchausen().unwrap()));
 }
 
 /// A game that plays episodes of scripted lengths with a fixed reward per step, shows the
@@ -517,11 +524,20 @@ fn the_fake_terminal_transition_repeats_the_last_state() {
     }
 }
 
+/// Double DQN's rule if `double`, else the max.
+fn rule(double: bool) -> TargetRule {
+    if double {
+        TargetRule::Double
+    } else {
+        TargetRule::Max
+    }
+}
+
 /// A learner built with `head` whose outputs are constants (dense2's biases; every weight zero):
 /// `online` and `target` are dense2's biases of the two networks.
 fn constant_learner(head: Head, double: bool, online: &[f32], target: &[f32]) -> Learner {
     let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
-    l.double = double;
+    l.rule = rule(double);
     for (net, b) in [(&mut l.online, online), (&mut l.target, target)] {
         for p in net.params_mut() {
             p.value.data_mut().fill(0.0);
@@ -630,7 +646,7 @@ fn iqn_targets_and_loss_match_a_hand_computation() {
     assert_eq!(l.targets(), [1.0, 1.0, 1.0]);
 
     let mut l = iqn_learner(true, online, target);
-    l.munchausen = Some(invaders::dqn::Munchausen {
+    l.rule = TargetRule::Munchausen(invaders::dqn::Munchausen {
         alpha: 0.9,
         tau: 1.0,
         clip: -1.0,
@@ -689,13 +705,12 @@ fn munchausen_dqn_targets_match_a_hand_computation() {
     let (w, b) = ([1.0, 0.0, -0.5], [0.0, 0.5, 1.0]);
     let (wt, bt) = ([1.0, -1.0, 0.5], [0.25, 2.0, 0.0]);
     let mut l = learner(0.5, (w, b), (wt, bt));
-    l.double = true; // ignored under Munchausen
     let m = invaders::dqn::Munchausen {
         alpha: 0.9,
         tau: 0.5,
         clip: -1.0,
     };
-    l.munchausen = Some(m);
+    l.rule = TargetRule::Munchausen(m);
     let ts = [
         T::new(2.0, 0, 1.0, 1.0),
         T {

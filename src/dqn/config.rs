@@ -583,6 +583,17 @@ impl Config {
         })
     }
 
+    /// How the targets bootstrap: Munchausen's soft target if `munchausen_alpha` asks for it
+    /// (`double_dqn` is then unused: the soft target has no max to pick), else Double DQN's if
+    /// `double_dqn`, else the max.
+    pub fn target_rule(&self) -> super::TargetRule {
+        match (self.munchausen(), self.double_dqn) {
+            (Some(m), _) => super::TargetRule::Munchausen(m),
+            (None, true) => super::TargetRule::Double,
+            (None, false) => super::TargetRule::Max,
+        }
+    }
+
     /// An empty replay memory as this configuration asks for: its capacity, frames per state,
     /// `n_step` returns, its `random_shift` and, if `prioritized`, prioritized sampling.
     pub fn new_replay(&self) -> Replay {

@@ -1,4 +1,14 @@
 //! The learning half of DQN: one gradient step on a minibatch of transitions.
+//!
+//! [`Learner::train_step`] is the whole update, in CleanRL's four steps: the targets with no
+//! gradient, the forward pass, the loss and its gradient, backward and the optimizer step. It
+//! reads the same for every head; what differs between them is two short functions:
+//!
+//! - the head ([`ValueHead`]: one Q-value per action, QR-DQN's fixed quantiles, IQN's implicit
+//!   ones) says how its outputs give `Q(s, ·)` and the target samples `Z_j(s', ·)`, and which
+//!   loss compares them with the online network's values;
+//! - the target rule ([`TargetRule`]: the max, Double DQN, Munchausen) says how the next state's
+//!   value is bootstrapped from them.
 
 use super::qnet::midpoints;
 use super::{qnet, Batch, Head, Iqn};
@@ -24,6 +34,10 @@ pub struct StepStats {
 }
 
 /// The online network, its lagged target copy and the optimizer, with every buffer a step needs.
+///
+/// Shapes, for a batch of `B` transitions and `A` actions: `N` values of `Q(s, a)` per
+/// transition (1; a quantile head's `N` quantiles; an implicit head's `N` drawn fractions) and
+/// `M` target samples (1; the `N` quantiles; the `N'` target fractions).
 pub struct Learner {
     /// The network being trained; it also picks the actions.
     pub online: Sequential<f32>,
@@ -33,30 +47,26 @@ pub struct Learner {
     pub adam: Adam<f32>,
     /// Discount factor γ.
     pub gamma: f32,
-    /// The regression loss.
+    /// The regression loss of a Q-value head (the quantile heads have their own).
     pub loss: LossKind,
-    /// Double DQN: the online network picks `a' = argmax Q(s', ·)`, the target evaluates it.
-    pub double: bool,
+    /// How the targets bootstrap the next state: the max, Double DQN or Munchausen.
+    pub rule: TargetRule,
     /// Clip gradients to this global norm, if set.
     pub clip_norm: Option<f32>,
-    /// Munchausen targets, if set ([`Munchausen`]).
-    pub munchausen: Option<Munchausen>,
-    /// The implicit quantile head, if the networks have one.
-    iqn: Option<Iqn>,
+    /// The head: its targets and its loss.
+    head: Box<dyn ValueHead>,
     n_actions: usize,
-    /// `[B]`: `Q(s, a)` of the taken actions, the TD targets `y`, and `∂L/∂Q(s, a)`.
-    q_taken: Vec<f32>,
+    /// `[B, M]`: the targets `y` (a quantile head's target samples `T_j`).
     y: Vec<f32>,
+    /// `[B, N]`: `Q(s, a)` of the taken actions (`θ_i` with a quantile head), and `∂L/∂θ`.
+    q_taken: Vec<f32>,
     dq_taken: Vec<f32>,
-    /// `[B]`: the online network's greedy `a'` (Double DQN only).
-    next_greedy: Vec<usize>,
+    /// `[B]`: each transition's term of the loss (what prioritized sampling weights).
+    per_sample: Vec<f32>,
     /// `[B]`: the TD errors `Q(s, a) − y` of the last step.
     td: Vec<f32>,
-    /// Values per action: 1, or a quantile head's `N` (the buffers above then hold `[B, N]`).
-    atoms: usize,
-    /// `[B]`: each sample's quantile Huber loss (quantile heads only).
-    per_sample: Vec<f32>,
-    /// `[B, n_actions]`: the upstream gradient, non-zero only at the taken actions.
+    /// `[B·R, A·k]`: the upstream gradient, non-zero only at the taken actions (`R` rows per
+    /// state, `k` values per action: [`ValueHead::atoms`]).
     dq: Tensor<f32>,
 }
 
@@ -70,31 +80,37 @@ impl Learner {
     }
 
     /// [`Learner::new`] with another head ([`qnet`]): dense1's width, a dueling combine, and a
-    /// quantile head's `N` values per action (QR-DQN: the loss is then the quantile Huber loss).
+    /// quantile head's `N` values per action (QR-DQN: the loss is then the quantile Huber loss),
+    /// or an implicit quantile head (IQN).
     pub fn with_head(
         input: [usize; 3], n_actions: usize, head: Head, lr: f32, gamma: f32, rng: &mut impl Rng,
     ) -> Self {
         let online = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
         let mut target = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
         target.copy_params_from(&online);
+        let values: Box<dyn ValueHead> = match (head.iqn, head.atoms) {
+            (Some(iqn), _) => Box::new(Implicit {
+                iqn,
+                actions: n_actions,
+            }),
+            (None, 1) => Box::new(QValues),
+            (None, n) => Box::new(Quantiles(n)),
+        };
         Learner {
             online,
             target,
             adam: Adam::new(lr),
             gamma,
             loss: LossKind::Mse,
-            double: false,
+            rule: TargetRule::Max,
             clip_norm: None,
-            munchausen: None,
-            iqn: head.iqn,
+            head: values,
             n_actions,
-            q_taken: Vec::new(),
             y: Vec::new(),
+            q_taken: Vec::new(),
             dq_taken: Vec::new(),
-            next_greedy: Vec::new(),
-            td: Vec::new(),
-            atoms: head.atoms,
             per_sample: Vec::new(),
+            td: Vec::new(),
             dq: Tensor::empty(),
         }
     }
@@ -112,9 +128,8 @@ impl Learner {
         l.adam.eps = config.adam_epsilon as f32;
         l.adam.rectified = config.radam;
         l.loss = config.loss;
-        l.double = config.double_dqn;
+        l.rule = config.target_rule();
         l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm as f32);
-        l.munchausen = config.munchausen();
         l.set_precision(config.precision);
         l
     }
@@ -192,265 +207,103 @@ impl Learner {
         reset
     }
 
-    /// One DQN update on `batch`: [`Learner::q_step`] for a Q-value or quantile head,
-    /// [`Learner::iqn_step`] for an implicit quantile head.
+    /// One DQN update on `batch` (an implicit quantile head needs its fractions drawn,
+    /// [`Batch::draw_fractions`]), as CleanRL's:
+    ///
+    /// 1. The targets, with no gradient (inference passes, which skip the ReLUs' zeros): the
+    ///    TD target `y = R + γ^m·(1 − done)·max_a' Q_target(s', a')`, with `R` the return of the
+    ///    `m` steps from `s` to `s'` (`m = 1`: the one-step target). The rule ([`TargetRule`])
+    ///    picks `a'` or replaces the max; the head (`ValueHead`, below) gives `Q(s', ·)` and the
+    ///    samples it bootstraps (one, or a quantile head's `M`).
+    /// 2. The forward pass `Q_online(s, ·)`, keeping `Q(s, a)` of the taken actions (`θ`).
+    /// 3. The loss `L = mean_b ℓ_b` of `θ` against `y` and `∂L/∂θ` (the head's loss); with
+    ///    prioritized sampling each term is weighted, `L = mean_b w_b ℓ_b`, and so is its
+    ///    gradient.
+    /// 4. Backward from `dQ` (zero but at the taken actions), then one Adam step.
+    ///
+    /// The target network's pass over `s'` and the online one's over `s` are independent: they
+    /// run side by side, each layer's work still split over the pool.
     pub fn train_step(&mut self, batch: &Batch) -> StepStats {
-        match self.iqn {
-            None => self.q_step(batch),
-            Some(iqn) => self.iqn_step(batch, iqn),
-        }
-    }
-
-    /// One DQN update on `batch`:
-    ///
-    /// 1. TD target `y = R + γ^m·(1 − done)·max_a' Q_target(s', a')`, with `R` the return of the
-    ///    `m` steps from `s` to `s'` (`m = 1`, `R = r`: the one-step target) (Double DQN:
-    ///    `Q_target(s', argmax_a' Q_online(s', a'))`; Munchausen: the soft target of
-    ///    [`Munchausen`]); no gradient flows through `y`, so these passes are
-    ///    [`Sequential::infer`] (sparse products where the activations allow).
-    /// 2. Forward `Q_online(s, ·)`, keep `Q(s, a)` of the taken actions.
-    /// 3. Loss `L = mean_b ℓ(Q(s_b, a_b) − y_b)` (MSE or Huber); `∂L/∂Q(s_b, a)` is non-zero only
-    ///    at `a = a_b`, so the upstream gradient `dQ[B, A]` is zero except one entry per row.
-    ///    With prioritized sampling each term is weighted: `L = mean_b w_b ℓ(…)`
-    ///    (`batch.weights`), and so is its gradient.
-    ///
-    /// With a quantile head (QR-DQN, `atoms = N > 1`) each action has `N` outputs `θ_1..N`, the
-    /// `τ_i = (2i − 1)/2N` quantiles of its return, and `Q` is their mean: `a'` maximises that
-    /// mean, the target is the `N` samples `T_j = R + γ^m·(1 − done)·θ_j,target(s', a')`, and the
-    /// loss is the quantile Huber loss of `θ(s, a)` against them ([`quantile_huber`]).
-    /// 4. Backward through the online network (the first layer skips its input gradient), then
-    ///    one Adam step.
-    pub fn q_step(&mut self, batch: &Batch) -> StepStats {
-        let (b, na, k) = (batch.len(), self.n_actions, self.atoms);
-        for buf in [&mut self.q_taken, &mut self.y, &mut self.dq_taken] {
-            buf.resize(b * k, 0.0);
-        }
-        // Double DQN: the online network picks a' (the soft target of Munchausen needs none).
-        // The passes over s' are inference (no backward follows): `infer` skips the zeros the
-        // ReLUs leave where they are most of the activations (a trained network).
-        let double = self.double && self.munchausen.is_none();
-        if double {
-            let q_next = self.online.infer(&batch.next_states).data();
-            greedy_actions(q_next, b, k, &mut self.next_greedy);
-        }
-        // The target network's pass over s' and the online network's over s are independent:
-        // they run side by side, each layer's work still split over the pool.
-        let (target, online) = (&mut self.target, &mut self.online);
-        let (q_next, q) = rayon::join(
-            || target.infer(&batch.next_states),
-            || online.forward(&batch.states),
+        let (head, na, rule, gamma) = (&*self.head, self.n_actions, self.rule, self.gamma);
+        // 1. The targets y: the rule's own pass first (Double DQN: `Q_online(s', ·)`;
+        //    Munchausen: `Q_target(s, ·)`), then the target network's over s', beside step 2.
+        let policy = rule.policy(head, &mut self.online, &mut self.target, batch);
+        let (target, online, y) = (&mut self.target, &mut self.online, &mut self.y);
+        let ((), out) = rayon::join(
+            || targets(head, rule, target, batch, &policy, gamma, y),
+            // 2. The forward pass; θ = Q(s, a) of the taken actions.
+            || forward(head, online, batch),
         );
-        // 1. The TD targets y.
-        match self.munchausen {
-            None => {
-                let picked = double.then_some(&self.next_greedy[..]);
-                td_targets(batch, q_next.data(), picked, self.gamma, k, &mut self.y)
-            }
-            Some(m) => {
-                let q_next = q_next.data().to_vec();
-                let q_s = target.infer(&batch.states).data();
-                m.targets(batch, &q_next, q_s, self.gamma, &mut self.y)
-            }
-        }
-        // 2. Q(s, a) of the taken actions.
-        let max_q_sum = taken_values(q.data(), batch, k, &mut self.q_taken);
-        // 3. The loss and its gradient ∂L/∂Q(s, a), weighted under prioritized sampling.
-        let loss = self.regression_loss(batch);
+        let max_q_sum = taken(head, out.data(), batch, na, &mut self.q_taken);
+        // 3. The loss and ∂L/∂θ, weighted under prioritized sampling.
+        let loss = self.loss_and_gradient(batch);
         // 4. Backward from dQ (non-zero at the taken actions only), then one Adam step.
-        self.backward_and_step(batch, na * k, k, loss, max_q_sum)
+        self.backward_and_step(batch, loss, max_q_sum)
     }
 
     /// One regression of `Q(s, a)` towards given targets (PQN's update, whose targets come from
-    /// its rollout: [`super::q_lambda_returns`]): forward `Q_online(batch.states, ·)`, the loss
-    /// `L = mean_b ℓ(Q(s_b, a_b) − y_b)` (MSE or Huber) against `targets` (`[B]`), backward from
-    /// `dQ` (non-zero at the taken actions only), one optimizer step. Of the batch only
-    /// `states` and `actions` are read.
+    /// its rollout: [`super::q_lambda_returns`]): steps 2 to 4 of [`Learner::train_step`] with
+    /// `targets` (`[B]`) as `y`. Of the batch only `states` and `actions` are read.
     ///
     /// # Panics
-    /// If the network has a quantile head, or `targets` is not one per transition.
+    /// If `targets` is not one per transition, or the network has a quantile head (the loss's
+    /// lengths then differ).
     pub fn regress_step(&mut self, batch: &Batch, targets: &[f32]) -> StepStats {
-        assert!(
-            self.atoms == 1 && self.iqn.is_none(),
-            "regress_step: a Q-value head"
+        assert_eq!(
+            targets.len(),
+            batch.len(),
+            "regress_step: one target per transition"
         );
-        let b = batch.len();
-        assert_eq!(targets.len(), b, "regress_step: one target per transition");
         self.y.clear();
         self.y.extend_from_slice(targets);
-        for buf in [&mut self.q_taken, &mut self.dq_taken] {
-            buf.resize(b, 0.0);
-        }
-        let q = self.online.forward(&batch.states);
-        let max_q_sum = taken_values(q.data(), batch, 1, &mut self.q_taken);
-        let loss = self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken);
-        td_errors(&self.q_taken, &self.y, b, &mut self.td);
-        self.backward_and_step(batch, self.n_actions, 1, loss, max_q_sum)
+        let out = forward(&*self.head, &mut self.online, batch);
+        let max_q_sum = taken(
+            &*self.head,
+            out.data(),
+            batch,
+            self.n_actions,
+            &mut self.q_taken,
+        );
+        let loss = self.loss_and_gradient(batch);
+        self.backward_and_step(batch, loss, max_q_sum)
     }
 
-    /// The loss of `q_taken` against `y` (MSE or Huber; with a quantile head the quantile Huber
-    /// loss), writing `∂L/∂Q` into `dq_taken` and the TD errors (of the means, with a quantile
-    /// head) for prioritized replay; under prioritized sampling each term and its gradient are
-    /// weighted by `batch.weights` ([`weight_terms`]).
-    fn regression_loss(&mut self, batch: &Batch) -> f32 {
-        let (b, k) = (batch.len(), self.atoms);
-        let loss = if k == 1 {
-            self.loss.eval(&self.q_taken, &self.y, &mut self.dq_taken)
-        } else {
-            self.per_sample.resize(b, 0.0);
-            quantile_huber(
-                &self.q_taken,
-                &self.y,
-                k,
-                &mut self.dq_taken,
-                &mut self.per_sample,
-            )
-        };
-        td_errors(&self.q_taken, &self.y, b, &mut self.td);
-        if batch.weights.is_empty() {
-            return loss;
-        }
-        // One-term losses recomputed from the same function.
-        let mut one = [0.0f32];
-        let terms: Vec<f32> = (0..b)
-            .map(|i| {
-                if k == 1 {
-                    self.loss
-                        .eval(&self.q_taken[i..=i], &self.y[i..=i], &mut one)
-                } else {
-                    self.per_sample[i]
-                }
-            })
-            .collect();
-        weight_terms(&batch.weights, &terms, k, &mut self.dq_taken)
-    }
-
-    /// One update of an implicit quantile network (IQN, Dabney et al. 2018) on `batch`, whose
-    /// fractions were drawn by [`Batch::draw_fractions`]:
-    ///
-    /// 1. `Q(s', a) = mean_k Z_{τ_k}(s', a)` over the `K` midpoint fractions picks
-    ///    `a' = argmax_a Q(s', a)` (by the online network with Double DQN, else the target).
-    /// 2. Target samples at the drawn `τ'_j`, `j = 1..N'`:
-    ///    `T_j = R + γ^m·(1 − done)·Z^target_{τ'_j}(s', a')` (Munchausen: the soft target of
-    ///    [`Munchausen`], with `Z_{τ'_j}(s', ·)` as the next state's values).
-    /// 3. Online quantiles at the drawn `τ_i`, `i = 1..N`: `θ_i = Z_{τ_i}(s, a)`; the quantile
-    ///    Huber loss of `θ` against `T` ([`quantile_huber_at`]), weighted as in
-    ///    [`Learner::q_step`] under prioritized sampling (by the TD error of the means).
-    /// 4. Backward (`dZ` non-zero at `(b·N + i, a_b)` only), then one Adam step.
-    ///
-    /// The target network evaluates `s'` once, at the `K` midpoints and the `N'` fractions
-    /// together: its trunk runs once per state.
-    pub fn iqn_step(&mut self, batch: &Batch, iqn: Iqn) -> StepStats {
-        let (b, na) = (batch.len(), self.n_actions);
-        let (n, n2, k) = (iqn.samples, iqn.target_samples, iqn.policy_samples);
-        assert!(
-            batch.taus.len() == b * n && batch.target_taus.len() == b * n2,
-            "iqn_step: draw the batch's fractions first"
-        );
-        // 1. The next states' fractions: K midpoints, then the N' drawn ones, per state.
-        let mids = midpoints(k, 1);
-        let next_taus: Vec<f64> = batch
-            .target_taus
-            .chunks_exact(n2)
-            .flat_map(|drawn| mids.iter().chain(drawn).copied())
-            .collect();
-        self.next_greedy.resize(b, 0);
-        if self.double && self.munchausen.is_none() {
-            self.online.set_fractions(&midpoints(k, b));
-            let q_next = self.online.infer(&batch.next_states).data();
-            self.next_greedy.clear();
-            self.next_greedy.extend(
-                q_next
-                    .chunks_exact(k * na)
-                    .map(|rows| greedy_rows(rows, na)),
-            );
-        }
-        self.target.set_fractions(&next_taus);
-        self.online.set_fractions(&batch.taus);
-        let (target, online) = (&mut self.target, &mut self.online);
-        let (z_next, z) = rayon::join(
-            || target.infer(&batch.next_states),
-            || online.forward(&batch.states),
-        );
-        // 2. The target samples, `[B, N']`.
-        self.y.resize(b * n2, 0.0);
-        let z_next = z_next.data().to_vec();
-        let q_s = match self.munchausen {
-            Some(_) => {
-                target.set_fractions(&midpoints(k, b));
-                target.infer(&batch.states).data().to_vec()
-            }
-            None => Vec::new(),
-        };
-        let mut q_next = vec![0.0f32; na];
-        let mut q_now = vec![0.0f32; na];
-        for (i, rows) in z_next.chunks_exact((k + n2) * na).enumerate() {
-            let (policy_rows, sample_rows) = rows.split_at(k * na);
-            mean_rows(policy_rows, na, &mut q_next);
-            let cont = if batch.dones[i] { 0.0 } else { 1.0 };
-            let discount = self.gamma.powi(batch.steps[i] as i32);
-            let y = &mut self.y[i * n2..(i + 1) * n2];
-            match self.munchausen {
-                Some(m) => {
-                    mean_rows(&q_s[i * k * na..(i + 1) * k * na], na, &mut q_now);
-                    let r = batch.rewards[i] + m.bonus(&q_now, batch.actions[i]);
-                    for (y, z_j) in y.iter_mut().zip(sample_rows.chunks_exact(na)) {
-                        *y = r + discount * cont * m.soft_value(&q_next, z_j);
-                    }
-                }
-                None => {
-                    let a_next = if self.double {
-                        self.next_greedy[i]
-                    } else {
-                        argmax(&q_next)
-                    };
-                    for (y, z_j) in y.iter_mut().zip(sample_rows.chunks_exact(na)) {
-                        *y = batch.rewards[i] + discount * cont * z_j[a_next];
-                    }
-                }
-            }
-        }
-        // 3. The online quantiles of the taken actions, `[B, N]`, and the loss.
-        self.q_taken.resize(b * n, 0.0);
-        self.dq_taken.resize(b * n, 0.0);
-        let mut max_q_sum = 0.0;
-        for (i, rows) in z.data().chunks_exact(n * na).enumerate() {
-            let a = batch.actions[i];
-            for (t, row) in self.q_taken[i * n..(i + 1) * n]
-                .iter_mut()
-                .zip(rows.chunks_exact(na))
-            {
-                *t = row[a];
-            }
-            mean_rows(rows, na, &mut q_now);
-            max_q_sum += q_now[argmax(&q_now)];
-        }
-        let taus: Vec<f32> = batch.taus.iter().map(|&t| t as f32).collect();
+    /// Step 3: the head's loss of `θ` (`q_taken`, `[B, N]`) against `y` (`[B, M]`), `∂L/∂θ`
+    /// into `dq_taken` and the TD errors (of the means, with a quantile head) for prioritized
+    /// replay; under prioritized sampling each term and its gradient are weighted by
+    /// `batch.weights` ([`weight_terms`]).
+    fn loss_and_gradient(&mut self, batch: &Batch) -> f32 {
+        let b = batch.len();
+        self.dq_taken.resize(self.q_taken.len(), 0.0);
         self.per_sample.resize(b, 0.0);
-        let mut loss = quantile_huber_at(
-            &self.q_taken,
-            &taus,
-            &self.y,
-            n,
+        let (theta, y) = (&self.q_taken, &self.y);
+        let loss = (self.head).loss(
+            theta,
+            y,
+            batch,
+            self.loss,
             &mut self.dq_taken,
             &mut self.per_sample,
         );
-        td_errors(&self.q_taken, &self.y, b, &mut self.td);
-        if !batch.weights.is_empty() {
-            loss = weight_terms(&batch.weights, &self.per_sample, n, &mut self.dq_taken);
+        td_errors(theta, y, b, &mut self.td);
+        if batch.weights.is_empty() {
+            return loss;
         }
-        // 4. `dZ`: each row's gradient at its sample's action only.
-        self.backward_and_step(batch, na, 1, loss, max_q_sum)
+        weight_terms(
+            &batch.weights,
+            &self.per_sample,
+            theta.len() / b,
+            &mut self.dq_taken,
+        )
     }
 
-    /// `dQ` (`self.dq`): `dq_taken` at each sample's taken action (rows of `width` values, `k`
-    /// per action), zeros elsewhere; back-propagated through the online network's last forward
-    /// pass (on `batch.states`), the gradient clipped if configured, one Adam step. Returns the
-    /// step's statistics: `loss`, the mean of `max_q_sum` and the gradient's global norm before
-    /// clipping.
-    fn backward_and_step(
-        &mut self, batch: &Batch, width: usize, k: usize, loss: f32, max_q_sum: f32,
-    ) -> StepStats {
-        scatter_rows(&self.dq_taken, batch, width, k, &mut self.dq);
+    /// Step 4: `dQ` (`self.dq`): `dq_taken` at each sample's taken action, zeros elsewhere;
+    /// back-propagated through the online network's last forward pass (on `batch.states`), the
+    /// gradient clipped if configured, one Adam step. Returns the step's statistics: `loss`, the
+    /// mean of `max_q_sum` and the gradient's global norm before clipping.
+    fn backward_and_step(&mut self, batch: &Batch, loss: f32, max_q_sum: f32) -> StepStats {
+        let k = self.head.atoms();
+        scatter_rows(&self.dq_taken, batch, self.n_actions * k, k, &mut self.dq);
         self.online.zero_grad();
         self.online.backward(&batch.states, &self.dq, false);
         let grad_norm = match self.clip_norm {
@@ -467,53 +320,74 @@ impl Learner {
     }
 }
 
-/// The TD targets `y` (`[B, k]`) from the target network's outputs for the next states
-/// (`q_next`, `[B, A·k]`): `y = R + γ^m·(1 − done)·Q_target(s', a')` with `a'` the greedy action of
-/// `q_next`, or `picked` (Double DQN: the online network's). With a quantile head, one target
-/// sample per quantile of `a'`: `T_j = R + γ^m·(1 − done)·θ_j(s', a')`.
-fn td_targets(
-    batch: &Batch, q_next: &[f32], picked: Option<&[usize]>, gamma: f32, k: usize, y: &mut [f32],
+/// Step 1 without the rule's own pass: the targets `y` (`[B, M]`) from the target network's
+/// outputs at the next states, each state's split by the head into `Q(s', ·)` (`[A]`) and the
+/// target samples `Z_j(s', ·)` (`[M, A]`), bootstrapped by `rule` with `policy` (`[B, A]` or
+/// empty, [`TargetRule::policy`]).
+fn targets(
+    head: &dyn ValueHead, rule: TargetRule, target: &mut Sequential<f32>, batch: &Batch,
+    policy: &[f32], gamma: f32, y: &mut Vec<f32>,
 ) {
-    let per = q_next.len() / batch.len();
-    for (i, row) in q_next.chunks_exact(per).enumerate() {
-        let a_next = match picked {
-            Some(p) => p[i],
-            None => greedy_atoms(row, k),
+    head.fractions(target, Pass::Next, batch);
+    let out = target.infer(&batch.next_states).data();
+    let (mut q_next, mut z) = (Vec::new(), Vec::new());
+    y.clear();
+    for (i, out) in out.chunks_exact(out.len() / batch.len()).enumerate() {
+        head.q_values(head.next(out, &mut z), &mut q_next);
+        let na = q_next.len();
+        let t = Transition {
+            r: batch.rewards[i],
+            a: batch.actions[i],
+            cont: if batch.dones[i] { 0.0 } else { 1.0 },
+            discount: gamma.powi(batch.steps[i] as i32),
         };
-        let cont = if batch.dones[i] { 0.0 } else { 1.0 };
-        let discount = gamma.powi(batch.steps[i] as i32);
-        for (y, &future) in y[i * k..(i + 1) * k]
-            .iter_mut()
-            .zip(&row[a_next * k..(a_next + 1) * k])
-        {
-            *y = batch.rewards[i] + discount * cont * future;
-        }
+        let policy = policy.get(i * na..(i + 1) * na).unwrap_or(&[]);
+        rule.bootstrap(&t, &q_next, policy, &z, y);
     }
 }
 
-/// The greedy action of each of `b` samples' outputs (`q`: `[B, A·k]`, [`greedy_atoms`]), into
-/// `out`.
-fn greedy_actions(q: &[f32], b: usize, k: usize, out: &mut Vec<usize>) {
-    out.clear();
-    out.extend(q.chunks_exact(q.len() / b).map(|row| greedy_atoms(row, k)));
+/// Step 2: the online network's forward pass over the states (at the batch's fractions, with
+/// an implicit quantile head), `[B·R, A·k]`.
+fn forward<'n>(
+    head: &dyn ValueHead, online: &'n mut Sequential<f32>, batch: &Batch,
+) -> &'n Tensor<f32> {
+    head.fractions(online, Pass::Online, batch);
+    online.forward(&batch.states)
 }
 
-/// Copies the outputs of the taken actions (`k` values each) from `q` (`[B, A·k]`) into `taken`
-/// (`[B, k]`); returns the sum over the batch of `max_a Q(s, a)` (a quantile head's best mean).
-fn taken_values(q: &[f32], batch: &Batch, k: usize, taken: &mut [f32]) -> f32 {
+/// `θ`: the values of the taken actions from the online outputs `out` (each state's `R` rows of
+/// `A·k` values: `k` per action), into `theta` (`[B, R·k]`); returns the sum over the batch of
+/// `max_a Q(s, a)`.
+fn taken(head: &dyn ValueHead, out: &[f32], batch: &Batch, na: usize, theta: &mut Vec<f32>) -> f32 {
+    let k = head.atoms();
+    let mut q = Vec::new();
     let mut max_q_sum = 0.0;
-    let per = q.len() / batch.len();
-    for (i, row) in q.chunks_exact(per).enumerate() {
+    theta.clear();
+    for (i, out) in out.chunks_exact(out.len() / batch.len()).enumerate() {
         let a = batch.actions[i];
-        taken[i * k..(i + 1) * k].copy_from_slice(&row[a * k..(a + 1) * k]);
-        max_q_sum += if k == 1 {
-            row[argmax(row)]
-        } else {
-            let best = greedy_atoms(row, k);
-            mean(&row[best * k..(best + 1) * k])
-        };
+        for row in out.chunks_exact(na * k) {
+            theta.extend_from_slice(&row[a * k..(a + 1) * k]);
+        }
+        head.q_values(out, &mut q);
+        max_q_sum += q[argmax(&q)];
     }
     max_q_sum
+}
+
+/// `Q(s, ·)` of every state of `states` by `net` (`[B, A]`): a pass at the head's policy
+/// fractions, each state's output reduced by [`ValueHead::q_values`].
+fn q_values(
+    head: &dyn ValueHead, net: &mut Sequential<f32>, batch: &Batch, states: &Tensor<f32>,
+) -> Vec<f32> {
+    head.fractions(net, Pass::Policy, batch);
+    let out = net.infer(states).data();
+    let mut q = Vec::new();
+    let mut all = Vec::new();
+    for out in out.chunks_exact(out.len() / batch.len()) {
+        head.q_values(out, &mut q);
+        all.extend_from_slice(&q);
+    }
+    all
 }
 
 /// The upstream gradient `dQ` (`[R, width]`), zero but at the taken actions: `d_taken` holds `k`
@@ -544,6 +418,227 @@ fn weight_terms(weights: &[f32], terms: &[f32], per: usize, d: &mut [f32]) -> f3
     loss
 }
 
+/// One transition as the target sees it: `R`, `a`, `1 − done` and `γ^m`.
+struct Transition {
+    r: f32,
+    a: usize,
+    cont: f32,
+    discount: f32,
+}
+
+/// How the targets bootstrap the next state's value (step 1 of [`Learner::train_step`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum TargetRule {
+    /// DQN's: `y_j = R + γ^m·(1 − done)·Z_j(s', a')` with `a' = argmax_a Q_target(s', a)`: the
+    /// target network picks the action and evaluates it.
+    Max,
+    /// Double DQN (van Hasselt et al. 2016): `a' = argmax_a Q_online(s', a)`, evaluated by the
+    /// target network, which curbs the max's overestimation.
+    Double,
+    /// Munchausen RL's soft target ([`Munchausen`]), which replaces the max.
+    Munchausen(Munchausen),
+}
+
+impl TargetRule {
+    /// The values the rule needs besides the target network's at `s'`, `[B, A]` (empty for the
+    /// max): Double DQN's `Q_online(s', ·)`, whose greedy action the target evaluates;
+    /// Munchausen's `Q_target(s, ·)`, whose policy gives the bonus.
+    fn policy(
+        self, head: &dyn ValueHead, online: &mut Sequential<f32>, target: &mut Sequential<f32>,
+        batch: &Batch,
+    ) -> Vec<f32> {
+        match self {
+            TargetRule::Max => Vec::new(),
+            TargetRule::Double => q_values(head, online, batch, &batch.next_states),
+            TargetRule::Munchausen(_) => q_values(head, target, batch, &batch.states),
+        }
+    }
+
+    /// One transition's targets, appended to `y`: `y_j` for each target sample `z_j`
+    /// (`z`: `[M, A]`), from the target's `Q(s', ·)` (`q_next`) and the rule's `policy` row.
+    fn bootstrap(
+        self, t: &Transition, q_next: &[f32], policy: &[f32], z: &[f32], y: &mut Vec<f32>,
+    ) {
+        let na = q_next.len();
+        let samples = z.chunks_exact(na);
+        let at = |a_next: usize| {
+            samples
+                .clone()
+                .map(move |z_j| t.r + t.discount * t.cont * z_j[a_next])
+        };
+        match self {
+            TargetRule::Max => y.extend(at(argmax(q_next))),
+            TargetRule::Double => y.extend(at(argmax(policy))),
+            TargetRule::Munchausen(m) => {
+                let r = t.r + m.bonus(policy, t.a);
+                y.extend(samples.map(|z_j| r + t.discount * t.cont * m.soft_value(q_next, z_j)));
+            }
+        }
+    }
+}
+
+/// Which pass a network runs (an implicit quantile head takes different fractions in each).
+#[derive(Clone, Copy, Debug)]
+enum Pass {
+    /// `Q(s, ·)` for a policy: acting, Double DQN's pick, Munchausen's bonus.
+    Policy,
+    /// The target network over `s'`: `Q(s', ·)` and the target samples.
+    Next,
+    /// The online network over `s`, the pass that is differentiated.
+    Online,
+}
+
+/// What the update needs of a network's head: how its outputs give `Q(s, ·)` and the target
+/// samples, and the loss that compares the online values with the targets.
+trait ValueHead: Send + Sync {
+    /// Values per action in an output row (`[A, k]` per row): a quantile head's `N`, else 1.
+    fn atoms(&self) -> usize {
+        1
+    }
+
+    /// Sets `net`'s quantile fractions for `pass` (an implicit head's; the others have none).
+    fn fractions(&self, _net: &mut Sequential<f32>, _pass: Pass, _batch: &Batch) {}
+
+    /// `Q(s, ·)` (`[A]`) from one state's output of a policy or online pass, into `q`.
+    fn q_values(&self, out: &[f32], q: &mut Vec<f32>);
+
+    /// One next state's output of the target pass: writes its target samples `Z_j(s', ·)` into
+    /// `z` (`[M, A]`) and returns the part that gives `Q(s', ·)`.
+    fn next<'a>(&self, out: &'a [f32], z: &mut Vec<f32>) -> &'a [f32];
+
+    /// The loss of `θ` (`[B, N]`) against the targets `y` (`[B, M]`): `∂L/∂θ` into `d`, each
+    /// sample's term `ℓ_b` into `per_sample` (`[B]`).
+    fn loss(
+        &self, theta: &[f32], y: &[f32], batch: &Batch, kind: LossKind, d: &mut [f32],
+        per_sample: &mut [f32],
+    ) -> f32;
+}
+
+/// DQN's head: one `Q(s, a)` per action, `[B, A]`; `M = N = 1`.
+struct QValues;
+
+impl ValueHead for QValues {
+    fn q_values(&self, out: &[f32], q: &mut Vec<f32>) {
+        q.clear();
+        q.extend_from_slice(out);
+    }
+
+    fn next<'a>(&self, out: &'a [f32], z: &mut Vec<f32>) -> &'a [f32] {
+        z.clear();
+        z.extend_from_slice(out);
+        out
+    }
+
+    /// `L = mean_b ℓ(Q(s_b, a_b) − y_b)`, MSE or Huber (`kind`).
+    fn loss(
+        &self, theta: &[f32], y: &[f32], _: &Batch, kind: LossKind, d: &mut [f32],
+        per_sample: &mut [f32],
+    ) -> f32 {
+        let mut one = [0.0f32];
+        for (i, term) in per_sample.iter_mut().enumerate() {
+            *term = kind.eval(&theta[i..=i], &y[i..=i], &mut one);
+        }
+        kind.eval(theta, y, d)
+    }
+}
+
+/// QR-DQN's head (Dabney et al. 2017): `N` outputs per action, `[B, A, N]`, the quantiles
+/// `θ_1..N` of its return at the fixed fractions `τ_i = (2i − 1)/2N`; `Q(s, a)` is their mean,
+/// and the target samples are the `N` quantiles of `a'`: `T_j = R + γ^m·(1 − done)·θ_j(s', a')`.
+struct Quantiles(usize);
+
+impl ValueHead for Quantiles {
+    fn atoms(&self) -> usize {
+        self.0
+    }
+
+    fn q_values(&self, out: &[f32], q: &mut Vec<f32>) {
+        q.clear();
+        q.extend(out.chunks_exact(self.0).map(mean));
+    }
+
+    /// `[A, N]` turned into the samples' rows `[N, A]`.
+    fn next<'a>(&self, out: &'a [f32], z: &mut Vec<f32>) -> &'a [f32] {
+        let n = self.0;
+        z.clear();
+        let na = out.len() / n;
+        z.extend((0..n).flat_map(|j| (0..na).map(move |a| out[a * n + j])));
+        out
+    }
+
+    /// The quantile Huber loss ([`quantile_huber`]): for each `θ_i` and target sample `T_j`,
+    /// with `u = T_j − θ_i`, the Huber loss `h(u)` weighted by `|τ_i − 1{u < 0}|`; summed over
+    /// `i`, averaged over `j` and the batch.
+    fn loss(
+        &self, theta: &[f32], y: &[f32], _: &Batch, _: LossKind, d: &mut [f32],
+        per_sample: &mut [f32],
+    ) -> f32 {
+        quantile_huber(theta, y, self.0, d, per_sample)
+    }
+}
+
+/// IQN's head (Dabney et al. 2018): the network evaluates each state at fractions `τ`, one row
+/// `Z_τ(s, ·)` (`[A]`) per fraction. `Q(s, a)` is the mean of `Z_τ(s, a)` over the `K`
+/// midpoints; the online network's `θ_i = Z_{τ_i}(s, a)` at the `N` drawn `τ_i`, and the target
+/// samples are `Z^target_{τ'_j}(s', a')` at the `N'` drawn `τ'_j`. The target network takes the
+/// `K` midpoints and the `N'` fractions in one pass: its trunk runs once per state.
+struct Implicit {
+    iqn: Iqn,
+    actions: usize,
+}
+
+impl ValueHead for Implicit {
+    fn fractions(&self, net: &mut Sequential<f32>, pass: Pass, batch: &Batch) {
+        let Iqn {
+            samples: n,
+            target_samples: n2,
+            policy_samples: k,
+            ..
+        } = self.iqn;
+        let b = batch.len();
+        assert!(
+            batch.taus.len() == b * n && batch.target_taus.len() == b * n2,
+            "an implicit quantile head: draw the batch's fractions first"
+        );
+        let taus = match pass {
+            Pass::Policy => midpoints(k, b),
+            Pass::Online => batch.taus.clone(),
+            // Per next state: the K midpoints, then its N' drawn fractions.
+            Pass::Next => {
+                let mids = midpoints(k, 1);
+                let per_state = batch.target_taus.chunks_exact(n2);
+                per_state
+                    .flat_map(|drawn| mids.iter().chain(drawn).copied())
+                    .collect()
+            }
+        };
+        net.set_fractions(&taus);
+    }
+
+    /// The mean over the state's rows (its fractions).
+    fn q_values(&self, out: &[f32], q: &mut Vec<f32>) {
+        q.resize(self.actions, 0.0);
+        mean_rows(out, self.actions, q);
+    }
+
+    fn next<'a>(&self, out: &'a [f32], z: &mut Vec<f32>) -> &'a [f32] {
+        let (k, n2) = (self.iqn.policy_samples, self.iqn.target_samples);
+        let (policy, samples) = out.split_at(out.len() / (k + n2) * k);
+        z.clear();
+        z.extend_from_slice(samples);
+        policy
+    }
+
+    /// The quantile Huber loss at the drawn fractions ([`quantile_huber_at`]).
+    fn loss(
+        &self, theta: &[f32], y: &[f32], batch: &Batch, _: LossKind, d: &mut [f32],
+        per_sample: &mut [f32],
+    ) -> f32 {
+        let taus: Vec<f32> = batch.taus.iter().map(|&t| t as f32).collect();
+        quantile_huber_at(theta, &taus, y, self.iqn.samples, d, per_sample)
+    }
+}
+
 /// Munchausen RL's targets (Vieillard et al. 2020): a soft Q-learning target, `π = softmax(q/τ)`
 /// of the target network's values, plus the scaled log-policy of the action taken as a bonus
 ///
@@ -565,20 +660,6 @@ pub struct Munchausen {
 }
 
 impl Munchausen {
-    /// M-DQN's targets `y` (`[B]`) from the target network's values of the next states
-    /// (`q_next`) and of the states (`q_s`), both `[B, A]`.
-    pub fn targets(&self, batch: &Batch, q_next: &[f32], q_s: &[f32], gamma: f32, y: &mut [f32]) {
-        let na = q_s.len() / batch.len();
-        for (i, y) in y.iter_mut().enumerate() {
-            let (now, next) = (&q_s[i * na..(i + 1) * na], &q_next[i * na..(i + 1) * na]);
-            let cont = if batch.dones[i] { 0.0 } else { 1.0 };
-            let discount = gamma.powi(batch.steps[i] as i32);
-            *y = batch.rewards[i]
-                + self.bonus(now, batch.actions[i])
-                + discount * cont * self.soft_value(next, next);
-        }
-    }
-
     /// `τ·log π(·|s)` for one state's values `q` (`[A]`), into `out`.
     pub fn scaled_log_policy(&self, q: &[f32], out: &mut [f32]) {
         let max = q.iter().copied().fold(f32::NEG_INFINITY, f32::max);
@@ -633,22 +714,16 @@ pub fn greedy_rows(rows: &[f32], n_actions: usize) -> usize {
     argmax(&q)
 }
 
-/// The mean of a slice.
-/// The TD errors for prioritized replay, `b` samples: each sample's prediction minus its target,
-/// or with a quantile head the mean of its predictions minus the mean of its target samples.
+/// The TD errors for prioritized replay, `b` samples: the mean of each sample's predictions
+/// minus the mean of its targets (with one of each, `Q(s, a) − y`).
 fn td_errors(q: &[f32], y: &[f32], b: usize, td: &mut Vec<f32>) {
     let (n, n_target) = (q.len() / b, y.len() / b);
     let pairs = q.chunks_exact(n).zip(y.chunks_exact(n_target));
     td.clear();
-    td.extend(pairs.map(|(q, y)| {
-        if n == 1 && n_target == 1 {
-            q[0] - y[0]
-        } else {
-            mean(q) - mean(y)
-        }
-    }));
+    td.extend(pairs.map(|(q, y)| mean(q) - mean(y)));
 }
 
+/// The mean of a slice (of one value, the value itself: the sum starts at −0).
 fn mean(x: &[f32]) -> f32 {
     x.iter().sum::<f32>() / x.len() as f32
 }
@@ -656,9 +731,6 @@ fn mean(x: &[f32]) -> f32 {
 /// The greedy action of one sample's outputs `[A, K]`: the largest Q-value (`K = 1`), or with a
 /// quantile head the largest mean of its `K` quantiles (the expected return).
 pub fn greedy_atoms(row: &[f32], k: usize) -> usize {
-    if k == 1 {
-        return argmax(row);
-    }
     // As `argmax` over the means (the first on ties), without collecting them.
     let mut best = (0, f32::NEG_INFINITY);
     for (a, quantiles) in row.chunks_exact(k).enumerate() {
