@@ -21,14 +21,19 @@ macro_rules! out {
 }
 
 mod bench;
+mod config_errors;
 mod eval;
 mod experiment;
 mod export;
 mod figures;
 mod guard;
+mod memory;
+mod metrics_file;
 mod plot;
 mod returns;
+mod rundir;
 mod show;
+mod snapshot;
 pub mod streams;
 mod train;
 
