@@ -37,6 +37,7 @@ mod snapshot;
 pub mod streams;
 mod train;
 
+pub use config_errors::short_number;
 pub use train::Interrupted;
 
 /// A from-scratch DQN that learns Atari Space Invaders.
