@@ -262,3 +262,50 @@ fn a_full_disk_says_so_and_what_is_kept() {
     let _ = std::process::Command::new("umount").arg(&mnt).status();
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// An experiment's failing run is named once: "strong-seed1: the snapshot in …", not
+/// "strong-seed1: strong-seed1: …".
+#[test]
+fn a_failing_run_is_named_once() {
+    let (root, _, _) = tmp_run("name-once");
+    let x = s(&common::cli::write_file(&root, "x.toml", TINY)).to_string();
+    let y = s(&common::cli::write_file(
+        &root,
+        "y.toml",
+        &format!("{TINY}gamma = 0.9\n"),
+    ))
+    .to_string();
+    let keep = root.join("keep");
+    let snap = keep.join("strong-seed1/snapshot");
+    let mut cmd = bin();
+    cmd.args(["train", "--preset", "strong", "--config", &x, "--seed", "1"])
+        .args(["--frames", "400", "--threads", "1", "--out"])
+        .arg(root.join("lost"))
+        .arg("--snapshot")
+        .arg(&snap);
+    ok(&output_within(cmd, 300));
+    let out = root.join("exp");
+    let args = [
+        "experiment",
+        "strong",
+        "--seeds",
+        "1",
+        "--frames",
+        "800",
+        "--threads",
+        "1",
+        "--config",
+        &y,
+        "--keep",
+        s(&keep),
+        "--out",
+        s(&out),
+    ];
+    let err = fails_with(&invaders(&args), &["of another configuration", "`gamma`"]);
+    assert_eq!(err.matches("strong-seed1: ").count(), 1, "{err}");
+    assert!(
+        !snap.join(".lock").exists(),
+        "the snapshot's lock went with its run"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}

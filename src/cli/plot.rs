@@ -6,8 +6,8 @@ use anyhow::{bail, Context};
 use clap::Args;
 
 use super::figures::{
-    plot_groups_frames, plot_rewards, read_frame_metrics, read_metrics, read_references, Curve,
-    Group,
+    grid_step, mean_band_frames, plot_groups_frames, plot_rewards, read_frame_metrics,
+    read_metrics, read_references, Curve, Group,
 };
 
 #[derive(Debug, Args)]
@@ -118,6 +118,16 @@ fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
             inputs.push(csv);
         }
         groups.push(Group { label, seeds });
+    }
+    // A figure without a curve is an error, not an image of axes.
+    let step = grid_step(&groups);
+    for g in &groups {
+        if mean_band_frames(&g.seeds, args.window, step).is_empty() {
+            bail!(
+                "group {}: on a grid of {step} frames there is no point where each of its runs has finished an episode (a run of one episode gives none): its curve would be empty, so nothing is drawn",
+                g.label
+            );
+        }
     }
     if let Some(r) = &args.reference {
         inputs.push(r.clone());

@@ -159,8 +159,9 @@ pub(super) fn finish_one(
             }
             check_record(k, job.preset, &overrides, job.seed)?;
             say!(
-                "{name}: the record in {} is of another budget or evaluation; it is replaced \
-                 when the run has trained and been evaluated",
+                "{name}: the record in {} is of this configuration but not of this question \
+                 (another budget, evaluation or record); it is replaced when the run has \
+                 trained and been evaluated",
                 k.display()
             );
         }
