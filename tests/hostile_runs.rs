@@ -244,6 +244,7 @@ fn a_full_disk_says_so_and_what_is_kept() {
         let _ = std::fs::remove_dir_all(&root);
         return;
     }
+    let _unmount = Unmount(mnt.clone());
     let run = mnt.join("run");
     let cmd = train_command(&cfg, 1, 5, &run);
     let err = fails_with(
@@ -259,8 +260,17 @@ fn a_full_disk_says_so_and_what_is_kept() {
         ckpt.counters.episodes, 1,
         "the last good checkpoint is kept"
     );
-    let _ = std::process::Command::new("umount").arg(&mnt).status();
+    drop(_unmount);
     let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Unmounts on drop, so that a failing assertion leaves no mount behind.
+struct Unmount(std::path::PathBuf);
+
+impl Drop for Unmount {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+    }
 }
 
 /// An experiment's failing run is named once: "strong-seed1: the snapshot in …", not
