@@ -88,7 +88,7 @@ fn nothing_a_user_types_loses_or_damages_data() {
         &["refusing to write over it"],
     );
     let metrics = a.join("metrics.csv");
-    fails_with(&eval_gif(&a, &metrics, &[]), &["exists", "--force"]);
+    fails_with(&eval_gif(&a, &metrics, &[]), &["belongs to the run"]);
     let dir_out = invaders(&[
         "eval",
         "--checkpoint",

@@ -284,10 +284,10 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         out!("  strong-v1             {strong_v1_steps_per_s:.1} agent steps/s");
         if let (Some((ms, sps)), Some(p), Some(c)) = (own_figures, &args.config, &own) {
             out!(
-                "{} (preset {}, batch {}): train step {ms:.2} ms, {sps:.1} agent steps/s",
+                "{} (preset {}, {}): train step {ms:.2} ms, {sps:.1} agent steps/s",
                 p.display(),
                 c.preset.name(),
-                c.batch_size
+                batch_words(c)
             );
         }
     }
@@ -316,4 +316,29 @@ fn time_acting(
         }
     }
     Ok(median(times))
+}
+
+/// The batch a configuration trains on, in words: a PQN run's minibatch (games × rollout /
+/// minibatches; its `batch_size` is unused), else `batch_size`.
+pub(super) fn batch_words(c: &Config) -> String {
+    match c.pqn {
+        Some(p) => format!("PQN minibatch {}", p.minibatch()),
+        None => format!("batch {}", c.batch_size),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `bench --config` with a PQN file names its minibatch (games × rollout / minibatches), not
+    /// the `batch_size` a PQN run does not use.
+    #[test]
+    fn a_pqn_config_is_reported_with_its_minibatch() {
+        let pqn = "[pqn]\ngames = 8\nrollout = 16\nminibatches = 4\n";
+        let c = Config::resolve(Some(Preset::Strong), Some(pqn)).unwrap();
+        assert_eq!(batch_words(&c), "PQN minibatch 32");
+        let dqn = Config::resolve(Some(Preset::Strong), None).unwrap();
+        assert_eq!(batch_words(&dqn), format!("batch {}", dqn.batch_size));
+    }
 }

@@ -23,7 +23,8 @@ use anyhow::{anyhow, bail, Context};
 ///   is ready (in the temporary directory). A FIFO that no process reads is refused rather than
 ///   waited for.
 /// - **a directory, a block device, a socket**: refused. So is any of the command's inputs,
-///   whatever the path's spelling, even with `--force`.
+///   whatever the path's spelling, even with `--force`, and any file a run owns in a run folder,
+///   a snapshot or a `--keep` record ([`super::rundir::owned_by_run`]), whether it exists or not.
 #[derive(Debug)]
 pub struct OutputFile {
     /// The path as the user gave it, for messages.
@@ -49,6 +50,7 @@ impl OutputFile {
             },
             _ => out.to_path_buf(),
         };
+        let owned = super::rundir::owned_by_run(&target);
         let meta = match std::fs::metadata(&target) {
             Ok(m) => Some(m),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
@@ -71,6 +73,9 @@ impl OutputFile {
                     input.display()
                 );
             }
+            if let Some(why) = &owned {
+                bail!("{flag} {shown}: {why}");
+            }
             if t.is_block_device() || t.is_socket() {
                 bail!(
                     "{flag} {shown} is a {}: refusing to write a file onto it",
@@ -85,6 +90,9 @@ impl OutputFile {
             if !stream && !force {
                 bail!("{flag} {shown} exists; choose another name, or pass --force to replace it");
             }
+        }
+        if let Some(why) = owned.filter(|_| meta.is_none()) {
+            bail!("{flag} {shown}: {why}");
         }
         if !stream {
             let parent = match target.parent() {
@@ -150,8 +158,20 @@ impl OutputFile {
         &self, write: impl FnOnce(&Path) -> anyhow::Result<()>,
     ) -> anyhow::Result<()> {
         let pending = self.pending()?;
-        write(pending.path())?;
+        match write(pending.path()) {
+            Err(e) if disk_full(&e) => Err(self.full()),
+            r => r,
+        }?;
         pending.commit()
+    }
+
+    /// The error of a full disk while this file was written.
+    fn full(&self) -> anyhow::Error {
+        anyhow!(
+            "cannot write {} {}: the disk is full (any earlier file of that name is kept as it was); free some space and try again",
+            self.flag,
+            self.shown.display()
+        )
     }
 
     /// Writes `bytes` as the file ([`OutputFile::write_with`]).
@@ -186,7 +206,10 @@ impl Pending<'_> {
             sync_rename(&self.tmp, &f.target)
         };
         let _ = std::fs::remove_file(&self.tmp);
-        result.with_context(|| format!("cannot write {} {}", f.flag, f.shown.display()))
+        match result {
+            Err(e) if disk_full(&e) => Err(f.full()),
+            r => r.with_context(|| format!("cannot write {} {}", f.flag, f.shown.display())),
+        }
     }
 }
 
@@ -245,6 +268,17 @@ fn write_through(tmp: &Path, target: &Path) -> anyhow::Result<()> {
     })?;
     out.flush()?;
     Ok(())
+}
+
+/// Whether `e` (or one of its causes) is a file system that is full: no space left, or the
+/// user's disk quota reached.
+pub fn disk_full(e: &anyhow::Error) -> bool {
+    e.chain()
+        .filter_map(|c| c.downcast_ref::<std::io::Error>())
+        .any(|io| {
+            io.kind() == std::io::ErrorKind::StorageFull
+                || matches!(io.raw_os_error(), Some(libc::ENOSPC) | Some(libc::EDQUOT))
+        })
 }
 
 /// The most bytes an input text file (a `--config`, a run's `config.toml`) may have: far above

@@ -21,17 +21,23 @@ macro_rules! out {
 }
 
 mod bench;
+mod config_errors;
 mod eval;
 mod experiment;
 mod export;
 mod figures;
 mod guard;
+mod memory;
+mod metrics_file;
 mod plot;
 mod returns;
+mod rundir;
 mod show;
+mod snapshot;
 pub mod streams;
 mod train;
 
+pub use config_errors::short_number;
 pub use train::Interrupted;
 
 /// A from-scratch DQN that learns Atari Space Invaders.

@@ -6,8 +6,8 @@ use anyhow::{bail, Context};
 use clap::Args;
 
 use super::figures::{
-    plot_groups_frames, plot_rewards, read_frame_metrics, read_metrics, read_references, Curve,
-    Group,
+    grid_step, mean_band_frames, plot_groups_frames, plot_rewards, read_frame_metrics,
+    read_metrics, read_references, Curve, Group,
 };
 
 #[derive(Debug, Args)]
@@ -58,12 +58,25 @@ pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     if !args.group.is_empty() {
         return plot_frames(args);
     }
+    if args.reference.is_some() {
+        bail!(
+            "--reference draws published curves against emulator frames, which only --group plots: give the runs as --group LABEL=DIR,DIR,… (one LABEL=DIR per run will do)"
+        );
+    }
     let inputs: Vec<PathBuf> = args.runs.iter().map(|d| d.join("metrics.csv")).collect();
     let inputs: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
     let out = super::guard::OutputFile::check(&args.out, args.force, &inputs, "--out")?;
+    check_png(&args.out)?;
     let mut curves = Vec::new();
     for dir in &args.runs {
-        let points = read_metrics(&dir.join("metrics.csv"))?;
+        let csv = dir.join("metrics.csv");
+        let points = read_metrics(&csv)?;
+        if points.is_empty() {
+            bail!(
+                "{} holds no finished episode: its curve would be empty, so nothing is drawn",
+                csv.display()
+            );
+        }
         // Label a run by its preset (from config.toml) and directory name.
         let preset = std::fs::read_to_string(dir.join("config.toml"))
             .ok()
@@ -94,16 +107,34 @@ fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
         let mut seeds = Vec::new();
         for d in &dirs {
             let csv = d.join("metrics.csv");
-            seeds.push(read_frame_metrics(&csv)?);
+            let points = read_frame_metrics(&csv)?;
+            if points.is_empty() {
+                bail!(
+                    "{} holds no finished episode: group {label}'s curve would be empty, so nothing is drawn",
+                    csv.display()
+                );
+            }
+            seeds.push(points);
             inputs.push(csv);
         }
         groups.push(Group { label, seeds });
+    }
+    // A figure without a curve is an error, not an image of axes.
+    let step = grid_step(&groups);
+    for g in &groups {
+        if mean_band_frames(&g.seeds, args.window, step).is_empty() {
+            bail!(
+                "group {}: on a grid of {step} frames there is no point where each of its runs has finished an episode (a run of one episode gives none): its curve would be empty, so nothing is drawn",
+                g.label
+            );
+        }
     }
     if let Some(r) = &args.reference {
         inputs.push(r.clone());
     }
     let paths: Vec<&std::path::Path> = inputs.iter().map(PathBuf::as_path).collect();
     let out = super::guard::OutputFile::check(&args.out, args.force, &paths, "--out")?;
+    check_png(&args.out)?;
     let references = match &args.reference {
         Some(r) => read_references(r, &args.agents)?,
         None => Vec::new(),
@@ -127,4 +158,25 @@ pub(super) fn parse_group(spec: &str) -> anyhow::Result<(String, Vec<PathBuf>)> 
         return Err(bad());
     }
     Ok((label.to_string(), dirs))
+}
+
+/// Refuses an `--out` whose name does not end in `.png` (unless it is a character device or a
+/// FIFO, written through): the figure is a PNG, and the image library picks the format by the
+/// name.
+fn check_png(out: &std::path::Path) -> anyhow::Result<()> {
+    use std::os::unix::fs::FileTypeExt;
+    let png = out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+    let stream = std::fs::metadata(out).is_ok_and(|m| {
+        let t = m.file_type();
+        t.is_char_device() || t.is_fifo()
+    });
+    if !png && !stream {
+        bail!(
+            "--out {}: a plot is a PNG image; give a file name ending in .png",
+            out.display()
+        );
+    }
+    Ok(())
 }

@@ -29,6 +29,10 @@ use invaders::dqn::checkpoint::{self, write_atomic};
 
 use super::figures::{plot_rewards, Curve};
 use super::guard;
+use super::memory::check_memory;
+use super::metrics_file::reopen_metrics;
+use super::rundir::{clear_run_files, prepare_new_dir, restart_unsaved};
+use super::snapshot::{self, note_continued};
 use invaders::dqn::{
     game_seed, Agent, Config, EpisodeRow, PqnAgent, Preset, Trainer, NO_EPISODE_LIMIT,
 };
@@ -124,29 +128,20 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     in_pool(args.threads, || train(args))
 }
 
-/// The files a run writes into its directory: a directory holding nothing else, and no
-/// checkpoint, can be reused by a new run.
-const RUN_FILES: [&str; 5] = [
-    "config.toml",
-    "metrics.csv",
-    "rewards.png",
-    CONTINUED_FILE,
-    guard::LOCK_FILE,
-];
-
-/// The file where a run notes each time it continued from a snapshot (module `checkpoint`'s
-/// "Snapshots"): a header, then `episode,agent_steps,frames` of each continuation.
-pub const CONTINUED_FILE: &str = "continued.csv";
-
 fn train(args: &TrainArgs) -> anyhow::Result<()> {
     // First, so that a signal while the run loads (a replay memory takes seconds) stops it too.
     catch_signals();
     if args.frames == Some(0) {
         bail!("--frames must be at least 1 (without a frame budget, give --episodes)");
     }
+    if let Some(s) = &args.snapshot {
+        snapshot::check_path(s)?;
+    }
     // The lock is taken before anything in the directory is read or written.
     let mut lock = None;
-    let (mut config, dir, mut resumed) = match &args.resume {
+    // The user's configuration file and its text, for the line a range error names.
+    let mut source: Option<(PathBuf, String)> = None;
+    let (mut config, mut dir, mut resumed) = match &args.resume {
         Some(dir) => {
             if args.config.is_some() || args.seed.is_some() {
                 bail!("--resume keeps the run's configuration: drop --config and --seed");
@@ -197,18 +192,20 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
                 Some(p) => Some(guard::read_text(p, "config file")?),
                 None => None,
             };
-            let mut config = Config::resolve(args.preset, text.as_deref())?;
+            source = args.config.clone().zip(text);
+            let mut config = Config::resolve(args.preset, source.as_ref().map(|s| s.1.as_str()))
+                .map_err(|e| match &source {
+                    Some((path, text)) => super::config_errors::locate(e, text, path),
+                    None => e,
+                })?;
             if let Some(s) = args.seed {
                 config.seed = s;
             }
             if let Some(p) = args.precision {
                 config.precision = p;
             }
-            let dir = match args.out.clone() {
-                Some(d) => d,
-                None => new_default_dir(&config)?,
-            };
-            (config, dir, None)
+            // The default directory is made once the configuration has passed its checks.
+            (config, args.out.clone().unwrap_or_default(), None)
         }
     };
     if let Some(e) = args.episodes {
@@ -219,7 +216,15 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         config.max_frames = f;
         config.episodes = NO_EPISODE_LIMIT;
     }
-    config.validate()?;
+    config.validate().map_err(|e| match &source {
+        Some((path, text)) => super::config_errors::locate(e, text, path),
+        None => super::config_errors::locate(e, "", Path::new("")),
+    })?;
+    // Before any folder is made or written, and before the replay memory is loaded.
+    check_memory(&config)?;
+    if args.resume.is_none() && args.out.is_none() {
+        dir = new_default_dir(&config)?;
+    }
     if resumed.is_none() && config.precision == Precision::Auto {
         // Measured here, on this run's thread pool; config.toml records the answer.
         let r = invaders::dqn::resolve_precision(&config);
@@ -274,16 +279,13 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
                 Some((ckpt, _)) => ckpt.counters,
                 None => checkpoint::Counters::default(),
             };
-            Some(prepare_snapshot_dir(s, &dir, &config, &at)?)
+            Some(snapshot::prepare(s, &dir, &config, &at)?)
         }
         None => None,
     };
     // config.toml always says what runs, the budget included.
-    write_atomic(&dir.join("config.toml"), config.to_toml().as_bytes())?;
+    write_atomic(&dir.join("config.toml"), config_text(&config).as_bytes())?;
     let _lock = lock;
-    if resumed.is_none() {
-        check_memory(&config)?;
-    }
     let mut agent: Box<dyn Trainer> = match (resumed, config.pqn) {
         (Some((mut ckpt, replay)), pqn) => {
             // A longer budget given on the command line is part of the resumed config.
@@ -303,7 +305,7 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
         (None, None) => Box::new(Agent::new(config.clone(), new_game(&config, 0)?)),
         (None, Some(_)) => Box::new(PqnAgent::new(config.clone(), pqn_games(&config)?)?),
     };
-    train_loop(agent.as_mut(), &dir, snapshot.as_deref(), args.log_rss)
+    train_loop(agent.as_mut(), &dir, snapshot, args.log_rss)
 }
 
 /// Game `g` of a run (a DQN run plays game 0 only): Space Invaders with the run's environment
@@ -319,138 +321,6 @@ fn pqn_games(config: &Config) -> anyhow::Result<Vec<SpaceInvaders>> {
     (0..n).map(|g| new_game(config, g)).collect()
 }
 
-/// The files a snapshot directory holds ([`write_snapshot`]).
-const SNAPSHOT_FILES: [&str; 4] = [
-    checkpoint::CHECKPOINT_FILE,
-    "config.toml",
-    "metrics.csv",
-    CONTINUED_FILE,
-];
-
-/// Checks and creates `--snapshot`'s directory before anything trains, so that a snapshot
-/// replaces nothing but an earlier snapshot of this very run (`config`, now at `counters`): not
-/// the run directory itself, not a directory holding other files (another run, say), not the
-/// snapshot of another configuration or seed, and not a later snapshot of this run.
-fn prepare_snapshot_dir(
-    snap: &Path, run: &Path, config: &Config, counters: &checkpoint::Counters,
-) -> anyhow::Result<PathBuf> {
-    std::fs::create_dir_all(snap)
-        .with_context(|| format!("cannot create the snapshot directory {}", snap.display()))?;
-    let same = match (snap.canonicalize(), run.canonicalize()) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => false,
-    };
-    if same {
-        bail!(
-            "--snapshot {} is the run directory: a snapshot would replace its checkpoint; give another directory",
-            snap.display()
-        );
-    }
-    let is_tmp = |n: &str| SNAPSHOT_FILES.iter().any(|f| n == format!(".{f}.tmp"));
-    if let Some(other) = dir_names(snap)?
-        .into_iter()
-        .find(|n| !SNAPSHOT_FILES.contains(&n.as_str()) && !is_tmp(n))
-    {
-        bail!(
-            "--snapshot {} holds {other}, which a snapshot does not: it is not a snapshot directory, so nothing is written there; give another directory",
-            snap.display()
-        );
-    }
-    let file = snap.join(checkpoint::CHECKPOINT_FILE);
-    if file.exists() {
-        let had = checkpoint::load(&file).with_context(|| {
-            format!(
-                "--snapshot {} holds a checkpoint that cannot be read; move it away, or give another directory",
-                snap.display()
-            )
-        })?;
-        let budgetless = |c: &Config| {
-            let mut c = c.clone();
-            c.episodes = 0;
-            c.max_frames = 0;
-            c.to_toml()
-        };
-        if !had.snapshot {
-            bail!(
-                "--snapshot {} holds a run's full checkpoint, not a snapshot: give another directory",
-                snap.display()
-            );
-        }
-        if budgetless(&had.config) != budgetless(config) {
-            bail!(
-                "--snapshot {} holds the snapshot of another run (another configuration or seed): give another directory",
-                snap.display()
-            );
-        }
-        if had.counters.agent_steps > counters.agent_steps {
-            bail!(
-                "--snapshot {} holds a later snapshot of this run (episode {}) than the run is at (episode {}): continue from it with --resume {}, or give another directory",
-                snap.display(),
-                had.counters.episodes,
-                counters.episodes,
-                snap.display()
-            );
-        }
-    }
-    Ok(snap.to_path_buf())
-}
-
-/// Appends a continuation from a snapshot at `counters` to the run's [`CONTINUED_FILE`].
-fn note_continued(dir: &Path, counters: &checkpoint::Counters) -> anyhow::Result<()> {
-    let path = dir.join(CONTINUED_FILE);
-    let mut text = match std::fs::read_to_string(&path) {
-        Ok(t) => t,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => "episode,agent_steps,frames\n".into(),
-        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
-    };
-    let line = format!(
-        "{},{},{}\n",
-        counters.episodes, counters.agent_steps, counters.frames
-    );
-    // Resumed again from the same snapshot (a stop before its next checkpoint): noted once.
-    if !text.ends_with(&line) {
-        text.push_str(&line);
-    }
-    write_atomic(&path, text.as_bytes())
-}
-
-/// Writes the run's snapshot into `snap` after a checkpoint: `metrics.csv`, `config.toml` and
-/// (if the run has one) [`CONTINUED_FILE`] first, then the snapshot's `checkpoint.safetensors`
-/// (each atomically), so the snapshot there always has the rows it needs.
-fn write_snapshot(snap: &Path, run: &Path, agent: &dyn Trainer) -> anyhow::Result<()> {
-    checkpoint::copy_files_atomic(run, snap, &SNAPSHOT_FILES[1..], &[CONTINUED_FILE])?;
-    checkpoint::save_snapshot(&snap.join(checkpoint::CHECKPOINT_FILE), agent)
-}
-
-/// Refuses a replay memory larger than the memory this machine has available (it would abort the
-/// program when the allocation fails, or later when its pages are touched), saying how much it needs.
-fn check_memory(config: &Config) -> anyhow::Result<()> {
-    const NETWORKS: u64 = 512 << 20; // networks, optimizer state and batch buffers, generously
-    let need = config.replay_bytes() + NETWORKS;
-    let available = std::fs::read_to_string("/proc/meminfo").ok().and_then(|t| {
-        t.lines()
-            .find(|l| l.starts_with("MemAvailable:"))?
-            .split_whitespace()
-            .nth(1)?
-            .parse::<u64>()
-            .ok()
-            .map(|kib| kib * 1024)
-    });
-    if let Some(have) = available {
-        if need > have {
-            let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
-            bail!(
-                "replay_capacity = {} needs about {:.1} GiB of memory, but this machine has {:.1} GiB available: lower replay_capacity (each transition takes {} bytes)",
-                config.replay_capacity,
-                gib(need),
-                gib(have),
-                invaders::env::FRAME_LEN + 8
-            );
-        }
-    }
-    Ok(())
-}
-
 /// The budget as words.
 fn budget(config: &Config) -> String {
     if config.max_frames > 0 {
@@ -458,245 +328,6 @@ fn budget(config: &Config) -> String {
     } else {
         format!("{} episodes", config.episodes)
     }
-}
-
-/// Makes `dir` ready for a new run and locks it: it is created, or it is empty, or it holds only
-/// what a run that never reached its first checkpoint wrote (then that is cleared). A directory
-/// holding a run (its checkpoint, or the traces of one that was lost) or anything else is refused.
-fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
-    if dir.exists() && !dir.is_dir() {
-        bail!("--out {} is a file, not a directory", dir.display());
-    }
-    let names = match std::fs::read_dir(dir) {
-        Ok(_) => dir_names(dir)?,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
-        Err(e) => return Err(e).with_context(|| format!("cannot read {}", dir.display())),
-    };
-    if names.iter().any(|n| n == checkpoint::CHECKPOINT_FILE) {
-        bail!(
-            "run directory {} is not empty: it holds a run; choose another --out, or continue it with --resume {}",
-            dir.display(),
-            dir.display()
-        );
-    }
-    if let Some(other) = names.iter().find(|n| !is_run_file(n)) {
-        bail!(
-            "run directory {} is not empty (it holds `{other}`); choose another --out",
-            dir.display()
-        );
-    }
-    if let Some(lost) = lost_checkpoint(dir, &names)? {
-        bail!(
-            "run directory {} holds a run whose checkpoint is lost ({lost}); its files are left as they are: choose another --out",
-            dir.display()
-        );
-    }
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create run directory {}", dir.display()))?;
-    let lock = guard::RunLock::acquire(dir)?;
-    if names.iter().any(|n| n != guard::LOCK_FILE) {
-        say!(
-            "{} holds a run stopped before its first checkpoint: starting anew in it",
-            dir.display()
-        );
-        clear_run_files(dir)?;
-    }
-    Ok(lock)
-}
-
-/// For `--resume DIR` where DIR has no checkpoint: the configuration to start the run again
-/// with, from its `config.toml`, if DIR is a run stopped before its first checkpoint. Refused if
-/// its checkpoint was written and is now lost (the run's history stays as it is), or if DIR holds
-/// files a run does not write.
-fn restart_unsaved(dir: &Path, preset: Option<Preset>) -> anyhow::Result<Config> {
-    let names = dir_names(dir)?;
-    let saved = dir.join("config.toml");
-    if !saved.is_file() {
-        bail!(
-            "{} holds no checkpoint and no config.toml: there is no run to resume",
-            dir.display()
-        );
-    }
-    // Starting again clears the run's files: only where the directory holds nothing else (a
-    // model exported beside its config.toml, say, is not a stopped run).
-    if let Some(other) = names.iter().find(|n| !is_run_file(n)) {
-        bail!(
-            "{} holds no checkpoint, and {other}, which a run does not write: it is not a stopped run, so it is not resumed (a weights-only model plays with `eval --checkpoint`; train a new run with --out)",
-            dir.display()
-        );
-    }
-    if let Some(lost) = lost_checkpoint(dir, &names)? {
-        bail!(
-            "{} holds no {}, but its run had one ({lost}): the checkpoint is lost, so the run cannot continue; its files are left as they are (restore the checkpoint, or train a new run with --out)",
-            dir.display(),
-            checkpoint::CHECKPOINT_FILE
-        );
-    }
-    let text = guard::read_text(&saved, "the run's configuration")?;
-    Config::resolve(preset, Some(&text)).with_context(|| format!("{}", saved.display()))
-}
-
-/// Why `dir` (holding `names`, and no checkpoint) is a run whose checkpoint was written and is
-/// gone, if it is: a replay file (written only with a checkpoint), or at least `checkpoint_every`
-/// finished episodes in its `metrics.csv` (the first checkpoint comes with episode
-/// `checkpoint_every`, or earlier when a run is stopped).
-fn lost_checkpoint(dir: &Path, names: &[String]) -> anyhow::Result<Option<String>> {
-    if let Some(replay) = names.iter().find(|n| is_replay_file(n)) {
-        return Ok(Some(format!(
-            "{replay}, the replay memory saved with a checkpoint, is there"
-        )));
-    }
-    let metrics = dir.join("metrics.csv");
-    if !metrics.is_file() {
-        return Ok(None);
-    }
-    let episodes = guard::read_text(&metrics, "the metrics")?
-        .lines()
-        .skip(1)
-        .filter(|l| !l.trim().is_empty())
-        .count() as u64;
-    // What `checkpoint_every` the run had; without a readable config.toml, the smallest there is.
-    let every = std::fs::read_to_string(dir.join("config.toml"))
-        .ok()
-        .and_then(|t| Config::resolve(None, Some(&t)).ok())
-        .map_or(1, |c| c.checkpoint_every);
-    Ok((episodes >= every).then(|| {
-        format!(
-            "metrics.csv records {episodes} finished episodes, and it checkpoints every {every}"
-        )
-    }))
-}
-
-/// The names in `dir`.
-fn dir_names(dir: &Path) -> anyhow::Result<Vec<String>> {
-    std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read {}", dir.display()))?
-        .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("cannot read {}", dir.display()))
-}
-
-/// A file a run writes into its directory: one of [`RUN_FILES`], a replay memory, a replay
-/// memory being written, or a TensorBoard event file.
-fn is_run_file(name: &str) -> bool {
-    RUN_FILES.contains(&name)
-        || is_replay_file(name)
-        || is_replay_tmp(name)
-        || name.starts_with(invaders::dqn::tensorboard::PREFIX)
-}
-
-/// A replay memory saved with a checkpoint: `replay-E.safetensors`.
-fn is_replay_file(name: &str) -> bool {
-    name.strip_prefix("replay-")
-        .and_then(|r| r.strip_suffix(".safetensors"))
-        .is_some_and(|e| !e.is_empty() && e.bytes().all(|b| b.is_ascii_digit()))
-}
-
-/// A replay file being written (`.replay-E.safetensors.tmp`), left by a run killed meanwhile.
-fn is_replay_tmp(name: &str) -> bool {
-    name.starts_with(".replay-") && name.ends_with(".tmp")
-}
-
-/// Removes what a run that never reached a checkpoint left (not the lock file: it may be held).
-fn clear_run_files(dir: &Path) -> anyhow::Result<()> {
-    let events = invaders::dqn::tensorboard::event_files(dir)?;
-    for path in RUN_FILES
-        .iter()
-        .filter(|n| **n != guard::LOCK_FILE)
-        .map(|n| dir.join(n))
-        .chain(events)
-    {
-        if path.exists() {
-            std::fs::remove_file(&path)
-                .with_context(|| format!("cannot remove {}", path.display()))?;
-        }
-    }
-    Ok(())
-}
-
-/// Keeps the first `episodes` data rows of `metrics.csv` (rows written after the checkpoint being
-/// resumed are replayed by the resumed run, and the message says so) and returns them as
-/// `(episode, reward)`. A malformed or misnumbered row among those kept is refused, naming it; a
-/// missing file is said to be missing and started anew.
-fn reopen_metrics(path: &Path, episodes: u64) -> anyhow::Result<(std::fs::File, Vec<(f64, f64)>)> {
-    let mut kept = String::from(EpisodeRow::HEADER);
-    kept.push('\n');
-    let mut points = Vec::new();
-    match std::fs::read_to_string(path) {
-        Ok(text) => {
-            let mut lines = text.lines();
-            if lines.next() != Some(EpisodeRow::HEADER) {
-                bail!(
-                    "{}: line 1 is not the header `{}`; restore the file (or remove it to resume without the curve so far)",
-                    path.display(),
-                    EpisodeRow::HEADER
-                );
-            }
-            let (mut next, mut last_kept, mut dropped) = (None::<u64>, 0u64, 0u64);
-            for (i, line) in lines.enumerate() {
-                let mut f = line.split(',');
-                let ep = f.next().and_then(|v| v.parse::<u64>().ok());
-                let reward = f.nth(2).and_then(|v| v.parse::<f64>().ok());
-                let (Some(ep), Some(r)) = (ep, reward.filter(|r| r.is_finite())) else {
-                    bail!(
-                        "{}: line {} is malformed (`{line}`); restore the file (or remove it to resume without the curve so far)",
-                        path.display(),
-                        i + 2
-                    );
-                };
-                if next.is_some_and(|n| n != ep) || ep == 0 {
-                    bail!(
-                        "{}: line {} is episode {ep}'s row where episode {} was expected; restore the file (or remove it to resume without the curve so far)",
-                        path.display(),
-                        i + 2,
-                        next.unwrap_or(1)
-                    );
-                }
-                next = Some(ep + 1);
-                if ep <= episodes {
-                    points.push((ep as f64, r));
-                    kept.push_str(line);
-                    kept.push('\n');
-                    last_kept = ep;
-                } else {
-                    dropped += 1;
-                }
-            }
-            if last_kept != episodes {
-                bail!(
-                    "{} ends at episode {last_kept} but the checkpoint is at episode {episodes}; restore the file (or remove it to resume without the curve so far)",
-                    path.display()
-                );
-            }
-            if let Some(&(first, _)) = points.first().filter(|p| p.0 > 1.0) {
-                say!(
-                    "note: {} starts at episode {first}: the rows before it were lost earlier",
-                    path.display()
-                );
-            }
-            if dropped > 0 {
-                say!(
-                    "metrics.csv: dropping the {dropped} row(s) after episode {episodes}, the checkpoint's: those episodes are played again"
-                );
-            }
-        }
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            if episodes > 0 {
-                say!(
-                    "warning: {} is missing: the rows of episodes 1 to {episodes} are lost; it starts again at episode {}",
-                    path.display(),
-                    episodes + 1
-                );
-            }
-        }
-        Err(e) => return Err(e).with_context(|| format!("cannot read {}", path.display())),
-    }
-    write_atomic(path, kept.as_bytes())?;
-    let file = std::fs::OpenOptions::new()
-        .append(true)
-        .open(path)
-        .with_context(|| format!("cannot open {}", path.display()))?;
-    Ok((file, points))
 }
 
 /// Ctrl-C, SIGTERM and SIGHUP received so far.
@@ -751,7 +382,8 @@ fn catch_signals() {
 }
 
 fn train_loop(
-    agent: &mut dyn Trainer, dir: &Path, snapshot: Option<&Path>, log_rss: Option<u64>,
+    agent: &mut dyn Trainer, dir: &Path, mut snapshot: Option<snapshot::Snapshot>,
+    log_rss: Option<u64>,
 ) -> anyhow::Result<()> {
     let config = agent.config().clone();
     let ckpt_path = dir.join(checkpoint::CHECKPOINT_FILE);
@@ -821,7 +453,17 @@ fn train_loop(
                 "run stopped before its first checkpoint".to_string()
             }
         })?;
-        writeln!(metrics, "{}", row.csv()).context("cannot append to metrics.csv")?;
+        writeln!(metrics, "{}", row.csv()).map_err(|e| {
+            let e = anyhow::Error::from(e);
+            if guard::disk_full(&e) {
+                disk_full_stop(
+                    dir,
+                    &format!("episode {}'s row of metrics.csv", row.episode),
+                )
+            } else {
+                e.context("cannot append to metrics.csv")
+            }
+        })?;
         points.push((row.episode as f64, row.reward));
         let last100 = &points[points.len().saturating_sub(100)..];
         let mean100 = last100.iter().map(|p| p.1).sum::<f64>() / last100.len() as f64;
@@ -855,19 +497,20 @@ fn train_loop(
         let interrupted = SIGNALS.load(Ordering::SeqCst) > 0;
         let finished = agent.finished() || interrupted;
         if finished || row.episode.is_multiple_of(config.checkpoint_every) {
-            checkpoint::save_run(dir, agent).with_context(|| {
-                format!("cannot save the checkpoint of episode {}", row.episode)
+            checkpoint::save_run(dir, agent).map_err(|e| {
+                if guard::disk_full(&e) {
+                    disk_full_stop(dir, &format!("the checkpoint of episode {}", row.episode))
+                } else {
+                    e.context(format!(
+                        "cannot save the checkpoint of episode {}",
+                        row.episode
+                    ))
+                }
             })?;
             saved_episode = row.episode;
             SAVED_EPISODE.store(row.episode, Ordering::SeqCst);
-            if let Some(snap) = snapshot {
-                if let Err(e) = write_snapshot(snap, dir, agent) {
-                    say!(
-                        "warning: no snapshot of episode {} in {} (the run and its checkpoint go on): {e:#}",
-                        row.episode,
-                        snap.display()
-                    );
-                }
+            if let Some(snap) = &mut snapshot {
+                snap.write(dir, agent, row.episode);
             }
         }
         if let Some(n) = log_rss.filter(|&n| n > 0) {
@@ -949,4 +592,36 @@ fn write_plot(dir: &Path, config: &Config, points: &[(f64, f64)]) {
     if let Err(e) = result {
         say!("warning: reward plot not written: {e:#}");
     }
+}
+
+/// A run's `config.toml`: the configuration, and where bf16 was asked for but its products run
+/// in f32 here (`INVADERS_NO_BF16`, a CPU without AVX512-BF16), a comment saying so: the key
+/// keeps `bf16` (a resumed run keeps its configuration), the comment says what ran.
+fn config_text(config: &Config) -> String {
+    use invaders::ops::plan::bf16_runs;
+    let mut text = config.to_toml();
+    if config.precision == Precision::Bf16 && !bf16_runs(config.precision) {
+        let why = invaders::tensor::cpu::why_no_bf16().unwrap_or_default();
+        text.push_str(&format!(
+            "\n# precision = \"bf16\" was asked for, but {why}: this process runs its products in f32\n"
+        ));
+    }
+    text
+}
+
+/// The error that stops a run whose disk is full while it writes `what`: what is kept (the last
+/// checkpoint on disk and the rows up to it; a row cut short is repaired on resume) and how to
+/// go on.
+fn disk_full_stop(dir: &Path, what: &str) -> anyhow::Error {
+    let kept = match SAVED_EPISODE.load(Ordering::SeqCst) {
+        NO_CHECKPOINT => "no checkpoint was written yet, so the run starts again from episode 1".to_string(),
+        e => format!(
+            "the checkpoint of episode {e} and metrics.csv up to it are kept (a row cut short is removed when the run resumes)"
+        ),
+    };
+    anyhow::anyhow!(
+        "the disk holding {} is full: {what} was not written, and the run stops; {kept}. Free some space, then continue with --resume {}",
+        dir.display(),
+        dir.display()
+    )
 }

@@ -69,7 +69,10 @@ pub fn resolve_precision(config: &Config) -> Resolved {
         return Resolved {
             precision: Precision::F32,
             times_ms: None,
-            why: "precision auto: f32, as bf16 products do not run on this CPU".into(),
+            why: format!(
+                "precision auto: f32, as bf16 products do not run here ({})",
+                crate::tensor::cpu::why_no_bf16().unwrap_or_default()
+            ),
         };
     }
     let (f32_ms, bf16_ms) = time_both(config);

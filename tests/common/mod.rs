@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod corridor;
+pub mod hostile;
 
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::Precision;

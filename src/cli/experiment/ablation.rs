@@ -178,6 +178,7 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         }
         check_reuse(
             &args.out.join(format!("{}-seed{}", arm.name, args.seed)),
+            args.keep.as_deref(),
             args.preset,
             &arm_text,
             args.seed,

@@ -61,8 +61,8 @@ use super::figures::{
     plot_groups, plot_groups_frames, read_digitized, read_frame_metrics, read_metrics,
     read_references, Group,
 };
-use super::train::CONTINUED_FILE;
 use super::Interrupted;
+use crate::cli::rundir::CONTINUED_FILE;
 use ablation::{ablation, AblationArgs};
 use invaders::dqn::checkpoint;
 use invaders::dqn::{merge_toml, Config, Preset};

@@ -103,7 +103,7 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
             .with_context(|| format!("configuration of {}", arm.label))?;
         for seed in 0..args.seeds {
             let dir = args.out.join(format!("{}-seed{seed}", arm.label));
-            check_reuse(&dir, arm.preset, &text, seed)?;
+            check_reuse(&dir, args.keep.as_deref(), arm.preset, &text, seed)?;
         }
         arm_texts.push(text);
     }

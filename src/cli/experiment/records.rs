@@ -5,7 +5,7 @@ use super::*;
 
 /// The file of a `--keep` record (`KEEP/LABEL-seedS/`), beside a copy of the run's `metrics.csv`
 /// and `config.toml`.
-pub(super) const RECORD_FILE: &str = "result.toml";
+pub(super) use crate::cli::rundir::RECORD_FILE;
 
 /// The folder of a `--keep` record (`KEEP/LABEL-seedS/snapshot/`) where the run's snapshot is
 /// kept while it trains, and its final network after (`train --snapshot`; module `checkpoint`'s
@@ -93,7 +93,63 @@ pub(super) fn read_record(dir: &Path) -> anyhow::Result<Option<Record>> {
     if !dir.join("metrics.csv").is_file() {
         return Err(anyhow!("its metrics.csv is missing")).with_context(fail);
     }
+    for (table, scores) in [
+        ("protocol", Some(&record.protocol)),
+        ("own_game", record.own_game.as_ref()),
+    ] {
+        if let Some(s) = scores {
+            check_scores(&text, table, s).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+        }
+    }
     Ok(Some(record))
+}
+
+/// Refuses scores no evaluation gives (a value that is not finite, a negative standard
+/// deviation, a mean outside `[min, max]`): a record damaged by hand or by a disk, whose tables
+/// would report it. Says the line (of `text`, the record) and key.
+fn check_scores(text: &str, table: &str, s: &Scores) -> anyhow::Result<()> {
+    let line = |key: &str| {
+        let mut inside = false;
+        for (n, l) in text.lines().enumerate() {
+            let l = l.trim();
+            if l.starts_with('[') {
+                inside = l == format!("[{table}]");
+            } else if inside && l.split('=').next().is_some_and(|k| k.trim() == key) {
+                return format!("line {}", n + 1);
+            }
+        }
+        "no line".to_string()
+    };
+    let bad = |key: &str, v: f64, why: &str| {
+        Err(anyhow!(
+            "{}, `{table}.{key}` = {v} {why}: the record is damaged; delete its folder to train and evaluate that run again",
+            line(key)
+        ))
+    };
+    for (key, v) in [
+        ("mean", s.mean),
+        ("std", s.std),
+        ("min", s.min),
+        ("max", s.max),
+    ] {
+        if !v.is_finite() {
+            return bad(key, v, "is not a finite number");
+        }
+    }
+    if s.std < 0.0 {
+        return bad("std", s.std, "is negative");
+    }
+    if s.min > s.max {
+        return bad("min", s.min, &format!("is above max = {}", s.max));
+    }
+    if !(s.min..=s.max).contains(&s.mean) {
+        return bad(
+            "mean",
+            s.mean,
+            &format!("is outside [min, max] = [{}, {}]", s.min, s.max),
+        );
+    }
+    Ok(())
 }
 
 /// Writes a run's record into `dir`: its `metrics.csv` and `config.toml` first, the record last,
@@ -113,9 +169,17 @@ pub(super) fn write_record(dir: &Path, run: &Path, record: &Record) -> anyhow::R
 /// differ: a folder reused under other settings must not report the old runs as the new ones.
 /// The budget (`episodes`, `max_frames`) may differ: the experiment extends it. Nothing is
 /// written; a directory with no run in it passes.
+/// With `keep`, the `--keep` record of the same name (`KEEP/NAME`) is checked too
+/// ([`check_record`]).
 pub(super) fn check_reuse(
-    dir: &Path, preset: Preset, overrides: &str, seed: u64,
+    dir: &Path, keep: Option<&Path>, preset: Preset, overrides: &str, seed: u64,
 ) -> anyhow::Result<()> {
+    if let (Some(k), Some(name)) = (keep, dir.file_name()) {
+        let record = k.join(name);
+        if record.join(RECORD_FILE).exists() {
+            check_record(&record, preset, overrides, seed)?;
+        }
+    }
     let ckpt = dir.join(checkpoint::CHECKPOINT_FILE);
     let saved = dir.join("config.toml");
     let had = if ckpt.exists() {
@@ -137,6 +201,33 @@ pub(super) fn check_reuse(
             "{} holds a run trained with another configuration than this experiment asks for \
              ({}): it is not taken as this experiment's run. Give another --out, or move that \
              run away",
+            dir.display(),
+            differ.join("; ")
+        );
+    }
+    Ok(())
+}
+
+/// Refuses to replace the `--keep` record in `dir` by a run of `preset`, `overrides` and `seed`
+/// if the record is of another configuration (its `config.toml`, the run's), naming the keys
+/// that differ, as a run directory of another configuration is refused ([`check_reuse`]): a
+/// record holds a finished run, and only the same configuration (with a longer budget, or other
+/// evaluations) may replace it. Nothing is written.
+pub(super) fn check_record(
+    dir: &Path, preset: Preset, overrides: &str, seed: u64,
+) -> anyhow::Result<()> {
+    let saved = dir.join("config.toml");
+    let text = crate::cli::guard::read_text(&saved, "the record's configuration")?;
+    let had = Config::resolve(None, Some(&text))
+        .with_context(|| format!("cannot read the record in {}", dir.display()))?;
+    let mut asked = Config::resolve(Some(preset), Some(overrides))?;
+    asked.seed = seed;
+    let differ = config_differences(&had, &asked);
+    if !differ.is_empty() {
+        bail!(
+            "{} holds the record of a run trained with another configuration than this \
+             experiment asks for ({}): it is not replaced. Give another --keep, or move that \
+             record away",
             dir.display(),
             differ.join("; ")
         );

@@ -157,9 +157,11 @@ pub(super) fn finish_one(
                     metrics: k.join("metrics.csv"),
                 });
             }
+            check_record(k, job.preset, &overrides, job.seed)?;
             say!(
-                "{name}: the record in {} is of another configuration, budget or evaluation; \
-                 it is replaced when the run has trained and been evaluated",
+                "{name}: the record in {} is of this configuration but not of this question \
+                 (another budget, evaluation or record); it is replaced when the run has \
+                 trained and been evaluated",
                 k.display()
             );
         }
@@ -222,7 +224,7 @@ fn continue_from_snapshot(
     }
     let ckpt = checkpoint::load(&file).with_context(|| {
         format!(
-            "{name}'s snapshot cannot be used; delete {} to train that run from its start",
+            "its snapshot cannot be used; delete {} to train that run from its start",
             snap.display()
         )
     })?;
@@ -231,7 +233,7 @@ fn continue_from_snapshot(
     let differ = config_differences(&ckpt.config, &asked);
     if !differ.is_empty() {
         bail!(
-            "{name}: the snapshot in {} is of another configuration than this experiment asks for ({}): delete it to train this run from its start, or give another --keep",
+            "the snapshot in {} is of another configuration than this experiment asks for ({}): delete it to train this run from its start, or give another --keep",
             snap.display(),
             differ.join("; ")
         );

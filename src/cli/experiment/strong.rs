@@ -81,6 +81,7 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
     for seed in 1..=args.seeds {
         check_reuse(
             &args.out.join(format!("strong-seed{seed}")),
+            args.keep.as_deref(),
             preset,
             &text,
             seed,

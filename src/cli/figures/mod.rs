@@ -523,6 +523,30 @@ pub fn mean_band_frames(
     out
 }
 
+/// The grid of [`plot_groups_frames`]: every 50 000 frames, or for runs shorter than 5 million
+/// frames a hundredth of the shortest one (at least 1 frame), so that a short run is drawn too.
+pub fn grid_step(groups: &[Group]) -> f64 {
+    const STEP: f64 = 50_000.0;
+    let shortest = groups
+        .iter()
+        .flat_map(|g| &g.seeds)
+        .map(|s| s.last().map_or(0.0, |p| p.0))
+        .fold(f64::INFINITY, f64::min);
+    if shortest.is_finite() {
+        (shortest / 100.0).floor().clamp(1.0, STEP)
+    } else {
+        STEP
+    }
+}
+
+/// The largest frame count a reference curve may give: far beyond any published run (the
+/// longest are 200 million frames).
+pub const MAX_REFERENCE_FRAMES: f64 = 1e12;
+
+/// The largest score a reference curve may give, in absolute value: far beyond any Space
+/// Invaders score (the game's counter wraps at 9 999 per player).
+pub const MAX_REFERENCE_SCORE: f64 = 1e7;
+
 /// A published learning curve to compare with: a label and `(emulator frames, score)` points.
 pub struct Reference {
     /// Legend label.
@@ -551,8 +575,32 @@ pub fn read_references(path: &Path, agents: &[String]) -> anyhow::Result<Vec<Ref
             return Err(bad());
         };
         let (x, y): (f64, f64) = (x.parse().map_err(|_| bad())?, y.parse().map_err(|_| bad())?);
-        if !(x.is_finite() && y.is_finite()) {
-            return Err(bad());
+        let out_of_range = |what: &str, v: f64, range: &str| {
+            anyhow!(
+                "{}: line {}: {what} {} is {range}",
+                path.display(),
+                n + 2,
+                super::short_number(v)
+            )
+        };
+        if !(x.is_finite() && (0.0..=MAX_REFERENCE_FRAMES).contains(&x)) {
+            return Err(out_of_range("frames", x, "outside 0..=1e12"));
+        }
+        if !(y.is_finite() && y.abs() <= MAX_REFERENCE_SCORE) {
+            return Err(out_of_range("score", y, "outside -1e7..=1e7"));
+        }
+        let last = refs
+            .iter()
+            .find(|r| r.label == agent)
+            .and_then(|r| r.points.last());
+        if let Some(&(px, _)) = last.filter(|p| p.0 >= x) {
+            anyhow::bail!(
+                "{}: line {}: frames {} of agent `{agent}` come after {}: each agent's points must be in increasing frame order",
+                path.display(),
+                n + 2,
+                super::short_number(x),
+                super::short_number(px)
+            );
         }
         if !agents.is_empty() && !agents.iter().any(|a| a == agent) {
             continue;
@@ -570,6 +618,12 @@ pub fn read_references(path: &Path, agents: &[String]) -> anyhow::Result<Vec<Ref
             anyhow::bail!("{}: no agent `{a}`", path.display());
         }
     }
+    if refs.is_empty() {
+        anyhow::bail!(
+            "{}: no curve (the file holds a header and no point)",
+            path.display()
+        );
+    }
     Ok(refs)
 }
 
@@ -579,15 +633,15 @@ pub fn read_references(path: &Path, agents: &[String]) -> anyhow::Result<Vec<Ref
 pub fn plot_groups_frames(
     groups: &[Group], references: &[Reference], title: &str, window: usize, out: &Path,
 ) -> anyhow::Result<()> {
-    const STEP: f64 = 50_000.0;
+    let step = grid_step(groups);
     let bands: Vec<Vec<(f64, f64, f64, f64)>> = groups
         .iter()
-        .map(|g| mean_band_frames(&g.seeds, window, STEP))
+        .map(|g| mean_band_frames(&g.seeds, window, step))
         .collect();
     let max_x = bands
         .iter()
         .flat_map(|b| b.iter().map(|p| p.0))
-        .fold(STEP, f64::max);
+        .fold(step, f64::max);
     let refs: Vec<Vec<(f64, f64)>> = references
         .iter()
         .map(|r| r.points.iter().copied().filter(|p| p.0 <= max_x).collect())

@@ -177,3 +177,26 @@ fn the_notebooks_digitised_plot_reads() {
     let curve = read_digitized(Path::new(path), "nb").unwrap();
     assert_eq!(curve.points.len(), 799);
 }
+
+/// `plot --group` of runs shorter than the 50 000-frame grid: the grid shrinks to a hundredth
+/// of the shortest run, so their curves have points (a grid of 50 000 frames gave none).
+#[test]
+fn short_runs_get_a_grid_of_their_own() {
+    let seed = |n: u64| -> Vec<(f64, f64)> { (1..=n).map(|e| (e as f64 * 200.0, 1.0)).collect() };
+    let groups = [Group {
+        label: "short".into(),
+        seeds: vec![seed(10), seed(12)],
+    }];
+    let step = grid_step(&groups);
+    assert_eq!(step, 20.0);
+    assert!(mean_band_frames(&groups[0].seeds, 5, step).len() >= 90);
+    let long = [Group {
+        label: "long".into(),
+        seeds: vec![seed(100_000)],
+    }];
+    assert_eq!(
+        grid_step(&long),
+        50_000.0,
+        "long runs keep the article's grid"
+    );
+}

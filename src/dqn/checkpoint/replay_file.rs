@@ -66,8 +66,12 @@ pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow:
         ("agent_steps".to_string(), counters.agent_steps.to_string()),
     ]);
     write_atomic_with(path, |tmp| {
-        safetensors::serialize_to_file(tensors, &Some(meta), tmp)?;
-        Ok(())
+        // The operating system's error as itself (a full disk says so), not as the library's
+        // `IoError(Os { … })`.
+        safetensors::serialize_to_file(tensors, &Some(meta), tmp).map_err(|e| match e {
+            safetensors::SafeTensorError::IoError(io) => anyhow::Error::from(io),
+            e => anyhow::anyhow!("{e}"),
+        })
     })?;
     Ok(checksum)
 }
