@@ -221,3 +221,36 @@ pub fn metrics_but_wall_time(dir: &std::path::Path) -> Vec<String> {
         .map(|l| l.rsplit_once(',').unwrap().0.to_string())
         .collect()
 }
+
+/// Asserts a failure (any non-zero exit) whose message contains `needle`, without a panic.
+#[allow(dead_code)]
+pub fn fails_saying(out: &Output, needle: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "expected a failure, got success: {err}"
+    );
+    assert!(
+        err.contains(needle),
+        "error should mention `{needle}`:\n{err}"
+    );
+    assert!(
+        !err.contains("panicked"),
+        "a panic is not a clear error:\n{err}"
+    );
+}
+
+/// The line of a results table whose first cell is `first`; fails the test if there is none.
+#[allow(dead_code)]
+pub fn row<'a>(table: &'a str, first: &str) -> &'a str {
+    table
+        .lines()
+        .find(|l| l.starts_with(&format!("| {first} | ")))
+        .unwrap_or_else(|| panic!("no row for {first}:\n{table}"))
+}
+
+/// `args` run to completion (the binary's arguments as owned strings).
+#[allow(dead_code)]
+pub fn run_owned(args: &[String]) -> Output {
+    invaders(&args.iter().map(String::as_str).collect::<Vec<_>>())
+}
