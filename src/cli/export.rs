@@ -27,17 +27,15 @@ pub struct ExportArgs {
 pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
     let file = checkpoint::network_file(&args.checkpoint)?;
     let out = super::guard::OutputFile::check(&args.out, args.force, &[&file], "--out")?;
-    let raw = std::fs::read(&file).with_context(|| format!("cannot read {}", file.display()))?;
     // A model file (a shipped model's folder) is already what export writes: checked, then
     // written as it is.
-    let (bytes, counters) = if checkpoint::is_model_bytes(&raw) {
-        let model = checkpoint::model_from_bytes(&raw)
-            .with_context(|| format!("{} is not a valid model", file.display()))?;
-        (raw, model.counters)
-    } else {
-        let ckpt = checkpoint::load(&file)?;
-        let bytes = checkpoint::model_to_bytes(&ckpt.config, &ckpt.counters, &ckpt.learner)?;
-        (bytes, ckpt.counters)
+    let (bytes, counters) = match checkpoint::read_model_file(&file)? {
+        Some((raw, model)) => (raw, model.counters),
+        None => {
+            let ckpt = checkpoint::load(&file)?;
+            let bytes = checkpoint::model_to_bytes(&ckpt.config, &ckpt.counters, &ckpt.learner)?;
+            (bytes, ckpt.counters)
+        }
     };
     out.write(&bytes)
         .with_context(|| format!("cannot export to {}", args.out.display()))?;

@@ -134,7 +134,7 @@ pub use format::{
     from_bytes, load, snapshot_to_bytes, tensors_checksum, to_bytes, MAX_CHECKPOINT_BYTES,
 };
 pub use model::{
-    is_model_bytes, load_model, model_from_bytes, model_to_bytes, network_file, Model, MODEL_FILE,
+    load_model, model_from_bytes, model_to_bytes, network_file, read_model_file, Model, MODEL_FILE,
 };
 pub use replay_file::{read_replay, replay_file_name, replay_from_bytes, save_replay};
 pub use run_dir::{load_run, load_run_replay, save_run, save_snapshot};

@@ -27,10 +27,19 @@ pub fn network_file(path: &Path) -> anyhow::Result<std::path::PathBuf> {
     Ok(model)
 }
 
-/// Whether `bytes` are a weights-only model file (format [`MODEL_FORMAT`]) rather than a
-/// checkpoint; nothing else is checked.
-pub fn is_model_bytes(bytes: &[u8]) -> bool {
-    parse(bytes).is_ok_and(|(_, meta)| meta_get(&meta, "format").is_ok_and(|f| f == MODEL_FORMAT))
+/// The bytes of `path` if it is a weights-only model file (format [`MODEL_FORMAT`]), checked
+/// whole; `None` if it is a checkpoint (or anything else, which [`load`] then refuses). Read as
+/// [`load`] reads: a regular file of bounded size only, so `/dev/zero` is refused, not read.
+pub fn read_model_file(path: &Path) -> anyhow::Result<Option<(Vec<u8>, Model)>> {
+    let bytes = read_checkpoint_file(path, "model")?;
+    let is_model = parse(&bytes)
+        .is_ok_and(|(_, meta)| meta_get(&meta, "format").is_ok_and(|f| f == MODEL_FORMAT));
+    if !is_model {
+        return Ok(None);
+    }
+    let model = model_from_bytes(&bytes)
+        .with_context(|| format!("{} is not a valid model", path.display()))?;
+    Ok(Some((bytes, model)))
 }
 
 /// A trained network for playing: from a checkpoint or a weights-only model file.
