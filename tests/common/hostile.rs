@@ -5,7 +5,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStderr, Command, Output, Stdio};
 
-use super::cli::{ok, s, tmp_dir, train, write_file};
+use super::cli::{bin, invaders, ok, s, tmp_dir, train, train_command, write_file};
 
 /// Short episodes (cut at 50 agent steps), learning early, a checkpoint after every episode.
 pub const FAST: &str = "learning_starts = 30\nreplay_capacity = 300\nbatch_size = 8\ncheckpoint_every = 1\nplot_every = 1000\n[env]\nmax_episode_steps = 50\n";
@@ -135,4 +135,119 @@ pub fn train_strong(cfg: &str, frames: u64, out: &Path) {
         "--out",
         s(out),
     ]));
+}
+
+pub fn tmp(name: &str) -> PathBuf {
+    tmp_dir("invaders-hostile", name)
+}
+
+/// Writes `text` to `root/fast.toml`; returns its path.
+pub fn config(root: &Path, text: &str) -> String {
+    s(&write_file(root, "fast.toml", text)).to_string()
+}
+
+/// A new temporary directory ([`tmp`]) with `text` in its `fast.toml` ([`config`]): the
+/// directory and the configuration's path.
+pub fn tmp_config(name: &str, text: &str) -> (PathBuf, String) {
+    let root = tmp(name);
+    let cfg = config(&root, text);
+    (root, cfg)
+}
+
+/// [`FAST`] without periodic checkpoints: only the end of the budget or a stop writes one.
+pub fn no_periodic_checkpoint() -> String {
+    FAST.replace("checkpoint_every = 1", "checkpoint_every = 1000")
+}
+
+/// One episode of `run`'s checkpoint, recorded to `gif`.
+pub fn eval_gif(run: &Path, gif: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "eval",
+        "--checkpoint",
+        s(run),
+        "--episodes",
+        "1",
+        "--gif",
+        s(gif),
+    ];
+    args.extend_from_slice(extra);
+    invaders(&args)
+}
+
+/// `train` of `cfg` on one thread with its standard error piped, and the lines it prints there.
+pub fn spawn_train(
+    cfg: &str, seed: u64, episodes: u64, out: &Path,
+) -> (
+    std::process::Child,
+    std::io::Lines<BufReader<std::process::ChildStderr>>,
+) {
+    let mut child = train_command(cfg, seed, episodes, out)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    (child, lines)
+}
+
+/// Reads `lines` until one starts with `prefix`.
+pub fn wait_for_line(lines: &mut impl Iterator<Item = std::io::Result<String>>, prefix: &str) {
+    assert!(
+        lines.map_while(Result::ok).any(|l| l.starts_with(prefix)),
+        "no line `{prefix}…`"
+    );
+}
+
+pub fn sigterm(child: &std::process::Child) {
+    let sent = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(sent.success());
+}
+
+/// Runs the program with `args`, its standard output closed at once (a reader that left) if
+/// `close_stdout`, else discarded; fails the test if it runs over `secs` seconds. Returns its
+/// status and what it said on standard error.
+pub fn run_within(
+    args: &[&str], close_stdout: bool, secs: u64,
+) -> (std::process::ExitStatus, String) {
+    let mut child = bin()
+        .args(args)
+        .stdout(if close_stdout {
+            Stdio::piped()
+        } else {
+            Stdio::null()
+        })
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let status = wait_at_most(&mut child, secs, &args.join(" "));
+    (status, read_all(child.stderr.take()))
+}
+
+/// Waits for `child` at most `secs` seconds; kills it and fails the test if it is still running.
+pub fn wait_at_most(
+    child: &mut std::process::Child, secs: u64, what: &str,
+) -> std::process::ExitStatus {
+    let started = std::time::Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status;
+        }
+        if started.elapsed().as_secs() >= secs {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{what}: still running after {secs} s");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
+pub fn read_all(pipe: Option<impl std::io::Read>) -> String {
+    let mut text = String::new();
+    if let Some(mut p) = pipe {
+        let _ = p.read_to_string(&mut text);
+    }
+    text
 }
