@@ -12,8 +12,9 @@
 
 use std::arch::x86_64::*;
 
-use super::super::gather::{row_start, rows_per_task, GatherGemm, Init};
+use super::super::gather::{row_start, rows_per_task, GatherGemm};
 use super::gather_avx512::{split_tasks, Dest};
+use super::sums::{self, End, Start};
 
 /// Reduction steps per block: the block's `b` rows of one panel (128 × 16 floats, 8 KiB) stay in
 /// L1 while every row tile of a task runs over them.
@@ -47,14 +48,6 @@ fn tile_rows(nv: usize) -> usize {
 /// Tile rows of a full 4-vector panel.
 const MR4: usize = 2;
 
-/// How a tile starts its sums.
-#[derive(Clone, Copy)]
-enum Start {
-    Zero,
-    Load,
-    Bias(*const f32),
-}
-
 /// The lane mask of `lanes` (0 to 8) leading lanes, for `maskload`/`maskstore`.
 #[inline]
 fn lane_mask(lanes: usize) -> [i32; 8] {
@@ -75,16 +68,7 @@ unsafe fn tile<const H: usize, const NV: usize, const FULL: bool>(
     a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
     crow: &[usize], masks: [__m256i; NV], start: Start, relu: bool,
 ) {
-    let mut acc = [[_mm256_setzero_ps(); NV]; H];
-    for r in 0..H {
-        for v in 0..NV {
-            acc[r][v] = match start {
-                Start::Zero => _mm256_setzero_ps(),
-                Start::Load => _mm256_maskload_ps(c.add(crow[r] + 8 * v), masks[v]),
-                Start::Bias(bias) => _mm256_maskload_ps(bias.add(8 * v), masks[v]),
-            };
-        }
-    }
+    let mut acc = sums::start::<__m256, H, NV>(c, crow, masks, start);
     let mut rows = [a; H];
     for r in 0..H {
         rows[r] = a.add(p[r]);
@@ -131,16 +115,7 @@ unsafe fn tile<const H: usize, const NV: usize, const FULL: bool>(
             }
         }
     }
-    for r in 0..H {
-        for v in 0..NV {
-            let val = if relu {
-                _mm256_max_ps(acc[r][v], _mm256_setzero_ps())
-            } else {
-                acc[r][v]
-            };
-            _mm256_maskstore_ps(c.add(crow[r] + 8 * v), masks[v], val);
-        }
-    }
+    sums::end(&acc, c, crow, masks, End::relu(relu));
 }
 
 /// A block of reduction offsets as a tile walks them.
@@ -304,11 +279,7 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
     let run = |t: usize, cc: &mut [f32], base: usize| {
         let r0 = t * rpt;
         let pr = &g.p[r0..(r0 + rpt).min(rows)];
-        let init = match g.init {
-            Init::Zero => Start::Zero,
-            Init::Accumulate => Start::Load,
-            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-        };
+        let init = Start::of(&g.init);
         let dest = Dest {
             c_rows,
             ldc,

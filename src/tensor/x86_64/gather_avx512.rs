@@ -6,9 +6,11 @@
 //! with the column tail under a mask, except a lone row (a GEMV) which takes 128-column
 //! panels. Leftover rows get one tile of their height.
 
-use crate::tensor::gather::{row_start, rows_per_task, GatherGemm, Init};
+use crate::tensor::gather::{row_start, rows_per_task, GatherGemm};
 use rayon::prelude::*;
 use std::arch::x86_64::*;
+
+use super::sums::{self, End, Start};
 
 use crate::tensor::cpu::avx512 as available;
 
@@ -70,23 +72,6 @@ impl<'a> Steps<'a> {
     }
 }
 
-/// How a tile leaves its sums in `C`.
-#[derive(Clone, Copy)]
-enum End {
-    Store,
-    /// `max(sum, 0)`: the last block of a GEMM with a fused ReLU.
-    Relu,
-    /// Added to what is there (a scatter).
-    Add,
-}
-
-#[derive(Clone, Copy)]
-enum Start {
-    Zero,
-    Load,
-    Bias(*const f32),
-}
-
 /// One vector of a `b` row: a plain load for a full panel (`FULL`), else under its lane mask.
 /// A masked load with a mask known only at run time costs this core an extra uop on the
 /// vector ports the FMAs use: a 6 × 4 tile over L1-resident data ran at 89–117 GFLOP/s with
@@ -117,16 +102,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
     a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
     crow: &[usize], masks: [u16; NV], start: Start, end: End,
 ) {
-    let mut acc = [[_mm512_setzero_ps(); NV]; MR];
-    for r in 0..MR {
-        for v in 0..NV {
-            acc[r][v] = match start {
-                Start::Zero => _mm512_setzero_ps(),
-                Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
-                Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
-            };
-        }
-    }
+    let mut acc = sums::start::<__m512, MR, NV>(c, crow, masks, start);
     let mut rows = [a; MR];
     for r in 0..MR {
         rows[r] = a.add(p[r]);
@@ -170,19 +146,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
             brow = brow.add(ldb);
         }
     }
-    // With `Add`, row by row (load, add, store), so rows whose destinations overlap (a
-    // scatter onto overlapping windows) each see the previous row's sum.
-    for r in 0..MR {
-        for v in 0..NV {
-            let dst = c.add(crow[r] + 16 * v);
-            let val = match end {
-                End::Store => acc[r][v],
-                End::Relu => _mm512_max_ps(acc[r][v], _mm512_setzero_ps()),
-                End::Add => _mm512_add_ps(_mm512_maskz_loadu_ps(masks[v], dst), acc[r][v]),
-            };
-            _mm512_mask_storeu_ps(dst, masks[v], val);
-        }
-    }
+    sums::end(&acc, c, crow, masks, end);
 }
 
 /// `$tile::<$mr, NV, FULL>(args…, masks, tail…)` for a panel `nv` vectors wide (1 to 4) with
@@ -558,11 +522,7 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
     // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
     let mr = tile_rows(g.n);
     let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
-        let init = match g.init {
-            Init::Zero => Start::Zero,
-            Init::Accumulate => Start::Load,
-            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-        };
+        let init = Start::of(&g.init);
         // SAFETY: AVX-512F checked above; `check` proved every `a`, `b` and bias index in
         // bounds, and this task's rows of C lie inside `cc` (rows increase and the next
         // task's part starts where its first row does), which no other task touches.

@@ -3,11 +3,11 @@
 //! of `b` (16 columns × 2 bf16 each), broadcasts each row's pair (one 32-bit load), and
 //! issues `MR·NV` `vdpbf16ps`: `MR + NV` loads per `2·16·MR·NV` multiply-adds.
 
-use crate::tensor::gather::Init;
 use crate::tensor::gather_bf16::GatherGemmBf16;
 use crate::tensor::x86_64::gather_avx512::{
     by_height, by_panel, panel_masks, split_rows, tile_rows, Dest,
 };
+use crate::tensor::x86_64::sums::{self, End, Start};
 use std::arch::x86_64::*;
 
 /// Pairs per block: the task's row tiles run over one block of `b` (256 pairs × 64 columns ×
@@ -43,13 +43,6 @@ impl<'a> Operands<'a> {
     }
 }
 
-#[derive(Clone, Copy)]
-enum Start {
-    Zero,
-    Load,
-    Bias(*const f32),
-}
-
 /// One `MR × 16·NV` tile over the pairs `q` of one block.
 ///
 /// # Safety
@@ -63,16 +56,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
     a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize, c: *mut f32,
     crow: &[usize], masks: [u16; NV], start: Start, relu: bool,
 ) {
-    let mut acc = [[_mm512_setzero_ps(); NV]; MR];
-    for r in 0..MR {
-        for v in 0..NV {
-            acc[r][v] = match start {
-                Start::Zero => _mm512_setzero_ps(),
-                Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
-                Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
-            };
-        }
-    }
+    let mut acc = sums::start::<__m512, MR, NV>(c, crow, masks, start);
     let mut rows = [a; MR];
     for r in 0..MR {
         rows[r] = a.add(p[r]);
@@ -99,16 +83,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
         }
         brow = brow.add(2 * ldb);
     }
-    for r in 0..MR {
-        for v in 0..NV {
-            let val = if relu {
-                _mm512_max_ps(acc[r][v], _mm512_setzero_ps())
-            } else {
-                acc[r][v]
-            };
-            _mm512_mask_storeu_ps(c.add(crow[r] + 16 * v), masks[v], val);
-        }
-    }
+    sums::end(&acc, c, crow, masks, End::relu(relu));
 }
 
 /// Dispatches one tile on the panel width (in vectors) and whether it is full.
@@ -211,11 +186,7 @@ pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
     let op = Operands::of(&g);
     let init = g.init;
     let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
-        let st = match init {
-            Init::Zero => Start::Zero,
-            Init::Accumulate => Start::Load,
-            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-        };
+        let st = Start::of(&init);
         // SAFETY: AVX512-BF16 checked above; `check` proved every `a`, `b` and bias index
         // in bounds, and this task's rows of C lie inside `cc` (rows increase and the next
         // task's part starts where its first row does), which no other task touches.

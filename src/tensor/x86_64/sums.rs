@@ -1,0 +1,97 @@
+//! A gather tile's sums in registers, for all three gather kernels (AVX2's `gather_avx2.rs`,
+//! AVX-512's `gather_avx512.rs` and AVX512-BF16's `gather_bf16_avx512.rs`): how an `MR × NV`
+//! block of accumulators starts ([`Start`], [`start`]) and how it leaves its sums in `C`
+//! ([`End`], [`end`]), written once over the register ([`F32s`]); each kernel's own loop of
+//! products runs between the two.
+
+use super::simd::F32s;
+use crate::tensor::gather::Init;
+
+/// How a tile starts its sums.
+#[derive(Clone, Copy)]
+pub(super) enum Start {
+    /// From zero.
+    Zero,
+    /// From what `C` holds (a block after the first, or a product added to `C`).
+    Load,
+    /// From the bias row at this pointer (the panel's columns).
+    Bias(*const f32),
+}
+
+impl Start {
+    /// How a product's first block starts, from its [`Init`].
+    pub(super) fn of(init: &Init<'_, f32>) -> Start {
+        match init {
+            Init::Zero => Start::Zero,
+            Init::Accumulate => Start::Load,
+            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
+        }
+    }
+}
+
+/// How a tile leaves its sums in `C`.
+#[derive(Clone, Copy)]
+pub(super) enum End {
+    Store,
+    /// `max(sum, 0)`: the last block of a GEMM with a fused ReLU.
+    Relu,
+    /// Added to what is there (a scatter).
+    Add,
+}
+
+impl End {
+    /// [`End::Relu`] where `relu`, else [`End::Store`].
+    pub(super) fn relu(relu: bool) -> End {
+        if relu {
+            End::Relu
+        } else {
+            End::Store
+        }
+    }
+}
+
+/// The `MR × NV` accumulators of a tile whose rows of `C` are `c + crow[r]`, `NV` registers
+/// a row under the lane masks `masks`, as `start` says.
+///
+/// # Safety
+/// `V`'s instruction set available; for `Load`, the masked lanes of each row readable; for
+/// `Bias`, the masked lanes of the bias readable.
+#[inline(always)]
+pub(super) unsafe fn start<V: F32s, const MR: usize, const NV: usize>(
+    c: *const f32, crow: &[usize], masks: [V::Mask; NV], start: Start,
+) -> [[V; NV]; MR] {
+    let mut acc = [[V::zero(); NV]; MR];
+    for r in 0..MR {
+        for v in 0..NV {
+            acc[r][v] = match start {
+                Start::Zero => V::zero(),
+                Start::Load => V::load_masked(c.add(crow[r] + V::LANES * v), masks[v]),
+                Start::Bias(bias) => V::load_masked(bias.add(V::LANES * v), masks[v]),
+            };
+        }
+    }
+    acc
+}
+
+/// Leaves the sums `acc` in the rows `c + crow[r]` of `C` as `end` says, under the lane
+/// masks. With `Add`, row by row (load, add, store), so rows whose destinations overlap (a
+/// scatter onto overlapping windows) each see the previous row's sum.
+///
+/// # Safety
+/// `V`'s instruction set available; the masked lanes of each row readable and writable.
+#[inline(always)]
+pub(super) unsafe fn end<V: F32s, const MR: usize, const NV: usize>(
+    acc: &[[V; NV]; MR], c: *mut f32, crow: &[usize], masks: [V::Mask; NV], end: End,
+) {
+    for r in 0..MR {
+        for v in 0..NV {
+            let dst = c.add(crow[r] + V::LANES * v);
+            let val = match end {
+                End::Store => acc[r][v],
+                End::Relu => V::max(acc[r][v], V::zero()),
+                End::Add => V::add(V::load_masked(dst, masks[v]), acc[r][v]),
+            };
+            V::store_masked(dst, masks[v], val);
+        }
+    }
+}
