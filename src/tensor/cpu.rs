@@ -18,7 +18,14 @@
 //! `vdpbf16ps`, as on a CPU without them. The four are read once, at the first call, so a
 //! process runs one way throughout.
 //!
-//! The kernels are selected by [`crate::ops::plan`]; nothing else asks the CPU.
+//! The choice of a kernel has two tiers, and this module is the second. [`crate::ops::plan`]
+//! chooses the algorithm of each product (the gather GEMM, Winograd, the sparse or background
+//! product, im2col + faer; f32 or bf16), and reads this module only for that. The family it
+//! chose then picks its instruction set on every call, here and nowhere else: the f32 families
+//! (gather and scatter GEMMs, Winograd's transforms, the sparse and background products, the
+//! transposes) by [`path`] (or [`avx512`] where they have no AVX2 loop), the bf16 products by
+//! [`avx512_bf16`], and the bf16 gather GEMM first by [`amx`] (`crate::tensor::gather_bf16`).
+//! The plan only names what these say, for the record ([`crate::ops::plan::kernels`]).
 //!
 //! Each hand-written kernel family records which of its loops ran ([`took`], read back by
 //! [`paths`]), per thread, on the thread that called it: a test can then prove that the
