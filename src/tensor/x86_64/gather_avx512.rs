@@ -248,6 +248,48 @@ impl Dest<'_> {
     pub(crate) fn at(&self, i: usize) -> usize {
         row_start(self.c_rows, self.ldc, self.r0 + i) - self.base
     }
+
+    /// Where the tile of rows `r .. r + h` starts (row `r`), and each of its rows from there
+    /// (rows past `h`, never used, 0): a tile's `c` and `crow`.
+    pub(crate) fn tile<const N: usize>(&self, r: usize, h: usize) -> (usize, [usize; N]) {
+        let d0 = self.at(r);
+        (
+            d0,
+            std::array::from_fn(|i| if i < h { self.at(r + i) - d0 } else { 0 }),
+        )
+    }
+}
+
+/// A task's `nr` rows in tiles of `mr` (the last one shorter): each tile's first row and
+/// height.
+pub(crate) fn row_tiles(nr: usize, mr: usize) -> impl Iterator<Item = (usize, usize)> {
+    (0..nr).step_by(mr).map(move |r| (r, (nr - r).min(mr)))
+}
+
+/// The operands every task of a gather GEMM reads (all four kernels: `A` and `B` of `T`,
+/// f32 or bf16 bits); a task's rows of `p` and part of `C` come beside them.
+#[derive(Clone, Copy)]
+pub(crate) struct Operands<'a, T> {
+    pub(crate) a: &'a [T],
+    pub(crate) q: &'a [usize],
+    pub(crate) b: &'a [T],
+    pub(crate) ldb: usize,
+    pub(crate) n: usize,
+    pub(crate) relu: bool,
+}
+
+impl<'a, T> Operands<'a, T> {
+    /// The operands of `g`.
+    pub(crate) fn of<O>(g: &GatherGemm<'a, T, O>) -> Self {
+        Operands {
+            a: g.a,
+            q: g.q,
+            b: g.b,
+            ldb: g.ldb,
+            n: g.n,
+            relu: g.relu,
+        }
+    }
 }
 
 /// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part).
@@ -255,11 +297,10 @@ impl Dest<'_> {
 /// # Safety
 /// AVX-512F available; the bounds of [`GatherGemm::check`] hold for these rows.
 #[target_feature(enable = "avx512f")]
-#[allow(clippy::too_many_arguments)]
 unsafe fn task(
-    mr: usize, a: &[f32], p: &[usize], q: &[usize], b: &[f32], ldb: usize, n: usize, c: *mut f32,
-    dest: Dest<'_>, init: Start, relu: bool,
+    mr: usize, op: Operands<'_, f32>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start,
 ) {
+    let (a, q, b, ldb, n, relu) = (op.a, op.q, op.b, op.ldb, op.n, op.relu);
     let nr = p.len();
     let steps = q.len();
     let tb = block_len(n, steps);
@@ -286,49 +327,32 @@ unsafe fn task(
         } else {
             b.as_ptr().add(t0 * ldb)
         };
-        let start = if blk == 0 { init } else { Start::Load };
-        let end = if relu && blk + 1 == nblocks {
-            End::Relu
-        } else {
-            End::Store
-        };
+        let start = init.block(blk);
+        let end = End::relu(relu && blk + 1 == nblocks);
         // Panels outer, row tiles inner: one panel's block of `b` (128 steps × 64 columns,
         // 32 KiB) stays in L1 across all the task's row tiles. (Both of dense1's panels,
         // 64 KiB, would not: each tile would read them again from L2.)
         for j0 in (0..n).step_by(64) {
             let (m, nv) = panel_masks(n, j0);
-            let mut r = 0;
-            while r < nr {
-                let h = (nr - r).min(mr);
-                let d0 = dest.at(r);
+            for (r, h) in row_tiles(nr, mr) {
                 let pr = &p[r..r + h];
                 let ap = a.as_ptr();
                 if h == 1 && n - j0 / 128 * 128 >= 128 {
                     // A single row (dense1 at batch 1: a GEMV over 3.6 MB of weights, bound
                     // by memory): 128-column panels, so each row of `b` is read in one sweep.
                     if j0 % 128 == 0 {
-                        let st = match start {
-                            Start::Bias(bias) => Start::Bias(bias.add(j0)),
-                            s => s,
-                        };
-                        let (cp, bp) = (c.add(d0 + j0), bb.add(j0));
+                        let (cp, bp) = (c.add(dest.at(r) + j0), bb.add(j0));
+                        let st = start.panel(j0);
                         tile::<1, 8, true>(ap, pr, qr, bp, ldb, cp, &[0], [!0; 8], st, end);
                     }
-                    r += mr;
                     continue;
                 }
                 if streamed && j0 == 0 && r + mr < nr {
                     let next = &p[r + mr..(r + 2 * mr).min(nr)];
                     prefetch_rows(ap, next, qr);
                 }
-                // Row offsets from the tile's first row (rows past `h` are never used).
-                let crow: [usize; 10] =
-                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
-                let st = match start {
-                    Start::Bias(bias) => Start::Bias(bias.add(j0)),
-                    s => s,
-                };
-                let (cp, bp) = (c.add(d0 + j0), bb.add(j0));
+                let (d0, crow) = dest.tile::<10>(r, h);
+                let (cp, bp, st) = (c.add(d0 + j0), bb.add(j0), start.panel(j0));
                 if h == mr {
                     match mr {
                         10 => tile_nv::<10>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
@@ -338,7 +362,6 @@ unsafe fn task(
                 } else {
                     tile_any(h, nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end);
                 }
-                r += mr;
             }
         }
     }
@@ -456,9 +479,7 @@ unsafe fn scatter_task(
     // Panels outer, row tiles inner: one panel of `b` (64 steps × 64 columns, 16 KiB for a
     // convolution's `Wᵀ`) stays in L1 across all the group's row tiles.
     for j0 in (0..n).step_by(64) {
-        let mut r = 0;
-        while r < nr {
-            let h = (nr - r).min(mr);
+        for (r, h) in row_tiles(nr, mr) {
             let (m, nv) = panel_masks(n, j0);
             let w = (n - j0).min(64);
             let direct = contiguous(j0);
@@ -505,7 +526,6 @@ unsafe fn scatter_task(
                     }
                 }
             }
-            r += mr;
         }
     }
 }
@@ -515,32 +535,18 @@ unsafe fn scatter_task(
 pub fn gather_gemm(g: GatherGemm<'_, f32>) {
     assert!(available(), "gather_gemm: AVX-512F and FMA needed");
     g.check();
-    let rows = g.p.len();
-    if rows == 0 || g.n == 0 {
+    if g.is_empty() {
         return;
     }
     // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
     let mr = tile_rows(g.n);
+    let op = Operands::of(&g);
     let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
         let init = Start::of(&g.init);
         // SAFETY: AVX-512F checked above; `check` proved every `a`, `b` and bias index in
         // bounds, and this task's rows of C lie inside `cc` (rows increase and the next
         // task's part starts where its first row does), which no other task touches.
-        unsafe {
-            task(
-                mr,
-                g.a,
-                pr,
-                g.q,
-                g.b,
-                g.ldb,
-                g.n,
-                cc.as_mut_ptr(),
-                dest,
-                init,
-                g.relu,
-            )
-        }
+        unsafe { task(mr, op, pr, cc.as_mut_ptr(), dest, init) }
     };
     let (steps, n) = (g.q.len(), g.n);
     split_rows(g.c, g.p, g.c_rows, g.ldc, n, steps, mr, &leaf);

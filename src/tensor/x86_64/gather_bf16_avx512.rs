@@ -5,7 +5,7 @@
 
 use crate::tensor::gather_bf16::GatherGemmBf16;
 use crate::tensor::x86_64::gather_avx512::{
-    by_height, by_panel, panel_masks, split_rows, tile_rows, Dest,
+    by_height, by_panel, panel_masks, row_tiles, split_rows, tile_rows, Dest, Operands,
 };
 use crate::tensor::x86_64::sums::{self, End, Start};
 use std::arch::x86_64::*;
@@ -18,31 +18,6 @@ use std::arch::x86_64::*;
 /// with 256.
 const TP: usize = 256;
 
-/// The operands every task of a bf16 gather GEMM reads (this kernel's and the AMX one's).
-#[derive(Clone, Copy)]
-pub(crate) struct Operands<'a> {
-    pub(crate) a: &'a [u16],
-    pub(crate) q: &'a [usize],
-    pub(crate) b: &'a [u16],
-    pub(crate) ldb: usize,
-    pub(crate) n: usize,
-    pub(crate) relu: bool,
-}
-
-impl<'a> Operands<'a> {
-    /// The operands of `g`.
-    pub(crate) fn of(g: &GatherGemmBf16<'a>) -> Self {
-        Operands {
-            a: g.a,
-            q: g.q,
-            b: g.b,
-            ldb: g.ldb,
-            n: g.n,
-            relu: g.relu,
-        }
-    }
-}
-
 /// One `MR × 16·NV` tile over the pairs `q` of one block.
 ///
 /// # Safety
@@ -54,7 +29,7 @@ impl<'a> Operands<'a> {
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
     a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize, c: *mut f32,
-    crow: &[usize], masks: [u16; NV], start: Start, relu: bool,
+    crow: &[usize], masks: [u16; NV], start: Start, end: End,
 ) {
     let mut acc = sums::start::<__m512, MR, NV>(c, crow, masks, start);
     let mut rows = [a; MR];
@@ -83,7 +58,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
         }
         brow = brow.add(2 * ldb);
     }
-    sums::end(&acc, c, crow, masks, End::relu(relu));
+    sums::end(&acc, c, crow, masks, end);
 }
 
 /// Dispatches one tile on the panel width (in vectors) and whether it is full.
@@ -95,9 +70,9 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_nv<const MR: usize>(
     nv: usize, a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize, c: *mut f32,
-    crow: &[usize], m: [u16; 4], start: Start, relu: bool,
+    crow: &[usize], m: [u16; 4], start: Start, end: End,
 ) {
-    by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, relu))
+    by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, end))
 }
 
 /// A tile of any height `h < 10` (the rows left over after the full tiles).
@@ -108,9 +83,9 @@ unsafe fn tile_nv<const MR: usize>(
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_any(
     h: usize, nv: usize, a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize,
-    c: *mut f32, crow: &[usize], m: [u16; 4], start: Start, relu: bool,
+    c: *mut f32, crow: &[usize], m: [u16; 4], start: Start, end: End,
 ) {
-    by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, relu))
+    by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, end))
 }
 
 /// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part):
@@ -120,15 +95,10 @@ unsafe fn tile_any(
 /// AVX-512F and AVX512-BF16; the bounds of [`GatherGemmBf16::check`] hold for these rows.
 #[target_feature(enable = "avx512f,avx512bf16")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn task(mr: usize, op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start) {
-    let Operands {
-        a,
-        q,
-        b,
-        ldb,
-        n,
-        relu,
-    } = op;
+unsafe fn task(
+    mr: usize, op: Operands<'_, u16>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start,
+) {
+    let (a, q, b, ldb, n, relu) = (op.a, op.q, op.b, op.ldb, op.n, op.relu);
     let (nr, pairs) = (p.len(), q.len());
     let nblocks = pairs.div_ceil(TP).max(1);
     for blk in 0..nblocks {
@@ -139,32 +109,24 @@ unsafe fn task(mr: usize, op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest
         } else {
             b.as_ptr().add(2 * u0 * ldb)
         };
-        let start = if blk == 0 { init } else { Start::Load };
-        let relu = relu && blk + 1 == nblocks;
+        let start = init.block(blk);
+        let end = End::relu(relu && blk + 1 == nblocks);
         for j0 in (0..n).step_by(64) {
             let (m, nv) = panel_masks(n, j0);
-            let mut r = 0;
-            while r < nr {
-                let h = (nr - r).min(mr);
-                let d0 = dest.at(r);
+            for (r, h) in row_tiles(nr, mr) {
                 let pr = &p[r..r + h];
-                let crow: [usize; 10] =
-                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
-                let st = match start {
-                    Start::Bias(bias) => Start::Bias(bias.add(j0)),
-                    s => s,
-                };
+                let (d0, crow) = dest.tile::<10>(r, h);
                 let (ap, cp, bp) = (a.as_ptr(), c.add(d0 + j0), bb.add(2 * j0));
+                let st = start.panel(j0);
                 if h == mr {
                     match mr {
-                        10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
-                        8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
-                        _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
+                        10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end),
+                        8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end),
+                        _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end),
                     }
                 } else {
-                    tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu);
+                    tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end);
                 }
-                r += mr;
             }
         }
     }
@@ -178,8 +140,7 @@ pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
         "gather_gemm_bf16: AVX512-BF16 needed"
     );
     g.check();
-    let rows = g.p.len();
-    if rows == 0 || g.n == 0 {
+    if g.is_empty() {
         return;
     }
     let mr = tile_rows(g.n);

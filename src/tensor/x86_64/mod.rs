@@ -21,6 +21,7 @@ pub(crate) mod gather_bf16_avx512;
 pub(crate) mod scatter_avx2;
 mod simd;
 pub(crate) mod sparse_avx512;
+mod sparse_simd;
 mod sums;
 pub(crate) mod transpose_avx512;
 pub(crate) mod winograd_avx2;

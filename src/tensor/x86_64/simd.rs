@@ -3,7 +3,9 @@
 //! marked `#[inline(always)]`: a generic body called from a `#[target_feature]` entry point (one
 //! per instruction set, in the family's `*_avx2.rs` and `*_avx512.rs`) is inlined into it whole,
 //! and the intrinsics with it, so the entry point compiles to the same instructions as a body
-//! written for its width.
+//! written for its width. A generic body calls the methods in plain loops, never inside a
+//! closure (`array::from_fn`, `map_or`): a closure is not compiled for the entry point's
+//! instruction set, and where it is not inlined its intrinsics become calls.
 
 use std::arch::x86_64::*;
 
@@ -34,6 +36,10 @@ pub(crate) trait F32s: Copy {
     unsafe fn sub(a: Self, b: Self) -> Self;
     /// `max(a, b)`, lane by lane.
     unsafe fn max(a: Self, b: Self) -> Self;
+    /// `x` in every lane.
+    unsafe fn splat(x: f32) -> Self;
+    /// `a·b + c`, lane by lane, rounded once.
+    unsafe fn fmadd(a: Self, b: Self, c: Self) -> Self;
 }
 
 /// Stamps [`F32s`] for one register type from its intrinsics (`$ld_m`, `$st_m`: the masked
@@ -41,7 +47,7 @@ pub(crate) trait F32s: Copy {
 macro_rules! f32s {
     ($v:ty, $lanes:expr, $mask:ty, $zero:ident, $load:ident, $store:ident,
      |$lp:ident, $lm:ident| $ld_m:expr, |$sp:ident, $sm:ident, $sv:ident| $st_m:expr,
-     $add:ident, $sub:ident, $max:ident) => {
+     $add:ident, $sub:ident, $max:ident, $splat:ident, $fmadd:ident) => {
         impl F32s for $v {
             const LANES: usize = $lanes;
             type Mask = $mask;
@@ -77,33 +83,21 @@ macro_rules! f32s {
             unsafe fn max(a: Self, b: Self) -> Self {
                 $max(a, b)
             }
+            #[inline(always)]
+            unsafe fn splat(x: f32) -> Self {
+                $splat(x)
+            }
+            #[inline(always)]
+            unsafe fn fmadd(a: Self, b: Self, c: Self) -> Self {
+                $fmadd(a, b, c)
+            }
         }
     };
 }
 
-f32s!(
-    __m256,
-    8,
-    __m256i,
-    _mm256_setzero_ps,
-    _mm256_loadu_ps,
-    _mm256_storeu_ps,
-    |p, m| _mm256_maskload_ps(p, m),
-    |p, m, v| _mm256_maskstore_ps(p, m, v),
-    _mm256_add_ps,
-    _mm256_sub_ps,
-    _mm256_max_ps
-);
-f32s!(
-    __m512,
-    16,
-    u16,
-    _mm512_setzero_ps,
-    _mm512_loadu_ps,
-    _mm512_storeu_ps,
-    |p, m| _mm512_maskz_loadu_ps(m, p),
-    |p, m, v| _mm512_mask_storeu_ps(p, m, v),
-    _mm512_add_ps,
-    _mm512_sub_ps,
-    _mm512_max_ps
-);
+f32s! { __m256, 8, __m256i, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps,
+|p, m| _mm256_maskload_ps(p, m), |p, m, v| _mm256_maskstore_ps(p, m, v),
+_mm256_add_ps, _mm256_sub_ps, _mm256_max_ps, _mm256_set1_ps, _mm256_fmadd_ps }
+f32s! { __m512, 16, u16, _mm512_setzero_ps, _mm512_loadu_ps, _mm512_storeu_ps,
+|p, m| _mm512_maskz_loadu_ps(m, p), |p, m, v| _mm512_mask_storeu_ps(p, m, v),
+_mm512_add_ps, _mm512_sub_ps, _mm512_max_ps, _mm512_set1_ps, _mm512_fmadd_ps }

@@ -27,6 +27,27 @@ impl Start {
             Init::Bias(bias) => Start::Bias(bias.as_ptr()),
         }
     }
+
+    /// How block `blk` of the reduction starts: as the product (`self`) for the first, from
+    /// `C` for the others.
+    pub(super) fn block(self, blk: usize) -> Start {
+        if blk == 0 {
+            self
+        } else {
+            Start::Load
+        }
+    }
+
+    /// This start for the panel whose first column is `j0` (a bias moves with the columns).
+    ///
+    /// # Safety
+    /// A bias must hold column `j0`.
+    pub(super) unsafe fn panel(self, j0: usize) -> Start {
+        match self {
+            Start::Bias(bias) => Start::Bias(bias.add(j0)),
+            s => s,
+        }
+    }
 }
 
 /// How a tile leaves its sums in `C`.

@@ -162,8 +162,14 @@ unsafe fn adjoint_tile_v<V: F32s, const P: usize>(
     debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
     let (ip, mp) = (img.as_ptr(), m.as_mut_ptr());
     for c0 in (0..co).step_by(V::LANES) {
-        let y: [V; 4] =
-            std::array::from_fn(|k| at[k].map_or(V::zero(), |o| V::load(ip.add(o + c0))));
+        // A loop, not `array::from_fn`: a closure here would not be compiled for `V`'s
+        // instruction set, and its loads would be calls.
+        let mut y = [V::zero(); 4];
+        for (y, &o) in y.iter_mut().zip(&at) {
+            if let Some(o) = o {
+                *y = V::load(ip.add(o + c0));
+            }
+        }
         for (xi, &val) in transform(&y).iter().enumerate() {
             V::store(mp.add(xi * stride + c0), val);
         }
