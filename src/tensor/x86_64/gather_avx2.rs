@@ -12,6 +12,7 @@
 
 use std::arch::x86_64::*;
 
+use super::super::cpu;
 use super::super::gather::{row_start, rows_per_task, GatherGemm};
 use super::gather_avx512::{row_tiles, split_tasks, Dest, Operands};
 use super::sums::{self, End, Start};
@@ -69,10 +70,7 @@ unsafe fn tile<const H: usize, const NV: usize, const FULL: bool>(
     crow: &[usize], masks: [__m256i; NV], start: Start, end: End,
 ) {
     let mut acc = sums::start::<__m256, H, NV>(c, crow, masks, start);
-    let mut rows = [a; H];
-    for r in 0..H {
-        rows[r] = a.add(p[r]);
-    }
+    let rows = sums::rows::<_, H>(a, p);
     let mut brow = b;
     // One step: the `b` vectors, then each row's broadcast value `a_r` into its accumulators.
     macro_rules! step {
@@ -224,7 +222,7 @@ unsafe fn task(op: Operands<'_, f32>, p: &[usize], c: *mut f32, dest: Dest<'_>, 
                 b.as_ptr().add(t0 * ldb + j0)
             };
             let start = init.block(blk).panel(j0);
-            let end = End::relu(relu && blk + 1 == nblocks);
+            let end = End::last(relu, blk, nblocks);
             for (r, h) in row_tiles(nr, mr) {
                 let (d0, crow) = dest.tile::<MR>(r, h);
                 tile_any(
@@ -250,10 +248,7 @@ unsafe fn task(op: Operands<'_, f32>, p: &[usize], c: *mut f32, dest: Dest<'_>, 
 /// The product on AVX2 and FMA, split over rayon by blocks of rows of `C` whose size depends only
 /// on the shape. Call only where [`super::super::cpu::avx2`] holds.
 pub fn gather_gemm(g: GatherGemm<'_, f32>) {
-    assert!(
-        super::super::cpu::avx2(),
-        "gather_gemm: AVX2 and FMA needed"
-    );
+    assert!(cpu::avx2(), "gather_gemm: AVX2 and FMA needed");
     g.check();
     if g.is_empty() {
         return;

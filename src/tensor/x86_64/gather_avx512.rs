@@ -103,10 +103,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
     crow: &[usize], masks: [u16; NV], start: Start, end: End,
 ) {
     let mut acc = sums::start::<__m512, MR, NV>(c, crow, masks, start);
-    let mut rows = [a; MR];
-    for r in 0..MR {
-        rows[r] = a.add(p[r]);
-    }
+    let rows = sums::rows::<_, MR>(a, p);
     let mut brow = b;
     if let Some(runs) = q.runs {
         // Steps in runs of consecutive offsets (a convolution's patch rows, a plain `A·B`):
@@ -188,6 +185,24 @@ macro_rules! by_height {
     };
 }
 pub(crate) use by_height;
+
+/// One row tile of height `h` whose full height is `mr` (10, 8 or 6): a full tile by
+/// `$full::<MR>(args…)` (inlined), the rows left over by `$any(h, args…)`. Shared with the bf16
+/// kernel.
+macro_rules! by_rows {
+    ($full:ident, $any:ident($h:expr, $mr:expr; $($arg:expr),*)) => {
+        if $h == $mr {
+            match $mr {
+                10 => $full::<10>($($arg),*),
+                8 => $full::<8>($($arg),*),
+                _ => $full::<6>($($arg),*),
+            }
+        } else {
+            $any($h, $($arg),*)
+        }
+    };
+}
+pub(crate) use by_rows;
 
 /// Dispatches one tile on the panel width (in vectors) and whether it is full.
 ///
@@ -327,8 +342,7 @@ unsafe fn task(
         } else {
             b.as_ptr().add(t0 * ldb)
         };
-        let start = init.block(blk);
-        let end = End::relu(relu && blk + 1 == nblocks);
+        let (start, end) = (init.block(blk), End::last(relu, blk, nblocks));
         // Panels outer, row tiles inner: one panel's block of `b` (128 steps × 64 columns,
         // 32 KiB) stays in L1 across all the task's row tiles. (Both of dense1's panels,
         // 64 KiB, would not: each tile would read them again from L2.)
@@ -353,15 +367,7 @@ unsafe fn task(
                 }
                 let (d0, crow) = dest.tile::<10>(r, h);
                 let (cp, bp, st) = (c.add(d0 + j0), bb.add(j0), start.panel(j0));
-                if h == mr {
-                    match mr {
-                        10 => tile_nv::<10>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
-                        8 => tile_nv::<8>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
-                        _ => tile_nv::<6>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
-                    }
-                } else {
-                    tile_any(h, nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end);
-                }
+                by_rows!(tile_nv, tile_any(h, mr; nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end));
             }
         }
     }

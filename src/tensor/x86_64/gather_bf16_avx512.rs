@@ -3,9 +3,10 @@
 //! of `b` (16 columns × 2 bf16 each), broadcasts each row's pair (one 32-bit load), and
 //! issues `MR·NV` `vdpbf16ps`: `MR + NV` loads per `2·16·MR·NV` multiply-adds.
 
+use crate::tensor::cpu;
 use crate::tensor::gather_bf16::GatherGemmBf16;
 use crate::tensor::x86_64::gather_avx512::{
-    by_height, by_panel, panel_masks, row_tiles, split_rows, tile_rows, Dest, Operands,
+    by_height, by_panel, by_rows, panel_masks, row_tiles, split_rows, tile_rows, Dest, Operands,
 };
 use crate::tensor::x86_64::sums::{self, End, Start};
 use std::arch::x86_64::*;
@@ -32,10 +33,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
     crow: &[usize], masks: [u16; NV], start: Start, end: End,
 ) {
     let mut acc = sums::start::<__m512, MR, NV>(c, crow, masks, start);
-    let mut rows = [a; MR];
-    for r in 0..MR {
-        rows[r] = a.add(p[r]);
-    }
+    let rows = sums::rows::<_, MR>(a, p);
     let mut brow = b;
     for &qu in q {
         let mut bv = [_mm512_setzero_si512(); NV];
@@ -109,8 +107,7 @@ unsafe fn task(
         } else {
             b.as_ptr().add(2 * u0 * ldb)
         };
-        let start = init.block(blk);
-        let end = End::relu(relu && blk + 1 == nblocks);
+        let (start, end) = (init.block(blk), End::last(relu, blk, nblocks));
         for j0 in (0..n).step_by(64) {
             let (m, nv) = panel_masks(n, j0);
             for (r, h) in row_tiles(nr, mr) {
@@ -118,15 +115,7 @@ unsafe fn task(
                 let (d0, crow) = dest.tile::<10>(r, h);
                 let (ap, cp, bp) = (a.as_ptr(), c.add(d0 + j0), bb.add(2 * j0));
                 let st = start.panel(j0);
-                if h == mr {
-                    match mr {
-                        10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end),
-                        8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end),
-                        _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end),
-                    }
-                } else {
-                    tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end);
-                }
+                by_rows!(tile_nv, tile_any(h, mr; nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end));
             }
         }
     }
@@ -135,10 +124,7 @@ unsafe fn task(
 /// The product by AVX512-BF16, split over rayon by blocks of rows whose size depends only
 /// on the shape (the same split as the f32 kernel). Call only if the CPU has it.
 pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
-    assert!(
-        crate::tensor::cpu::avx512_bf16(),
-        "gather_gemm_bf16: AVX512-BF16 needed"
-    );
+    assert!(cpu::avx512_bf16(), "gather_gemm_bf16: AVX512-BF16 needed");
     g.check();
     if g.is_empty() {
         return;

@@ -69,6 +69,12 @@ impl End {
             End::Store
         }
     }
+
+    /// How block `blk` of `blocks` leaves `C` in a GEMM with a fused ReLU where `relu`: the
+    /// last block takes the ReLU, the others store the partial sums.
+    pub(super) fn last(relu: bool, blk: usize, blocks: usize) -> End {
+        End::relu(relu && blk + 1 == blocks)
+    }
 }
 
 /// The `MR × NV` accumulators of a tile whose rows of `C` are `c + crow[r]`, `NV` registers
@@ -92,6 +98,19 @@ pub(super) unsafe fn start<V: F32s, const MR: usize, const NV: usize>(
         }
     }
     acc
+}
+
+/// Where each of a tile's `MR` rows of `A` starts: `a + p[r]`.
+///
+/// # Safety
+/// Every `a + p[r]` inside `A`.
+#[inline(always)]
+pub(super) unsafe fn rows<T, const MR: usize>(a: *const T, p: &[usize]) -> [*const T; MR] {
+    let mut rows = [a; MR];
+    for (row, &pr) in rows.iter_mut().zip(p) {
+        *row = a.add(pr);
+    }
+    rows
 }
 
 /// Leaves the sums `acc` in the rows `c + crow[r]` of `C` as `end` says, under the lane
