@@ -34,24 +34,32 @@ fn budget_spent(config: &Config, counters: &Counters) -> bool {
         || (config.max_frames > 0 && counters.frames >= config.max_frames)
 }
 
+/// The methods both agents implement alike: their fields `config`, `counters` and `learner`,
+/// and their own `state` and `play_episode`.
+macro_rules! alike {
+    ($agent:ident) => {
+        fn config(&self) -> &Config {
+            &self.config
+        }
+        fn counters(&self) -> &Counters {
+            &self.counters
+        }
+        fn learner(&self) -> &Learner {
+            &self.learner
+        }
+        fn state(&self) -> AgentState {
+            $agent::state(self)
+        }
+        fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
+            $agent::play_episode(self)
+        }
+    };
+}
+
 impl<G: Game> Trainer for Agent<G> {
-    fn config(&self) -> &Config {
-        &self.config
-    }
-    fn counters(&self) -> &Counters {
-        &self.counters
-    }
-    fn learner(&self) -> &Learner {
-        &self.learner
-    }
-    fn state(&self) -> AgentState {
-        Agent::state(self)
-    }
+    alike!(Agent);
     fn replay(&self) -> Option<&Replay> {
         Some(&self.replay)
-    }
-    fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
-        Agent::play_episode(self)
     }
     fn finished(&self) -> bool {
         budget_spent(&self.config, &self.counters)
@@ -59,23 +67,9 @@ impl<G: Game> Trainer for Agent<G> {
 }
 
 impl<G: Game> Trainer for PqnAgent<G> {
-    fn config(&self) -> &Config {
-        &self.config
-    }
-    fn counters(&self) -> &Counters {
-        &self.counters
-    }
-    fn learner(&self) -> &Learner {
-        &self.learner
-    }
-    fn state(&self) -> AgentState {
-        PqnAgent::state(self)
-    }
+    alike!(PqnAgent);
     fn replay(&self) -> Option<&Replay> {
         None
-    }
-    fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
-        PqnAgent::play_episode(self)
     }
     /// Rollouts overshoot a frame budget: the rollout that crosses it finishes, and the rows of
     /// the episodes it finished still go out; a call of `play_episode` plays on until some game

@@ -3,8 +3,13 @@
 //! A layer holds the maths of its products (`Z = x·W + b`, `dW += xᵀ·dZ`, `dX = dZ·Wᵀ`) and
 //! calls one function here per product; this module asks the [`plan`] which kernel computes it
 //! for the shape, batch, precision and CPU, runs that kernel on the layer's slices and keeps the
-//! kernel's buffers (offset tables, padded copies, packed bf16 operands) from call to call. The
-//! [`plan`] is the only place that chooses a kernel; the kernels themselves live in
+//! kernel's buffers (offset tables, padded copies, packed bf16 operands) from call to call.
+//!
+//! A kernel is chosen in two tiers. The [`plan`] chooses the algorithm (im2col + GEMM, the
+//! gather GEMM, Winograd, the sparse or background product; f32 or bf16), and is the only place
+//! that does. The family it chose then picks its instruction set (AVX-512, AVX2, AMX's tiles
+//! or its portable loop) call by call, from the one feature test in [`crate::tensor::cpu`]
+//! (its module documentation lists which family asks what). The kernels themselves live in
 //! [`crate::tensor`] (portable loops, and each architecture's code under `tensor/x86_64/`), with
 //! the plain reference kernels ([`crate::tensor::conv2d_reference`],
 //! [`crate::tensor::gemm_reference`], [`crate::tensor::im2col`]) they are tested against.

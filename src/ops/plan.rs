@@ -2,9 +2,10 @@
 //!
 //! The layers hold the maths (`y = x·W + b` and its gradients); they ask this module which
 //! implementation runs each product for their shape, batch, precision and this CPU, and then
-//! call it. Every threshold is a named constant here, with the measurement behind it. Nothing
-//! else in the library branches on the CPU: the kernels themselves only pick between their
-//! AVX-512, AVX2 and portable loops by the one check in [`crate::tensor::cpu`].
+//! call it. Every threshold is a named constant here, with the measurement behind it. This is
+//! the first of the two tiers of kernel choice, the algorithm; the second, the instruction set,
+//! is each kernel family's own, call by call: its AVX-512, AVX2, AMX or portable loop by the
+//! one feature test in [`crate::tensor::cpu`] (whose documentation lists who asks what).
 //!
 //! | product | portable (f64, or a CPU without AVX2 and FMA) | f32 on AVX2 and FMA, or AVX-512 |
 //! |---|---|---|

@@ -18,7 +18,14 @@
 //! `vdpbf16ps`, as on a CPU without them. The four are read once, at the first call, so a
 //! process runs one way throughout.
 //!
-//! The kernels are selected by [`crate::ops::plan`]; nothing else asks the CPU.
+//! The choice of a kernel has two tiers, and this module is the second. [`crate::ops::plan`]
+//! chooses the algorithm of each product (the gather GEMM, Winograd, the sparse or background
+//! product, im2col + faer; f32 or bf16), and reads this module only for that. The family it
+//! chose then picks its instruction set on every call, here and nowhere else: the f32 families
+//! (gather and scatter GEMMs, Winograd's transforms, the sparse and background products, the
+//! transposes) by [`path`] (or [`avx512`] where they have no AVX2 loop), the bf16 gather GEMM
+//! by [`bf16_gather_path`] and the other bf16 products by [`avx512_bf16`].
+//! The plan only names what these say, for the record ([`crate::ops::plan::kernels`]).
 //!
 //! Each hand-written kernel family records which of its loops ran ([`took`], read back by
 //! [`paths`]), per thread, on the thread that called it: a test can then prove that the
@@ -296,18 +303,26 @@ pub enum Path {
     Portable = 1,
     /// The AVX2 and FMA loop.
     Avx2 = 2,
-    /// AMX's tiles (the bf16 gather GEMM; [`amx`]). [`path`] never returns it.
+    /// AMX's tiles (the bf16 gather GEMM; [`bf16_gather_path`]). [`path`] never returns it.
     Amx = 3,
 }
 
 /// The loop a family with AVX-512, AVX2 and portable loops runs here.
 pub fn path() -> Path {
-    if avx512() {
-        Path::Avx512
-    } else if avx2() {
-        Path::Avx2
-    } else {
-        Path::Portable
+    match (avx512(), avx2()) {
+        (true, _) => Path::Avx512,
+        (false, true) => Path::Avx2,
+        (false, false) => Path::Portable,
+    }
+}
+
+/// The loop the bf16 gather GEMM runs here: AMX's tiles ([`amx`]), else AVX512-BF16's
+/// `vdpbf16ps` (recorded as the AVX-512 loop; [`avx512_bf16`]), else its portable one.
+pub fn bf16_gather_path() -> Path {
+    match (amx(), avx512_bf16()) {
+        (true, _) => Path::Amx,
+        (false, true) => Path::Avx512,
+        (false, false) => Path::Portable,
     }
 }
 

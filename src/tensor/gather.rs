@@ -176,6 +176,12 @@ impl<T: Float> GatherGemm<'_, T> {
 }
 
 impl<T, O> GatherGemm<'_, T, O> {
+    /// Whether the product has no element (no row or no column): a kernel, once it has
+    /// checked the operands, returns at once.
+    pub(crate) fn is_empty(&self) -> bool {
+        self.p.is_empty() || self.n == 0
+    }
+
     /// Panics (naming `what`) unless every index the product reaches is inside its slice, each
     /// reduction step reading `w` consecutive values of `A` and of `B` (1, or 2 for bf16 pairs).
     pub(crate) fn check_steps(&self, what: &str, w: usize) {

@@ -28,7 +28,7 @@
 //! ([`crate::ops::plan`]).
 
 use super::bf16::{from_bf16, to_bf16};
-use super::cpu::{avx512_twin, took, took_path, Family, Path};
+use super::cpu::{avx512_twin, took_path, Family, Path};
 use super::gather::{portable_rows, GatherGemm};
 
 /// The operands of one bf16 gather GEMM (see the module documentation): [`GatherGemm`] with
@@ -65,22 +65,17 @@ pub fn gather_gemm_bf16_portable(g: GatherGemmBf16<'_>) {
     });
 }
 
-/// The bf16 gather GEMM: on AMX tiles where the CPU has them ([`super::cpu::amx`]), else
-/// AVX512-BF16 where it has that, else the portable loops. Recorded as [`Family::Bf16`]
-/// ([`Path::Amx`] for the tiles).
+/// The bf16 gather GEMM: on AMX tiles where the CPU has them, else AVX512-BF16 where it has
+/// that, else the portable loops ([`super::cpu::bf16_gather_path`]). Recorded as
+/// [`Family::Bf16`] ([`Path::Amx`] for the tiles).
 pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
-    #[cfg(target_arch = "x86_64")]
-    if super::cpu::amx() {
-        took_path(Family::Bf16, Path::Amx);
-        return amx::gather_gemm_bf16(g);
+    match took_path(Family::Bf16, super::cpu::bf16_gather_path()) {
+        #[cfg(target_arch = "x86_64")]
+        Path::Amx => amx::gather_gemm_bf16(g),
+        #[cfg(target_arch = "x86_64")]
+        Path::Avx512 => avx512::gather_gemm_bf16(g),
+        _ => gather_gemm_bf16_portable(g),
     }
-    #[cfg(target_arch = "x86_64")]
-    if took(Family::Bf16, super::cpu::avx512_bf16()) {
-        return avx512::gather_gemm_bf16(g);
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    took(Family::Bf16, false);
-    gather_gemm_bf16_portable(g)
 }
 
 avx512_twin! {

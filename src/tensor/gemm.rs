@@ -1,4 +1,7 @@
-//! Matrix multiplication: the one kernel every layer reduces to.
+//! Matrix multiplication on faer's GEMM: the plain product of the plan's `Kernel::Gemm` and
+//! `Kernel::Im2col` (a dense layer off AVX-512, im2col's products on the portable path) and of
+//! the small products beside the layers (the quantile embedding). The layers' fast products
+//! run this crate's own kernels instead (the gather GEMM, Winograd, the sparse products).
 //!
 //! All matrices are dense and row-major. `op(A)` is `A` or its transpose, so the three products of
 //! a layer's forward and backward passes (`X·W`, `Xᵀ·dY`, `dY·Wᵀ`) are all one call without
@@ -26,8 +29,8 @@ fn rows_per_task(m: usize, k: usize, n: usize) -> usize {
     (65_536 / per_row).clamp(16, m.max(16))
 }
 
-/// `C[m×n] = alpha · op(A)[m×k] · op(B)[k×n] + beta · C`, all row-major: the product every
-/// layer calls. It runs faer's kernels, which measured about twice as fast as matrixmultiply on
+/// `C[m×n] = alpha · op(A)[m×k] · op(B)[k×n] + beta · C`, all row-major: the plain product
+/// (see the module documentation for who calls it). It runs faer's kernels, which measured about twice as fast as matrixmultiply on
 /// every GEMM of the article's network (`cargo bench --bench layers -- gemm`), e.g. 70 against
 /// 35 GFLOP/s for conv1's forward product on one core.
 ///

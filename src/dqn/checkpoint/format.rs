@@ -34,36 +34,34 @@ struct RowWire {
     wall_seconds: f64,
 }
 
-impl From<&EpisodeRow> for RowWire {
-    fn from(r: &EpisodeRow) -> Self {
-        let finite = |v: f32| (!v.is_nan()).then_some(v);
-        RowWire {
+/// A `$row` of `r`'s fields, the two means through `mean`: the one list of the fields both
+/// ways.
+macro_rules! convert {
+    ($row:ident, $r:expr, $mean:expr) => {{
+        let (r, mean) = ($r, $mean);
+        $row {
             episode: r.episode,
             agent_steps: r.agent_steps,
             frames: r.frames,
             reward: r.reward,
             length: r.length,
             epsilon: r.epsilon,
-            mean_loss: finite(r.mean_loss),
-            mean_max_q: finite(r.mean_max_q),
+            mean_loss: mean(r.mean_loss),
+            mean_max_q: mean(r.mean_max_q),
             wall_seconds: r.wall_seconds,
         }
+    }};
+}
+
+impl From<&EpisodeRow> for RowWire {
+    fn from(r: &EpisodeRow) -> Self {
+        convert!(RowWire, r, |v: f32| (!v.is_nan()).then_some(v))
     }
 }
 
 impl From<RowWire> for EpisodeRow {
     fn from(r: RowWire) -> Self {
-        EpisodeRow {
-            episode: r.episode,
-            agent_steps: r.agent_steps,
-            frames: r.frames,
-            reward: r.reward,
-            length: r.length,
-            epsilon: r.epsilon,
-            mean_loss: r.mean_loss.unwrap_or(f32::NAN),
-            mean_max_q: r.mean_max_q.unwrap_or(f32::NAN),
-            wall_seconds: r.wall_seconds,
-        }
+        convert!(EpisodeRow, r, |v: Option<f32>| v.unwrap_or(f32::NAN))
     }
 }
 

@@ -58,39 +58,12 @@ pub(crate) unsafe fn sparse_run<T: Float>(mut g: SparseConv<'_, T>, cin: usize, 
     }
 }
 
-/// Output channels `c0 ..+ 8·NV` of every row of [`sparse_run`].
+/// Output channels `c0 ..+ 8·NV` of every row of [`sparse_run`] (`sparse_simd.rs`).
 #[target_feature(enable = "avx2,fma")]
 unsafe fn sparse_columns<T: Float, const NV: usize>(
     g: &mut SparseConv<'_, T>, cin: usize, cout: usize, c0: usize,
 ) {
-    let (w, bias) = (cast::<T>(g.w), cast::<T>(g.bias));
-    let y: &mut [f32] = bytemuck::cast_slice_mut(&mut *g.y);
-    for (&p, &r) in g.windows.iter().zip(g.rows) {
-        let mut acc = [_mm256_setzero_ps(); NV];
-        for (j, a) in acc.iter_mut().enumerate() {
-            *a = _mm256_loadu_ps(bias[c0 + 8 * j..][..8].as_ptr());
-        }
-        for (t, &o) in g.taps.iter().enumerate() {
-            let wt = &w[t * cin * cout..][..cin * cout];
-            let (index, value) = g.x.pixel(p + o);
-            for (&ci, &v) in index.iter().zip(cast::<T>(value)) {
-                let row = &wt[ci as usize * cout + c0..][..8 * NV];
-                let xv = _mm256_set1_ps(v);
-                for (j, a) in acc.iter_mut().enumerate() {
-                    *a = _mm256_fmadd_ps(xv, _mm256_loadu_ps(row[8 * j..].as_ptr()), *a);
-                }
-            }
-        }
-        let out = &mut y[r + c0..][..8 * NV];
-        for (j, &a) in acc.iter().enumerate() {
-            let a = if g.relu {
-                _mm256_max_ps(a, _mm256_setzero_ps())
-            } else {
-                a
-            };
-            _mm256_storeu_ps(out[8 * j..].as_mut_ptr(), a);
-        }
-    }
+    super::sparse_simd::columns::<__m256, T, NV>(g, cin, cout, c0)
 }
 
 /// [`Background::conv`] with its per-pixel product `a += Σ_ci d_ci·W[ci, :]` in registers: the

@@ -12,8 +12,10 @@
 
 use std::arch::x86_64::*;
 
-use super::super::gather::{row_start, rows_per_task, GatherGemm, Init};
-use super::gather_avx512::{split_tasks, Dest};
+use super::super::cpu;
+use super::super::gather::{row_start, rows_per_task, GatherGemm};
+use super::gather_avx512::{row_tiles, split_tasks, Dest, Operands};
+use super::sums::{self, End, Start};
 
 /// Reduction steps per block: the block's `b` rows of one panel (128 × 16 floats, 8 KiB) stay in
 /// L1 while every row tile of a task runs over them.
@@ -47,14 +49,6 @@ fn tile_rows(nv: usize) -> usize {
 /// Tile rows of a full 4-vector panel.
 const MR4: usize = 2;
 
-/// How a tile starts its sums.
-#[derive(Clone, Copy)]
-enum Start {
-    Zero,
-    Load,
-    Bias(*const f32),
-}
-
 /// The lane mask of `lanes` (0 to 8) leading lanes, for `maskload`/`maskstore`.
 #[inline]
 fn lane_mask(lanes: usize) -> [i32; 8] {
@@ -73,22 +67,10 @@ fn lane_mask(lanes: usize) -> [i32; 8] {
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile<const H: usize, const NV: usize, const FULL: bool>(
     a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
-    crow: &[usize], masks: [__m256i; NV], start: Start, relu: bool,
+    crow: &[usize], masks: [__m256i; NV], start: Start, end: End,
 ) {
-    let mut acc = [[_mm256_setzero_ps(); NV]; H];
-    for r in 0..H {
-        for v in 0..NV {
-            acc[r][v] = match start {
-                Start::Zero => _mm256_setzero_ps(),
-                Start::Load => _mm256_maskload_ps(c.add(crow[r] + 8 * v), masks[v]),
-                Start::Bias(bias) => _mm256_maskload_ps(bias.add(8 * v), masks[v]),
-            };
-        }
-    }
-    let mut rows = [a; H];
-    for r in 0..H {
-        rows[r] = a.add(p[r]);
-    }
+    let mut acc = sums::start::<__m256, H, NV>(c, crow, masks, start);
+    let rows = sums::rows::<_, H>(a, p);
     let mut brow = b;
     // One step: the `b` vectors, then each row's broadcast value `a_r` into its accumulators.
     macro_rules! step {
@@ -131,16 +113,7 @@ unsafe fn tile<const H: usize, const NV: usize, const FULL: bool>(
             }
         }
     }
-    for r in 0..H {
-        for v in 0..NV {
-            let val = if relu {
-                _mm256_max_ps(acc[r][v], _mm256_setzero_ps())
-            } else {
-                acc[r][v]
-            };
-            _mm256_maskstore_ps(c.add(crow[r] + 8 * v), masks[v], val);
-        }
-    }
+    sums::end(&acc, c, crow, masks, end);
 }
 
 /// A block of reduction offsets as a tile walks them.
@@ -173,27 +146,27 @@ fn runs(q: &[usize], out: &mut Vec<(usize, usize)>) {
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_any(
     h: usize, nv: usize, full: bool, a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32,
-    ldb: usize, c: *mut f32, crow: &[usize], m: [__m256i; 4], start: Start, relu: bool,
+    ldb: usize, c: *mut f32, crow: &[usize], m: [__m256i; 4], start: Start, end: End,
 ) {
     macro_rules! go {
         ($h:literal) => {
             match (nv, full) {
-                (1, true) => tile::<$h, 1, true>(a, p, q, b, ldb, c, crow, [m[0]], start, relu),
-                (1, false) => tile::<$h, 1, false>(a, p, q, b, ldb, c, crow, [m[0]], start, relu),
+                (1, true) => tile::<$h, 1, true>(a, p, q, b, ldb, c, crow, [m[0]], start, end),
+                (1, false) => tile::<$h, 1, false>(a, p, q, b, ldb, c, crow, [m[0]], start, end),
                 (2, true) => {
-                    tile::<$h, 2, true>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, relu)
+                    tile::<$h, 2, true>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, end)
                 }
                 (2, false) => {
-                    tile::<$h, 2, false>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, relu)
+                    tile::<$h, 2, false>(a, p, q, b, ldb, c, crow, [m[0], m[1]], start, end)
                 }
                 (3, true) => {
-                    tile::<$h, 3, true>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, relu)
+                    tile::<$h, 3, true>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, end)
                 }
                 (3, false) => {
-                    tile::<$h, 3, false>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, relu)
+                    tile::<$h, 3, false>(a, p, q, b, ldb, c, crow, [m[0], m[1], m[2]], start, end)
                 }
-                (_, true) => tile::<$h, 4, true>(a, p, q, b, ldb, c, crow, m, start, relu),
-                (_, false) => tile::<$h, 4, false>(a, p, q, b, ldb, c, crow, m, start, relu),
+                (_, true) => tile::<$h, 4, true>(a, p, q, b, ldb, c, crow, m, start, end),
+                (_, false) => tile::<$h, 4, false>(a, p, q, b, ldb, c, crow, m, start, end),
             }
         };
     }
@@ -212,11 +185,8 @@ unsafe fn tile_any(
 /// # Safety
 /// AVX2 and FMA available; the bounds of [`GatherGemm::check`] hold for these rows.
 #[target_feature(enable = "avx2,fma")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn task(
-    a: &[f32], p: &[usize], q: &[usize], b: &[f32], ldb: usize, n: usize, c: *mut f32,
-    dest: Dest<'_>, init: Start, relu: bool,
-) {
+unsafe fn task(op: Operands<'_, f32>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start) {
+    let (a, q, b, ldb, n, relu) = (op.a, op.q, op.b, op.ldb, op.n, op.relu);
     let (nr, steps) = (p.len(), q.len());
     // The whole reduction in one block where it is short and `C` narrow (conv1's forward: 256
     // steps, 32 columns), as the AVX-512 kernel does: sums stay in registers start to end.
@@ -251,18 +221,10 @@ unsafe fn task(
             } else {
                 b.as_ptr().add(t0 * ldb + j0)
             };
-            let start = match (blk, init) {
-                (0, Start::Bias(bias)) => Start::Bias(bias.add(j0)),
-                (0, s) => s,
-                _ => Start::Load,
-            };
-            let last = relu && blk + 1 == nblocks;
-            let mut r = 0;
-            while r < nr {
-                let h = (nr - r).min(mr);
-                let d0 = dest.at(r);
-                let crow: [usize; MR] =
-                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
+            let start = init.block(blk).panel(j0);
+            let end = End::last(relu, blk, nblocks);
+            for (r, h) in row_tiles(nr, mr) {
+                let (d0, crow) = dest.tile::<MR>(r, h);
                 tile_any(
                     h,
                     nv,
@@ -276,9 +238,8 @@ unsafe fn task(
                     &crow,
                     m,
                     start,
-                    last,
+                    end,
                 );
-                r += mr;
             }
         }
     }
@@ -287,28 +248,22 @@ unsafe fn task(
 /// The product on AVX2 and FMA, split over rayon by blocks of rows of `C` whose size depends only
 /// on the shape. Call only where [`super::super::cpu::avx2`] holds.
 pub fn gather_gemm(g: GatherGemm<'_, f32>) {
-    assert!(
-        super::super::cpu::avx2(),
-        "gather_gemm: AVX2 and FMA needed"
-    );
+    assert!(cpu::avx2(), "gather_gemm: AVX2 and FMA needed");
     g.check();
-    let rows = g.p.len();
-    if rows == 0 || g.n == 0 {
+    if g.is_empty() {
         return;
     }
+    let rows = g.p.len();
     let rpt = rows_per_task(rows, g.q.len(), g.n, MR);
     let tasks = rows.div_ceil(rpt);
     let end = g.row_start(rows - 1) + g.n;
     let (c_rows, ldc) = (g.c_rows, g.ldc);
     let start = move |t: usize| row_start(c_rows, ldc, t * rpt);
+    let op = Operands::of(&g);
     let run = |t: usize, cc: &mut [f32], base: usize| {
         let r0 = t * rpt;
         let pr = &g.p[r0..(r0 + rpt).min(rows)];
-        let init = match g.init {
-            Init::Zero => Start::Zero,
-            Init::Accumulate => Start::Load,
-            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-        };
+        let init = Start::of(&g.init);
         let dest = Dest {
             c_rows,
             ldc,
@@ -318,20 +273,7 @@ pub fn gather_gemm(g: GatherGemm<'_, f32>) {
         // SAFETY: AVX2 and FMA checked above; `check` proved every `a`, `b` and bias index in
         // bounds, and this task's rows of C lie inside `cc` (rows increase and the next task's
         // part starts where its first row does), which no other task touches.
-        unsafe {
-            task(
-                g.a,
-                pr,
-                g.q,
-                g.b,
-                g.ldb,
-                g.n,
-                cc.as_mut_ptr(),
-                dest,
-                init,
-                g.relu,
-            )
-        }
+        unsafe { task(op, pr, cc.as_mut_ptr(), dest, init) }
     };
     split_tasks(&mut g.c[..end], 0, 0, tasks, &start, &run);
 }

@@ -6,9 +6,11 @@
 //! with the column tail under a mask, except a lone row (a GEMV) which takes 128-column
 //! panels. Leftover rows get one tile of their height.
 
-use crate::tensor::gather::{row_start, rows_per_task, GatherGemm, Init};
+use crate::tensor::gather::{row_start, rows_per_task, GatherGemm};
 use rayon::prelude::*;
 use std::arch::x86_64::*;
+
+use super::sums::{self, End, Start};
 
 use crate::tensor::cpu::avx512 as available;
 
@@ -70,23 +72,6 @@ impl<'a> Steps<'a> {
     }
 }
 
-/// How a tile leaves its sums in `C`.
-#[derive(Clone, Copy)]
-enum End {
-    Store,
-    /// `max(sum, 0)`: the last block of a GEMM with a fused ReLU.
-    Relu,
-    /// Added to what is there (a scatter).
-    Add,
-}
-
-#[derive(Clone, Copy)]
-enum Start {
-    Zero,
-    Load,
-    Bias(*const f32),
-}
-
 /// One vector of a `b` row: a plain load for a full panel (`FULL`), else under its lane mask.
 /// A masked load with a mask known only at run time costs this core an extra uop on the
 /// vector ports the FMAs use: a 6 × 4 tile over L1-resident data ran at 89–117 GFLOP/s with
@@ -117,20 +102,8 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
     a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
     crow: &[usize], masks: [u16; NV], start: Start, end: End,
 ) {
-    let mut acc = [[_mm512_setzero_ps(); NV]; MR];
-    for r in 0..MR {
-        for v in 0..NV {
-            acc[r][v] = match start {
-                Start::Zero => _mm512_setzero_ps(),
-                Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
-                Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
-            };
-        }
-    }
-    let mut rows = [a; MR];
-    for r in 0..MR {
-        rows[r] = a.add(p[r]);
-    }
+    let mut acc = sums::start::<__m512, MR, NV>(c, crow, masks, start);
+    let rows = sums::rows::<_, MR>(a, p);
     let mut brow = b;
     if let Some(runs) = q.runs {
         // Steps in runs of consecutive offsets (a convolution's patch rows, a plain `A·B`):
@@ -170,19 +143,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
             brow = brow.add(ldb);
         }
     }
-    // With `Add`, row by row (load, add, store), so rows whose destinations overlap (a
-    // scatter onto overlapping windows) each see the previous row's sum.
-    for r in 0..MR {
-        for v in 0..NV {
-            let dst = c.add(crow[r] + 16 * v);
-            let val = match end {
-                End::Store => acc[r][v],
-                End::Relu => _mm512_max_ps(acc[r][v], _mm512_setzero_ps()),
-                End::Add => _mm512_add_ps(_mm512_maskz_loadu_ps(masks[v], dst), acc[r][v]),
-            };
-            _mm512_mask_storeu_ps(dst, masks[v], val);
-        }
-    }
+    sums::end(&acc, c, crow, masks, end);
 }
 
 /// `$tile::<$mr, NV, FULL>(args…, masks, tail…)` for a panel `nv` vectors wide (1 to 4) with
@@ -224,6 +185,24 @@ macro_rules! by_height {
     };
 }
 pub(crate) use by_height;
+
+/// One row tile of height `h` whose full height is `mr` (10, 8 or 6): a full tile by
+/// `$full::<MR>(args…)` (inlined), the rows left over by `$any(h, args…)`. Shared with the bf16
+/// kernel.
+macro_rules! by_rows {
+    ($full:ident, $any:ident($h:expr, $mr:expr; $($arg:expr),*)) => {
+        if $h == $mr {
+            match $mr {
+                10 => $full::<10>($($arg),*),
+                8 => $full::<8>($($arg),*),
+                _ => $full::<6>($($arg),*),
+            }
+        } else {
+            $any($h, $($arg),*)
+        }
+    };
+}
+pub(crate) use by_rows;
 
 /// Dispatches one tile on the panel width (in vectors) and whether it is full.
 ///
@@ -284,6 +263,48 @@ impl Dest<'_> {
     pub(crate) fn at(&self, i: usize) -> usize {
         row_start(self.c_rows, self.ldc, self.r0 + i) - self.base
     }
+
+    /// Where the tile of rows `r .. r + h` starts (row `r`), and each of its rows from there
+    /// (rows past `h`, never used, 0): a tile's `c` and `crow`.
+    pub(crate) fn tile<const N: usize>(&self, r: usize, h: usize) -> (usize, [usize; N]) {
+        let d0 = self.at(r);
+        (
+            d0,
+            std::array::from_fn(|i| if i < h { self.at(r + i) - d0 } else { 0 }),
+        )
+    }
+}
+
+/// A task's `nr` rows in tiles of `mr` (the last one shorter): each tile's first row and
+/// height.
+pub(crate) fn row_tiles(nr: usize, mr: usize) -> impl Iterator<Item = (usize, usize)> {
+    (0..nr).step_by(mr).map(move |r| (r, (nr - r).min(mr)))
+}
+
+/// The operands every task of a gather GEMM reads (all four kernels: `A` and `B` of `T`,
+/// f32 or bf16 bits); a task's rows of `p` and part of `C` come beside them.
+#[derive(Clone, Copy)]
+pub(crate) struct Operands<'a, T> {
+    pub(crate) a: &'a [T],
+    pub(crate) q: &'a [usize],
+    pub(crate) b: &'a [T],
+    pub(crate) ldb: usize,
+    pub(crate) n: usize,
+    pub(crate) relu: bool,
+}
+
+impl<'a, T> Operands<'a, T> {
+    /// The operands of `g`.
+    pub(crate) fn of<O>(g: &GatherGemm<'a, T, O>) -> Self {
+        Operands {
+            a: g.a,
+            q: g.q,
+            b: g.b,
+            ldb: g.ldb,
+            n: g.n,
+            relu: g.relu,
+        }
+    }
 }
 
 /// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part).
@@ -291,11 +312,10 @@ impl Dest<'_> {
 /// # Safety
 /// AVX-512F available; the bounds of [`GatherGemm::check`] hold for these rows.
 #[target_feature(enable = "avx512f")]
-#[allow(clippy::too_many_arguments)]
 unsafe fn task(
-    mr: usize, a: &[f32], p: &[usize], q: &[usize], b: &[f32], ldb: usize, n: usize, c: *mut f32,
-    dest: Dest<'_>, init: Start, relu: bool,
+    mr: usize, op: Operands<'_, f32>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start,
 ) {
+    let (a, q, b, ldb, n, relu) = (op.a, op.q, op.b, op.ldb, op.n, op.relu);
     let nr = p.len();
     let steps = q.len();
     let tb = block_len(n, steps);
@@ -322,59 +342,32 @@ unsafe fn task(
         } else {
             b.as_ptr().add(t0 * ldb)
         };
-        let start = if blk == 0 { init } else { Start::Load };
-        let end = if relu && blk + 1 == nblocks {
-            End::Relu
-        } else {
-            End::Store
-        };
+        let (start, end) = (init.block(blk), End::last(relu, blk, nblocks));
         // Panels outer, row tiles inner: one panel's block of `b` (128 steps × 64 columns,
         // 32 KiB) stays in L1 across all the task's row tiles. (Both of dense1's panels,
         // 64 KiB, would not: each tile would read them again from L2.)
         for j0 in (0..n).step_by(64) {
             let (m, nv) = panel_masks(n, j0);
-            let mut r = 0;
-            while r < nr {
-                let h = (nr - r).min(mr);
-                let d0 = dest.at(r);
+            for (r, h) in row_tiles(nr, mr) {
                 let pr = &p[r..r + h];
                 let ap = a.as_ptr();
                 if h == 1 && n - j0 / 128 * 128 >= 128 {
                     // A single row (dense1 at batch 1: a GEMV over 3.6 MB of weights, bound
                     // by memory): 128-column panels, so each row of `b` is read in one sweep.
                     if j0 % 128 == 0 {
-                        let st = match start {
-                            Start::Bias(bias) => Start::Bias(bias.add(j0)),
-                            s => s,
-                        };
-                        let (cp, bp) = (c.add(d0 + j0), bb.add(j0));
+                        let (cp, bp) = (c.add(dest.at(r) + j0), bb.add(j0));
+                        let st = start.panel(j0);
                         tile::<1, 8, true>(ap, pr, qr, bp, ldb, cp, &[0], [!0; 8], st, end);
                     }
-                    r += mr;
                     continue;
                 }
                 if streamed && j0 == 0 && r + mr < nr {
                     let next = &p[r + mr..(r + 2 * mr).min(nr)];
                     prefetch_rows(ap, next, qr);
                 }
-                // Row offsets from the tile's first row (rows past `h` are never used).
-                let crow: [usize; 10] =
-                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
-                let st = match start {
-                    Start::Bias(bias) => Start::Bias(bias.add(j0)),
-                    s => s,
-                };
-                let (cp, bp) = (c.add(d0 + j0), bb.add(j0));
-                if h == mr {
-                    match mr {
-                        10 => tile_nv::<10>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
-                        8 => tile_nv::<8>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
-                        _ => tile_nv::<6>(nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end),
-                    }
-                } else {
-                    tile_any(h, nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end);
-                }
-                r += mr;
+                let (d0, crow) = dest.tile::<10>(r, h);
+                let (cp, bp, st) = (c.add(d0 + j0), bb.add(j0), start.panel(j0));
+                by_rows!(tile_nv, tile_any(h, mr; nv, ap, pr, qr, bp, ldb, cp, &crow, m, st, end));
             }
         }
     }
@@ -492,9 +485,7 @@ unsafe fn scatter_task(
     // Panels outer, row tiles inner: one panel of `b` (64 steps × 64 columns, 16 KiB for a
     // convolution's `Wᵀ`) stays in L1 across all the group's row tiles.
     for j0 in (0..n).step_by(64) {
-        let mut r = 0;
-        while r < nr {
-            let h = (nr - r).min(mr);
+        for (r, h) in row_tiles(nr, mr) {
             let (m, nv) = panel_masks(n, j0);
             let w = (n - j0).min(64);
             let direct = contiguous(j0);
@@ -541,7 +532,6 @@ unsafe fn scatter_task(
                     }
                 }
             }
-            r += mr;
         }
     }
 }
@@ -551,36 +541,18 @@ unsafe fn scatter_task(
 pub fn gather_gemm(g: GatherGemm<'_, f32>) {
     assert!(available(), "gather_gemm: AVX-512F and FMA needed");
     g.check();
-    let rows = g.p.len();
-    if rows == 0 || g.n == 0 {
+    if g.is_empty() {
         return;
     }
     // Register tile: MR rows × up to 4 vectors, MR·NV ≤ 24 accumulators.
     let mr = tile_rows(g.n);
+    let op = Operands::of(&g);
     let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
-        let init = match g.init {
-            Init::Zero => Start::Zero,
-            Init::Accumulate => Start::Load,
-            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-        };
+        let init = Start::of(&g.init);
         // SAFETY: AVX-512F checked above; `check` proved every `a`, `b` and bias index in
         // bounds, and this task's rows of C lie inside `cc` (rows increase and the next
         // task's part starts where its first row does), which no other task touches.
-        unsafe {
-            task(
-                mr,
-                g.a,
-                pr,
-                g.q,
-                g.b,
-                g.ldb,
-                g.n,
-                cc.as_mut_ptr(),
-                dest,
-                init,
-                g.relu,
-            )
-        }
+        unsafe { task(mr, op, pr, cc.as_mut_ptr(), dest, init) }
     };
     let (steps, n) = (g.q.len(), g.n);
     split_rows(g.c, g.p, g.c_rows, g.ldc, n, steps, mr, &leaf);

@@ -35,8 +35,7 @@
 
 use crate::tensor::gather::Init;
 use crate::tensor::gather_bf16::GatherGemmBf16;
-use crate::tensor::x86_64::gather_avx512::{split_rows, Dest};
-use crate::tensor::x86_64::gather_bf16_avx512::Operands;
+use crate::tensor::x86_64::gather_avx512::{split_rows, Dest, Operands};
 use crate::tensor::x86_64::transpose_avx512::block;
 use std::arch::asm;
 use std::arch::x86_64::*;
@@ -230,15 +229,10 @@ unsafe fn pack_a(
 /// AVX-512F and AMX tiles usable (permission granted, [`crate::tensor::cpu::amx`]); the bounds
 /// of [`GatherGemmBf16::check`] hold for these rows.
 #[target_feature(enable = "avx512f")]
-unsafe fn task(op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Init<'_, f32>) {
-    let Operands {
-        a,
-        q,
-        b,
-        ldb,
-        n,
-        relu,
-    } = op;
+unsafe fn task(
+    op: Operands<'_, u16>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Init<'_, f32>,
+) {
+    let (a, q, b, ldb, n, relu) = (op.a, op.q, op.b, op.ldb, op.n, op.relu);
     let mut s = Scratch {
         a: [0; TM * TK],
         b: [0; TK * TN],
@@ -343,8 +337,7 @@ unsafe fn task(op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest<'_>, init:
 pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
     assert!(crate::tensor::cpu::amx(), "gather_gemm_bf16: AMX needed");
     g.check();
-    let rows = g.p.len();
-    if rows == 0 || g.n == 0 {
+    if g.is_empty() {
         return;
     }
     let op = Operands::of(&g);

@@ -3,11 +3,12 @@
 //! of `b` (16 columns × 2 bf16 each), broadcasts each row's pair (one 32-bit load), and
 //! issues `MR·NV` `vdpbf16ps`: `MR + NV` loads per `2·16·MR·NV` multiply-adds.
 
-use crate::tensor::gather::Init;
+use crate::tensor::cpu;
 use crate::tensor::gather_bf16::GatherGemmBf16;
 use crate::tensor::x86_64::gather_avx512::{
-    by_height, by_panel, panel_masks, split_rows, tile_rows, Dest,
+    by_height, by_panel, by_rows, panel_masks, row_tiles, split_rows, tile_rows, Dest, Operands,
 };
+use crate::tensor::x86_64::sums::{self, End, Start};
 use std::arch::x86_64::*;
 
 /// Pairs per block: the task's row tiles run over one block of `b` (256 pairs × 64 columns ×
@@ -17,38 +18,6 @@ use std::arch::x86_64::*;
 /// of output pixels at batch 48) went back to `C` every 64 pairs. 128 and 512 measured level
 /// with 256.
 const TP: usize = 256;
-
-/// The operands every task of a bf16 gather GEMM reads (this kernel's and the AMX one's).
-#[derive(Clone, Copy)]
-pub(crate) struct Operands<'a> {
-    pub(crate) a: &'a [u16],
-    pub(crate) q: &'a [usize],
-    pub(crate) b: &'a [u16],
-    pub(crate) ldb: usize,
-    pub(crate) n: usize,
-    pub(crate) relu: bool,
-}
-
-impl<'a> Operands<'a> {
-    /// The operands of `g`.
-    pub(crate) fn of(g: &GatherGemmBf16<'a>) -> Self {
-        Operands {
-            a: g.a,
-            q: g.q,
-            b: g.b,
-            ldb: g.ldb,
-            n: g.n,
-            relu: g.relu,
-        }
-    }
-}
-
-#[derive(Clone, Copy)]
-enum Start {
-    Zero,
-    Load,
-    Bias(*const f32),
-}
 
 /// One `MR × 16·NV` tile over the pairs `q` of one block.
 ///
@@ -61,22 +30,10 @@ enum Start {
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
     a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize, c: *mut f32,
-    crow: &[usize], masks: [u16; NV], start: Start, relu: bool,
+    crow: &[usize], masks: [u16; NV], start: Start, end: End,
 ) {
-    let mut acc = [[_mm512_setzero_ps(); NV]; MR];
-    for r in 0..MR {
-        for v in 0..NV {
-            acc[r][v] = match start {
-                Start::Zero => _mm512_setzero_ps(),
-                Start::Load => _mm512_maskz_loadu_ps(masks[v], c.add(crow[r] + 16 * v)),
-                Start::Bias(bias) => _mm512_maskz_loadu_ps(masks[v], bias.add(16 * v)),
-            };
-        }
-    }
-    let mut rows = [a; MR];
-    for r in 0..MR {
-        rows[r] = a.add(p[r]);
-    }
+    let mut acc = sums::start::<__m512, MR, NV>(c, crow, masks, start);
+    let rows = sums::rows::<_, MR>(a, p);
     let mut brow = b;
     for &qu in q {
         let mut bv = [_mm512_setzero_si512(); NV];
@@ -99,16 +56,7 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
         }
         brow = brow.add(2 * ldb);
     }
-    for r in 0..MR {
-        for v in 0..NV {
-            let val = if relu {
-                _mm512_max_ps(acc[r][v], _mm512_setzero_ps())
-            } else {
-                acc[r][v]
-            };
-            _mm512_mask_storeu_ps(c.add(crow[r] + 16 * v), masks[v], val);
-        }
-    }
+    sums::end(&acc, c, crow, masks, end);
 }
 
 /// Dispatches one tile on the panel width (in vectors) and whether it is full.
@@ -120,9 +68,9 @@ unsafe fn tile<const MR: usize, const NV: usize, const FULL: bool>(
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_nv<const MR: usize>(
     nv: usize, a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize, c: *mut f32,
-    crow: &[usize], m: [u16; 4], start: Start, relu: bool,
+    crow: &[usize], m: [u16; 4], start: Start, end: End,
 ) {
-    by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, relu))
+    by_panel!(tile::<MR>(a, p, q, b, ldb, c, crow; nv, m; start, end))
 }
 
 /// A tile of any height `h < 10` (the rows left over after the full tiles).
@@ -133,9 +81,9 @@ unsafe fn tile_nv<const MR: usize>(
 #[allow(clippy::too_many_arguments)]
 unsafe fn tile_any(
     h: usize, nv: usize, a: *const u16, p: &[usize], q: &[usize], b: *const u16, ldb: usize,
-    c: *mut f32, crow: &[usize], m: [u16; 4], start: Start, relu: bool,
+    c: *mut f32, crow: &[usize], m: [u16; 4], start: Start, end: End,
 ) {
-    by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, relu))
+    by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, end))
 }
 
 /// Rows `0..p.len()` of one task's part of `C` (`c` points at the start of its part):
@@ -145,15 +93,10 @@ unsafe fn tile_any(
 /// AVX-512F and AVX512-BF16; the bounds of [`GatherGemmBf16::check`] hold for these rows.
 #[target_feature(enable = "avx512f,avx512bf16")]
 #[allow(clippy::too_many_arguments)]
-unsafe fn task(mr: usize, op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start) {
-    let Operands {
-        a,
-        q,
-        b,
-        ldb,
-        n,
-        relu,
-    } = op;
+unsafe fn task(
+    mr: usize, op: Operands<'_, u16>, p: &[usize], c: *mut f32, dest: Dest<'_>, init: Start,
+) {
+    let (a, q, b, ldb, n, relu) = (op.a, op.q, op.b, op.ldb, op.n, op.relu);
     let (nr, pairs) = (p.len(), q.len());
     let nblocks = pairs.div_ceil(TP).max(1);
     for blk in 0..nblocks {
@@ -164,32 +107,15 @@ unsafe fn task(mr: usize, op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest
         } else {
             b.as_ptr().add(2 * u0 * ldb)
         };
-        let start = if blk == 0 { init } else { Start::Load };
-        let relu = relu && blk + 1 == nblocks;
+        let (start, end) = (init.block(blk), End::last(relu, blk, nblocks));
         for j0 in (0..n).step_by(64) {
             let (m, nv) = panel_masks(n, j0);
-            let mut r = 0;
-            while r < nr {
-                let h = (nr - r).min(mr);
-                let d0 = dest.at(r);
+            for (r, h) in row_tiles(nr, mr) {
                 let pr = &p[r..r + h];
-                let crow: [usize; 10] =
-                    std::array::from_fn(|i| if i < h { dest.at(r + i) - d0 } else { 0 });
-                let st = match start {
-                    Start::Bias(bias) => Start::Bias(bias.add(j0)),
-                    s => s,
-                };
+                let (d0, crow) = dest.tile::<10>(r, h);
                 let (ap, cp, bp) = (a.as_ptr(), c.add(d0 + j0), bb.add(2 * j0));
-                if h == mr {
-                    match mr {
-                        10 => tile_nv::<10>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
-                        8 => tile_nv::<8>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
-                        _ => tile_nv::<6>(nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu),
-                    }
-                } else {
-                    tile_any(h, nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, relu);
-                }
-                r += mr;
+                let st = start.panel(j0);
+                by_rows!(tile_nv, tile_any(h, mr; nv, ap, pr, qb, bp, ldb, cp, &crow, m, st, end));
             }
         }
     }
@@ -198,24 +124,16 @@ unsafe fn task(mr: usize, op: Operands<'_>, p: &[usize], c: *mut f32, dest: Dest
 /// The product by AVX512-BF16, split over rayon by blocks of rows whose size depends only
 /// on the shape (the same split as the f32 kernel). Call only if the CPU has it.
 pub fn gather_gemm_bf16(g: GatherGemmBf16<'_>) {
-    assert!(
-        crate::tensor::cpu::avx512_bf16(),
-        "gather_gemm_bf16: AVX512-BF16 needed"
-    );
+    assert!(cpu::avx512_bf16(), "gather_gemm_bf16: AVX512-BF16 needed");
     g.check();
-    let rows = g.p.len();
-    if rows == 0 || g.n == 0 {
+    if g.is_empty() {
         return;
     }
     let mr = tile_rows(g.n);
     let op = Operands::of(&g);
     let init = g.init;
     let leaf = |pr: &[usize], cc: &mut [f32], dest: Dest<'_>| {
-        let st = match init {
-            Init::Zero => Start::Zero,
-            Init::Accumulate => Start::Load,
-            Init::Bias(bias) => Start::Bias(bias.as_ptr()),
-        };
+        let st = Start::of(&init);
         // SAFETY: AVX512-BF16 checked above; `check` proved every `a`, `b` and bias index
         // in bounds, and this task's rows of C lie inside `cc` (rows increase and the next
         // task's part starts where its first row does), which no other task touches.

@@ -2,7 +2,11 @@
 //! (`*_avx512.rs`; AVX512-BF16 in `bf16_avx512.rs` and `gather_bf16_avx512.rs`, AMX tiles in
 //! `gather_bf16_amx.rs`) and the AVX2
 //! and FMA family (`*_avx2.rs`) for CPUs without AVX-512 (or with it switched off by
-//! `INVADERS_NO_AVX512`). `crate::tensor::cpu` says which runs; each kernel's portable twin is
+//! `INVADERS_NO_AVX512`). Where the two families differ only in the register's width the code
+//! is written once, generic over the f32 vector (`simd.rs`: `__m256` and `__m512`), and each
+//! family's file holds only its entry points compiled for its instruction set (Winograd's
+//! transforms: `winograd_simd.rs`). `crate::tensor::cpu` says which runs (the family asks it
+//! on each call); each kernel's portable twin is
 //! in its family's module one level up (`gather.rs`, `winograd/`, …), and the tests check
 //! each kernel against it (`tests/kernels.rs`, `tests/sparse.rs`, `tests/bf16.rs`, the Winograd
 //! module's tests).
@@ -15,10 +19,14 @@ pub(crate) mod gather_avx512;
 pub(crate) mod gather_bf16_amx;
 pub(crate) mod gather_bf16_avx512;
 pub(crate) mod scatter_avx2;
+mod simd;
 pub(crate) mod sparse_avx512;
+mod sparse_simd;
+mod sums;
 pub(crate) mod transpose_avx512;
 pub(crate) mod winograd_avx2;
 pub(crate) mod winograd_avx512;
+mod winograd_simd;
 
 use crate::tensor::Float;
 

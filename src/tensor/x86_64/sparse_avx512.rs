@@ -57,35 +57,8 @@ fn cast<T: Float>(s: &[T]) -> &[f32] {
     bytemuck::cast_slice(s)
 }
 
+/// Every row of [`run`], all `16·NV` output channels in registers (`sparse_simd.rs`).
 #[target_feature(enable = "avx512f")]
-unsafe fn rows<T: Float, const NV: usize>(g: SparseConv<'_, T>, cin: usize) {
-    let cout = 16 * NV;
-    let (w, bias) = (cast::<T>(g.w), cast::<T>(g.bias));
-    let y: &mut [f32] = bytemuck::cast_slice_mut(g.y);
-    for (&p, &r) in g.windows.iter().zip(g.rows) {
-        let mut acc = [_mm512_setzero_ps(); NV];
-        for (v, a) in acc.iter_mut().enumerate() {
-            *a = _mm512_loadu_ps(bias[16 * v..].as_ptr());
-        }
-        for (t, &o) in g.taps.iter().enumerate() {
-            let wt = &w[t * cin * cout..][..cin * cout];
-            let (index, value) = g.x.pixel(p + o);
-            for (&ci, &v) in index.iter().zip(cast::<T>(value)) {
-                let row = &wt[ci as usize * cout..][..cout];
-                let xv = _mm512_set1_ps(v);
-                for (j, a) in acc.iter_mut().enumerate() {
-                    *a = _mm512_fmadd_ps(xv, _mm512_loadu_ps(row[16 * j..].as_ptr()), *a);
-                }
-            }
-        }
-        let out = &mut y[r..r + cout];
-        for (j, &a) in acc.iter().enumerate() {
-            let a = if g.relu {
-                _mm512_max_ps(a, _mm512_setzero_ps())
-            } else {
-                a
-            };
-            _mm512_storeu_ps(out[16 * j..].as_mut_ptr(), a);
-        }
-    }
+unsafe fn rows<T: Float, const NV: usize>(mut g: SparseConv<'_, T>, cin: usize) {
+    super::sparse_simd::columns::<__m512, T, NV>(&mut g, cin, 16 * NV, 0)
 }
