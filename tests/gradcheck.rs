@@ -496,40 +496,11 @@ fn max_pool_in_sequential_gradients() {
     net.zero_grad();
     net.forward(&x);
     let dx = net.backward(&x, &dy, true).unwrap().clone();
-    let grads: Vec<Tensor<f64>> = net.params().map(|p| p.grad.clone()).collect();
-    let objective =
-        |net: &mut Sequential<f64>, x: &Tensor<f64>| dot(net.forward(x).data(), dy.data());
-    let mut xp = x.clone();
-    for i in 0..x.len() {
-        let v = xp.data()[i];
-        xp.data_mut()[i] = v + H;
-        let sp = objective(&mut net, &xp);
-        xp.data_mut()[i] = v - H;
-        let sm = objective(&mut net, &xp);
-        xp.data_mut()[i] = v;
-        let num = (sp - sm) / (2.0 * H);
-        assert!(
-            close(dx.data()[i], num, ATOL, RTOL),
-            "dx[{i}]: {} vs {num}",
-            dx.data()[i]
-        );
-    }
-    for (k, grad) in grads.iter().enumerate() {
-        for i in 0..grad.len() {
-            let v = net.params().nth(k).unwrap().value.data()[i];
-            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v + H;
-            let sp = objective(&mut net, &x);
-            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v - H;
-            let sm = objective(&mut net, &x);
-            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v;
-            let num = (sp - sm) / (2.0 * H);
-            assert!(
-                close(grad.data()[i], num, ATOL, RTOL),
-                "param {k}[{i}]: {} vs {num}",
-                grad.data()[i]
-            );
-        }
-    }
+    let grads: Vec<(String, Tensor<f64>)> = net
+        .params()
+        .map(|p| (p.name.clone(), p.grad.clone()))
+        .collect();
+    check_sequential(&mut net, &x, &dy, &dx, &grads, |len, _| (0..len).collect());
 }
 
 /// The whole article Q-network (conv 32@8x8/4, 64@4x4/2, 64@3x3/1, SAME, ReLU, dense 128, dense 6)
@@ -683,16 +654,28 @@ fn qnet_gradients_at(input: [usize; 3], head: Head) {
         .params()
         .map(|p| (p.name.clone(), p.grad.clone()))
         .collect();
-    let objective = |net: &mut invaders::layers::Sequential<f64>, x: &Tensor<f64>| {
-        dot(net.forward(x).data(), dy.data())
-    };
+    check_sequential(&mut net, &x, &dy, &dx, &grads, |len, input| {
+        indices(len, if input { 200 } else { 150 }, &mut r)
+    });
+}
+
+/// Checks a network's input gradient `dx` and its parameters' gradients `grads` (named, in
+/// `params()` order), taken from one forward and backward pass with upstream gradient `dy`,
+/// against central differences of `L = Σ dy · net(x)`, at the entries `pick(len, is_input)`
+/// chooses.
+fn check_sequential(
+    net: &mut Sequential<f64>, x: &Tensor<f64>, dy: &Tensor<f64>, dx: &Tensor<f64>,
+    grads: &[(String, Tensor<f64>)], mut pick: impl FnMut(usize, bool) -> Vec<usize>,
+) {
+    let objective =
+        |net: &mut Sequential<f64>, x: &Tensor<f64>| dot(net.forward(x).data(), dy.data());
     let mut xp = x.clone();
-    for i in indices(x.len(), 200, &mut r) {
+    for i in pick(x.len(), true) {
         let v = xp.data()[i];
         xp.data_mut()[i] = v + H;
-        let sp = objective(&mut net, &xp);
+        let sp = objective(net, &xp);
         xp.data_mut()[i] = v - H;
-        let sm = objective(&mut net, &xp);
+        let sm = objective(net, &xp);
         xp.data_mut()[i] = v;
         let num = (sp - sm) / (2.0 * H);
         assert!(
@@ -702,12 +685,12 @@ fn qnet_gradients_at(input: [usize; 3], head: Head) {
         );
     }
     for (k, (name, grad)) in grads.iter().enumerate() {
-        for i in indices(grad.len(), 150, &mut r) {
+        for i in pick(grad.len(), false) {
             let v = net.params().nth(k).unwrap().value.data()[i];
             net.params_mut().nth(k).unwrap().value.data_mut()[i] = v + H;
-            let sp = objective(&mut net, &x);
+            let sp = objective(net, x);
             net.params_mut().nth(k).unwrap().value.data_mut()[i] = v - H;
-            let sm = objective(&mut net, &x);
+            let sm = objective(net, x);
             net.params_mut().nth(k).unwrap().value.data_mut()[i] = v;
             let num = (sp - sm) / (2.0 * H);
             assert!(

@@ -8,7 +8,9 @@ use std::os::unix::process::CommandExt;
 use std::path::Path;
 
 use common::cli::{bin, fails_with, invaders, ok, s, train_command, write_file, TINY};
-use common::hostile::{output_within, tmp_run, train_strong, trained, write_record};
+use common::hostile::{
+    keep_experiment, output_within, tmp_run, train_strong, trained, write_record,
+};
 
 /// `invaders ARGS` under an address-space limit of `kib` KiB (as `ulimit -v` sets it).
 fn under_ulimit_v(args: &[&str], kib: u64) -> std::process::Output {
@@ -91,22 +93,7 @@ fn a_damaged_record_is_refused_by_file_line_and_key() {
         let line = format!("line {}", at + 1);
         let key = format!("protocol.{key}");
         let (line, key) = (line.as_str(), key.as_str());
-        let args = [
-            "experiment",
-            "strong",
-            "--seeds",
-            "1",
-            "--frames",
-            "400",
-            "--threads",
-            "1",
-            "--config",
-            &cfg,
-            "--keep",
-            s(&keep),
-            "--out",
-            s(&out),
-        ];
+        let args = keep_experiment(&cfg, &keep, &out);
         let err = fails_with(&invaders(&args), &["result.toml", line, key, "damaged"]);
         assert!(!err.contains("NaN."), "{err}");
         assert!(record.join("result.toml").is_file(), "the record is kept");

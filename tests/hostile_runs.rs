@@ -9,7 +9,8 @@ use std::path::Path;
 
 use common::cli::{bin, fails_with, invaders, ok, resume, resume_args, s, train_command, TINY};
 use common::hostile::{
-    files, line_with, output_within, spawn_lines, tmp_run, train_strong, trained, write_record,
+    files, keep_experiment, line_with, output_within, spawn_lines, tmp_run, train_strong, trained,
+    two_configs, write_record,
 };
 
 fn inode(path: &Path) -> u64 {
@@ -76,35 +77,14 @@ fn a_snapshot_folder_is_written_by_its_own_run_only() {
 #[test]
 fn a_kept_record_is_replaced_only_by_its_own_configuration() {
     let (root, _, _) = tmp_run("keep-config");
-    let x = s(&common::cli::write_file(&root, "x.toml", TINY)).to_string();
-    let y = s(&common::cli::write_file(
-        &root,
-        "y.toml",
-        &format!("{TINY}gamma = 0.9\n"),
-    ))
-    .to_string();
+    let (x, y) = two_configs(&root);
     let run = root.join("run");
     train_strong(&x, 400, &run);
     let keep = root.join("keep");
     let record = write_record(&keep, &run, TINY, ["10.0", "1.0", "5.0", "15.0"]);
     let before = files(&record);
     let out = root.join("exp");
-    let args = [
-        "experiment",
-        "strong",
-        "--seeds",
-        "1",
-        "--frames",
-        "400",
-        "--threads",
-        "1",
-        "--config",
-        &y,
-        "--keep",
-        s(&keep),
-        "--out",
-        s(&out),
-    ];
+    let args = keep_experiment(&y, &keep, &out);
     let err = fails_with(
         &invaders(&args),
         &["another configuration", "`gamma`", "strong-seed1"],
@@ -278,13 +258,7 @@ impl Drop for Unmount {
 #[test]
 fn a_failing_run_is_named_once() {
     let (root, _, _) = tmp_run("name-once");
-    let x = s(&common::cli::write_file(&root, "x.toml", TINY)).to_string();
-    let y = s(&common::cli::write_file(
-        &root,
-        "y.toml",
-        &format!("{TINY}gamma = 0.9\n"),
-    ))
-    .to_string();
+    let (x, y) = two_configs(&root);
     let keep = root.join("keep");
     let snap = keep.join("strong-seed1/snapshot");
     let mut cmd = bin();

@@ -251,3 +251,28 @@ pub fn read_all(pipe: Option<impl std::io::Read>) -> String {
     }
     text
 }
+
+/// `experiment strong` for one seed to 400 frames on one thread, with `cfg` and `--keep keep`,
+/// into `out`: the arguments of a tiny experiment that keeps its record.
+pub fn keep_experiment<'a>(cfg: &'a str, keep: &'a Path, out: &'a Path) -> Vec<&'a str> {
+    let flags = [
+        "--seeds",
+        "1",
+        "--frames",
+        "400",
+        "--threads",
+        "1",
+        "--keep",
+        s(keep),
+    ];
+    super::cli::experiment_args("strong", &flags, cfg, s(out))
+}
+
+/// Two configurations in `root` that differ in one key: `x.toml` ([`super::cli::TINY`]) and
+/// `y.toml` (the same with `gamma = 0.9`); their paths.
+pub fn two_configs(root: &Path) -> (String, String) {
+    let tiny = super::cli::TINY;
+    let x = s(&write_file(root, "x.toml", tiny)).to_string();
+    let y = s(&write_file(root, "y.toml", &format!("{tiny}gamma = 0.9\n"))).to_string();
+    (x, y)
+}
