@@ -199,7 +199,7 @@ fn plot_draws_what_it_is_given_or_says_why_not() {
 }
 
 /// Messages that must be true: a range error names the key and the line of the user's file and
-/// writes a huge number short; the bf16 notes name `INVADERS_NO_BF16` when that is why, and
+/// writes a huge number short, in `train`, the experiments and `bench` alike; the bf16 notes name `INVADERS_NO_BF16` when that is why, and
 /// config.toml says so too.
 #[test]
 fn messages_name_key_line_and_the_real_cause() {
@@ -215,6 +215,17 @@ fn messages_name_key_line_and_the_real_cause() {
         "a huge number shortened: {err}"
     );
     assert!(!run.exists(), "no run folder");
+    // Every command that takes --config says the same: the experiments and bench.
+    let exp = root.join("exp");
+    for kind in ["strong", "ablation", "preprocessing"] {
+        let args = ["experiment", kind, "--config", s(&bad), "--out", s(&exp)];
+        fails_with(&invaders(&args), &["huge.toml, line 2", "gamma", "1e300"]);
+    }
+    fails_with(
+        &invaders(&["bench", "--config", s(&bad)]),
+        &["huge.toml, line 2", "gamma", "1e300"],
+    );
+    assert!(!exp.exists(), "no experiment folder");
 
     // bf16 asked for where INVADERS_NO_BF16 switches it off.
     let cpu_runs_bf16 = invaders::tensor::cpu::why_no_bf16().is_none();

@@ -75,9 +75,10 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         }
     };
     let own = match &args.config {
-        Some(p) => Some(Config::resolve(
+        Some(p) => Some(super::config_errors::resolve_file(
             args.preset,
-            Some(&super::guard::read_text(p, "config file")?),
+            &super::guard::read_text(p, "config file")?,
+            Some(p),
         )?),
         None => None,
     };

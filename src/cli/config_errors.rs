@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use anyhow::anyhow;
+use invaders::dqn::{Config, Preset};
 
 /// `v` as a message shows it: as is up to 30 digits (every integer a knob takes stays exact),
 /// else in scientific notation (`1e300`, not three hundred digits).
@@ -71,4 +72,13 @@ pub fn locate(e: anyhow::Error, text: &str, file: &Path) -> anyhow::Error {
         }
     }
     anyhow!("{msg}")
+}
+
+/// [`Config::resolve`] of `preset` overlaid with `text`, read from the `--config` file `path`
+/// (none: no file): an error names the file's line and key where it can ([`locate`]), as for
+/// every command that takes `--config` (`train`, `bench`, the experiments).
+pub fn resolve_file(
+    preset: Option<Preset>, text: &str, path: Option<&Path>,
+) -> anyhow::Result<Config> {
+    Config::resolve(preset, Some(text)).map_err(|e| locate(e, text, path.unwrap_or(Path::new(""))))
 }

@@ -149,7 +149,8 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
     let text = read_overrides(args.config.as_deref())?;
     let overrides: toml::Table = text.parse().context("--config is not valid TOML")?;
     let preset =
-        Config::resolve(Some(args.preset), Some(&text)).context("configuration of the runs")?;
+        super::super::config_errors::resolve_file(Some(args.preset), &text, args.config.as_deref())
+            .context("configuration of the runs")?;
     Config {
         seed: args.seed,
         max_frames: args.frames,

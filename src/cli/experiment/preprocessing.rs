@@ -84,9 +84,6 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         )?],
         None => Vec::new(),
     };
-    make_keep(args.keep.as_deref())?;
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create {}", args.out.display()))?;
     let exe = exe_path()?;
     let arms = arms(args);
     // Every run's configuration, checked before anything is written or starts (and each run
@@ -100,6 +97,10 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         }
         let text = toml::to_string(&table)?;
         Config::resolve(Some(arm.preset), Some(&text))
+            .map_err(|e| {
+                let file = args.config.as_deref().unwrap_or(Path::new(""));
+                super::super::config_errors::locate(e, &overrides, file)
+            })
             .with_context(|| format!("configuration of {}", arm.label))?;
         for seed in 0..args.seeds {
             let dir = args.out.join(format!("{}-seed{seed}", arm.label));
@@ -107,6 +108,10 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         }
         arm_texts.push(text);
     }
+    // Only now is anything made: a bad configuration leaves no folder behind.
+    make_keep(args.keep.as_deref())?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
     for (arm, text) in arms.iter().zip(arm_texts) {
         let cfg_path = args.out.join(format!("{}.toml", arm.label));
         std::fs::write(&cfg_path, &text)

@@ -62,7 +62,9 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         );
     }
     let text = read_overrides(args.config.as_deref())?;
-    let config = Config::resolve(Some(preset), Some(&text)).context("configuration of the runs")?;
+    let config =
+        super::super::config_errors::resolve_file(Some(preset), &text, args.config.as_deref())
+            .context("configuration of the runs")?;
     Config {
         seed: args.seeds,
         max_frames: frames,
