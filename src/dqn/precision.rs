@@ -2,7 +2,7 @@
 //!
 //! bf16 products are not faster everywhere: on AMD Zen 4 and 5 (AVX512-BF16) the train step
 //! takes about 0.7 of its f32 time; on an Intel Xeon with AMX it took 2.2 times its f32 time on
-//! `vdpbf16ps` and 0.7–0.75 once the bf16 products ran on the tiles (docs/performance.md,
+//! `vdpbf16ps` and 0.7–0.75 once the bf16 products ran on the tiles (docs/performance-history.md,
 //! series G and H). No rule per CPU family would stay true as the kernels change, so `auto`
 //! measures: where bf16 runs at all ([`bf16_runs`]), it times [`TIMED`] train steps of the run's
 //! own network and batch in each precision, alternating, on the run's thread pool, and takes

@@ -14,9 +14,9 @@ use std::arch::x86_64::*;
 /// Pairs per block: the task's row tiles run over one block of `b` (256 pairs × 64 columns ×
 /// 4 bytes, 64 KiB, in L2) before the next, and `C`'s tiles are stored and loaded again
 /// between blocks. 64-pair blocks (16 KiB, in L1) made the article's train step 4% slower on
-/// Zen 5 (docs/performance.md): the weight gradients' long reductions (conv1's, 10 560 pairs
-/// of output pixels at batch 48) went back to `C` every 64 pairs. 128 and 512 measured level
-/// with 256.
+/// Zen 5 (docs/performance-history.md): the weight gradients' long reductions (conv1's,
+/// 10 560 pairs of output pixels at batch 48) went back to `C` every 64 pairs. 128 and 512
+/// measured level with 256.
 const TP: usize = 256;
 
 /// One `MR × 16·NV` tile over the pairs `q` of one block.
