@@ -84,16 +84,8 @@ fn initialisation_is_seeded() {
 #[test]
 #[allow(clippy::needless_range_loop)] // four parallel arrays, indexed alike
 fn adam_matches_closed_form() {
-    let mut p = Param::<f64>::zeros("w".into(), &[4]);
-    p.value.data_mut().copy_from_slice(&[0.5, -1.0, 2.0, 0.0]);
-    let mut adam = Adam::new(0.01);
-    let (mut w, mut m, mut v) = ([0.5f64, -1.0, 2.0, 0.0], [0.0f64; 4], [0.0f64; 4]);
-    for t in 1..=50 {
-        let g: Vec<f64> = (0..4)
-            .map(|i| ((t * 7 + i * 3) as f64).sin() * (i + 1) as f64)
-            .collect();
-        p.grad.data_mut().copy_from_slice(&g);
-        assert!(adam.step(std::iter::once(&mut p)), "step {t}: all finite");
+    let (mut m, mut v) = ([0.0f64; 4], [0.0f64; 4]);
+    let adam = against_reference(Adam::new(0.01), |t, g, w| {
         for i in 0..4 {
             m[i] = 0.9 * m[i] + 0.1 * g[i];
             v[i] = 0.999 * v[i] + 0.001 * g[i] * g[i];
@@ -102,11 +94,30 @@ fn adam_matches_closed_form() {
             let eps_hat = 1e-8 / (1.0 - 0.999f64.powi(t)).sqrt();
             w[i] -= 0.01 * mh / (vh.sqrt() + eps_hat);
         }
+    });
+    assert_eq!(adam.t, 50);
+}
+
+/// Runs `adam` for 50 steps on four weights starting at `[0.5, −1, 2, 0]`, with gradients
+/// `g_i(t) = sin(7t + 3i)·(i + 1)`, beside `reference(t, g, w)`, which applies step `t` to its
+/// own copy `w` in f64; after each step the two agree to 1e-12. Returns the optimiser.
+fn against_reference(
+    mut adam: Adam<f64>, mut reference: impl FnMut(i32, &[f64; 4], &mut [f64; 4]),
+) -> Adam<f64> {
+    let mut w = [0.5f64, -1.0, 2.0, 0.0];
+    let mut p = Param::<f64>::zeros("w".into(), &[4]);
+    p.value.data_mut().copy_from_slice(&w);
+    for t in 1..=50 {
+        let g: [f64; 4] =
+            std::array::from_fn(|i| ((t * 7 + i as i32 * 3) as f64).sin() * (i + 1) as f64);
+        p.grad.data_mut().copy_from_slice(&g);
+        assert!(adam.step(std::iter::once(&mut p)), "step {t}: all finite");
+        reference(t, &g, &mut w);
         for (&ours, &want) in p.value.data().iter().zip(&w) {
             assert!((ours - want).abs() < 1e-12, "step {t}: {ours} vs {want}");
         }
     }
-    assert_eq!(adam.t, 50);
+    adam
 }
 
 /// Rectified Adam against `torch.optim.RAdam`'s form, computed independently in f64 over 50
@@ -118,20 +129,13 @@ fn adam_matches_closed_form() {
 #[test]
 #[allow(clippy::needless_range_loop)] // four parallel arrays, indexed alike
 fn radam_matches_closed_form() {
-    let mut p = Param::<f64>::zeros("w".into(), &[4]);
-    p.value.data_mut().copy_from_slice(&[0.5, -1.0, 2.0, 0.0]);
     let mut adam = Adam::new(0.01);
     adam.rectified = true;
-    let (mut w, mut m, mut v) = ([0.5f64, -1.0, 2.0, 0.0], [0.0f64; 4], [0.0f64; 4]);
+    let (mut m, mut v) = ([0.0f64; 4], [0.0f64; 4]);
     let (b1, b2, lr, eps) = (0.9f64, 0.999f64, 0.01f64, 1e-8f64);
     let rho_inf = 2.0 / (1.0 - b2) - 1.0;
     let mut adaptive_steps = 0;
-    for t in 1..=50 {
-        let g: Vec<f64> = (0..4)
-            .map(|i| ((t * 7 + i * 3) as f64).sin() * (i + 1) as f64)
-            .collect();
-        p.grad.data_mut().copy_from_slice(&g);
-        assert!(adam.step(std::iter::once(&mut p)), "step {t}: all finite");
+    against_reference(adam, |t, g, w| {
         let rho = rho_inf - 2.0 * t as f64 * b2.powi(t) / (1.0 - b2.powi(t));
         let r = ((rho - 4.0) * (rho - 2.0) * rho_inf / ((rho_inf - 4.0) * (rho_inf - 2.0) * rho))
             .sqrt();
@@ -150,10 +154,7 @@ fn radam_matches_closed_form() {
                 lr * mh
             };
         }
-        for (&ours, &want) in p.value.data().iter().zip(&w) {
-            assert!((ours - want).abs() < 1e-12, "step {t}: {ours} vs {want}");
-        }
-    }
+    });
     assert_eq!(adaptive_steps, 45, "steps 6 to 50 adaptive");
 }
 
