@@ -2,22 +2,16 @@
 //! same layers, loss and optimizer the DQN uses (`cargo run --release --example first_network`;
 //! CI runs it). Each layer's forward and backward pass is in `src/layers/`, read top to bottom.
 
-use invaders::layers::init::VarianceScaling;
 use invaders::layers::loss::mse;
 use invaders::layers::{Dense, Relu, Sequential};
 use invaders::optim::Adam;
 use invaders::tensor::Tensor;
-use rand::SeedableRng;
 
 fn main() {
-    let mut net = Sequential::new();
+    let mut net = Sequential::new(); // each layer starts from the He initialiser
     net.push(Dense::new("hidden", 2, 16));
-    net.push(Relu::new("relu", &[16]));
+    net.push(Relu::new("relu"));
     net.push(Dense::new("out", 16, 1));
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    for p in net.params_mut().filter(|p| p.name.ends_with(".weight")) {
-        VarianceScaling::HE.fill(&mut p.value, &mut rng);
-    }
     let x = Tensor::from_vec(&[4, 2], vec![0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0, 1.0]);
     let y = [0.0f32, 1.0, 1.0, 0.0];
     let (mut adam, mut dy) = (Adam::new(0.01), Tensor::zeros(&[4, 1]));

@@ -150,6 +150,12 @@ fn every_kind_of_damage_is_refused_clearly() {
         f(&mut o);
         o.bytes()
     };
+    // A copy with metadata `key` set to `value`.
+    let with_meta = |key: &str, value: &str| {
+        damaged(&|o| {
+            o.meta.insert(key.into(), value.into());
+        })
+    };
     // A copy with tensor `name`'s dtype and shape changed (where given).
     let reheaded = |name: &str, dtype: Option<Dtype>, shape: Option<Vec<usize>>| {
         damaged(&|o| {
@@ -264,16 +270,12 @@ fn every_kind_of_damage_is_refused_clearly() {
     ));
     cases.push((
         "bad generators",
-        damaged(&|o| {
-            o.meta.insert("rngs".into(), "{\"explore\": 3}".into());
-        }),
+        with_meta("rngs", "{\"explore\": 3}"),
         "checkpoint random generators",
     ));
     cases.push((
         "replay file outside the run directory",
-        damaged(&|o| {
-            o.meta.insert("replay".into(), "../../etc/passwd".into());
-        }),
+        with_meta("replay", "../../etc/passwd"),
         "bad replay file `../../etc/passwd`",
     ));
     cases.push((
@@ -296,18 +298,14 @@ fn every_kind_of_damage_is_refused_clearly() {
     ));
     cases.push((
         "unknown contents",
-        damaged(&|o| {
-            o.meta.insert("contents".into(), "weights".into());
-        }),
+        with_meta("contents", "weights"),
         "unknown checkpoint contents `weights`",
     ));
     // A full checkpoint that claims to be a snapshot has tensors a snapshot lacks, and Adam's
     // steps; a snapshot with the target network or Adam's moments of a checkpoint is refused.
     cases.push((
         "a checkpoint called a snapshot",
-        damaged(&|o| {
-            o.meta.insert("contents".into(), "snapshot".into());
-        }),
+        with_meta("contents", "snapshot"),
         "a snapshot holds no optimizer state",
     ));
     cases.push((

@@ -107,7 +107,7 @@ proptest! {
 
     #[test]
     fn relu_gradients(h in 1usize..6, w in 1usize..6, c in 1usize..4, n in 1usize..=3, seed in any::<u64>()) {
-        let mut layer = Relu::<f64>::new("relu", &[h, w, c]);
+        let mut layer = Relu::<f64>::new("relu");
         let mut r = rng(seed);
         let x = uniform_away_from_zero(&[n, h, w, c], 1e-3, &mut r);
         let dy = uniform(&[n, h, w, c], &mut r);
@@ -318,7 +318,8 @@ proptest! {
 
     #[test]
     fn flatten_gradients(h in 1usize..6, w in 1usize..6, c in 1usize..4, n in 1usize..=3, seed in any::<u64>()) {
-        let mut layer = Flatten::<f64>::new("flatten", &[h, w, c]);
+        let mut layer = Flatten::<f64>::new("flatten");
+        layer.connect(&[h, w, c]);
         let mut r = rng(seed);
         let x = uniform(&[n, h, w, c], &mut r);
         let dy = uniform(&[n, h * w * c], &mut r);

@@ -5,9 +5,9 @@ mod common;
 
 use common::rng;
 use invaders::layers::init::{Distribution, FanMode, VarianceScaling, TRUNCATED_NORMAL_STDDEV};
-use invaders::layers::{Dense, Param, Sequential};
+use invaders::layers::{Conv2d, Dense, Flatten, Layer, Param, Relu, Sequential};
 use invaders::optim::{clip_grad_norm, global_grad_norm, Adam, Sgd};
-use invaders::tensor::Tensor;
+use invaders::tensor::{ConvGeom, Padding, Tensor};
 
 fn moments(t: &Tensor<f64>) -> (f64, f64, f64) {
     let n = t.len() as f64;
@@ -194,16 +194,15 @@ fn adam_reports_a_non_finite_weight_and_updates_the_rest() {
 
 #[test]
 fn sgd_and_clipping() {
-    // A dense layer 2 -> 1: a weight of 2 values and a bias of 1, with gradients (3, 0) and 4.
+    // A dense layer 2 -> 1: a weight of 2 values (set to 0) and a bias of 1, with gradients
+    // (3, 0) and 4.
     let mut net = Sequential::<f64>::new();
     net.push(Dense::new("d", 2, 1));
     {
         let mut ps = net.params_mut();
-        ps.next()
-            .unwrap()
-            .grad
-            .data_mut()
-            .copy_from_slice(&[3.0, 0.0]);
+        let w = ps.next().unwrap();
+        w.value.fill_zero();
+        w.grad.data_mut().copy_from_slice(&[3.0, 0.0]);
         ps.next().unwrap().grad.data_mut().copy_from_slice(&[4.0]);
     }
     assert_eq!(global_grad_norm(net.params()), 5.0);
@@ -224,4 +223,56 @@ fn sgd_and_clipping() {
         (v[0] + 0.3).abs() < 1e-15 && (v[2] + 0.4).abs() < 1e-15,
         "{v:?}"
     );
+}
+
+/// A dense layer and a convolution start from the article's He initialiser without being told:
+/// drawn from a generator seeded by the name (the same layer twice starts the same, another
+/// name differently), bias zero, and the weights' variance near `2 / fan_in`. `init` draws them
+/// again from the caller's generator, exactly as `VarianceScaling::fill` does.
+#[test]
+fn layers_start_from_he_drawn_by_their_name() {
+    let variance = |t: &Tensor<f64>| t.data().iter().map(|v| v * v).sum::<f64>() / t.len() as f64;
+    let a = Dense::<f64>::new("a", 400, 300);
+    assert_eq!(
+        a.params()[0].value,
+        Dense::<f64>::new("a", 400, 300).params()[0].value
+    );
+    assert_ne!(
+        a.params()[0].value,
+        Dense::<f64>::new("b", 400, 300).params()[0].value
+    );
+    assert!(a.params()[1].value.data().iter().all(|&b| b == 0.0));
+    let v = variance(&a.params()[0].value);
+    assert!(
+        (v / (2.0 / 400.0) - 1.0).abs() < 0.02,
+        "dense: variance {v}"
+    );
+    let geom = ConvGeom::new(12, 12, 8, 64, 3, 3, (1, 1), Padding::Same).unwrap();
+    let c = Conv2d::<f64>::new("c", geom);
+    let v = variance(&c.params()[0].value);
+    assert!((v / (2.0 / 72.0) - 1.0).abs() < 0.05, "conv: variance {v}");
+    assert!(c.params()[1].value.data().iter().all(|&b| b == 0.0));
+    let mut want = Tensor::<f64>::zeros(&[400, 300]);
+    VarianceScaling::HE.fill(&mut want, &mut rng(9));
+    let mine = Dense::<f64>::new("a", 400, 300).init(&VarianceScaling::HE, &mut rng(9));
+    assert_eq!(mine.params()[0].value, want);
+}
+
+/// A `Sequential` tells each layer its input's shape, so ReLU and Flatten need none: after a
+/// 3x3 SAME convolution of a 6x5x2 input to 4 channels, the ReLU's output is `[6, 5, 4]` and
+/// the Flatten's `[120]`, the width a dense layer pushed next reads.
+#[test]
+fn sequential_tells_each_layer_its_input_shape() {
+    let mut net = Sequential::<f32>::new();
+    net.push(Conv2d::new(
+        "conv",
+        ConvGeom::new(6, 5, 2, 4, 3, 3, (1, 1), Padding::Same).unwrap(),
+    ));
+    net.push(Relu::new("relu"));
+    assert_eq!(net.output_shape(), [6, 5, 4]);
+    net.push(Flatten::new("flat"));
+    assert_eq!(net.output_shape(), [120]);
+    net.push(Dense::new("out", net.output_len(), 3));
+    let y = net.forward(&Tensor::zeros(&[2, 6, 5, 2]));
+    assert_eq!(y.shape(), [2, 3]);
 }

@@ -217,7 +217,7 @@ pub fn qnet<T: Float>(
     if layer_norm {
         net.push(LayerNorm::new("ln4", &[hidden]).with_relu());
     } else {
-        net.push(Relu::new("relu4", &[hidden]));
+        net.push(Relu::new("relu4"));
     }
     if let Some(Iqn {
         embedding,

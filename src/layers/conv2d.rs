@@ -7,6 +7,7 @@
 //! and CPU (im2col + GEMM, the reference; gather GEMMs, Winograd, the sparse and background
 //! products for acting).
 
+use super::init::VarianceScaling;
 use super::{Core, Layer, Param};
 use crate::ops::{ConvOps, ConvSpec, Precision};
 use crate::tensor::{Border, ConvGeom, Float, Tensor};
@@ -55,7 +56,9 @@ pub struct Conv2d<T> {
 }
 
 impl<T: Float> Conv2d<T> {
-    /// A convolution with zero weights and bias (initialise them with [`super::init`]).
+    /// A convolution that starts ready to train: weights drawn by [`VarianceScaling::HE`] (the
+    /// article's He initialiser) from [`super::init::named_rng`] of its name, bias zero. Draw
+    /// them from your own generator with [`Conv2d::init`].
     pub fn new(name: &str, geom: ConvGeom) -> Self {
         let wshape = [geom.kh, geom.kw, geom.cin, geom.cout];
         Conv2d {
@@ -75,6 +78,14 @@ impl<T: Float> Conv2d<T> {
             dz: Vec::new(),
             ops: ConvOps::new(name),
         }
+        .init(&VarianceScaling::HE, &mut super::init::named_rng(name))
+    }
+
+    /// Draws the weights again by `init` from `rng`, and zeroes the bias.
+    pub fn init(mut self, init: &VarianceScaling, rng: &mut impl rand::Rng) -> Self {
+        init.fill(&mut self.params[0].value, rng);
+        self.params[1].value.fill_zero();
+        self
     }
 
     /// Applies `max(·, 0)` to the output (a fused ReLU: `∂y/∂z = [y > 0]`).

@@ -1,5 +1,6 @@
 //! Fully connected layer.
 
+use super::init::VarianceScaling;
 use super::{Core, Layer, Param};
 use crate::ops::{DenseOps, Precision};
 use crate::tensor::{Float, Tensor};
@@ -31,7 +32,9 @@ pub struct Dense<T> {
 }
 
 impl<T: Float> Dense<T> {
-    /// A dense layer with zero weights and bias (initialise them with [`super::init`]).
+    /// A dense layer that starts ready to train: weights drawn by [`VarianceScaling::HE`] (the
+    /// article's He initialiser) from [`super::init::named_rng`] of its name, bias zero. Draw
+    /// them from your own generator with [`Dense::init`].
     ///
     /// # Panics
     /// If `n_in` or `n_out` is zero.
@@ -54,6 +57,14 @@ impl<T: Float> Dense<T> {
             precision: Precision::F32,
             ops: DenseOps::default(),
         }
+        .init(&VarianceScaling::HE, &mut super::init::named_rng(name))
+    }
+
+    /// Draws the weights again by `init` from `rng`, and zeroes the bias.
+    pub fn init(mut self, init: &VarianceScaling, rng: &mut impl rand::Rng) -> Self {
+        init.fill(&mut self.params[0].value, rng);
+        self.params[1].value.fill_zero();
+        self
     }
 
     /// Acts ([`Layer::infer`] at batch 1) by `y = b + Σ_{i : x_i ≠ 0} x_i·W[i, :]`, reading only

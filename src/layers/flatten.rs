@@ -9,15 +9,16 @@ use crate::tensor::{Float, Tensor};
 pub struct Flatten<T> {
     /// The name, output `y` and input gradient `dX` ([`Core`]).
     core: Core<T>,
+    /// One input sample's shape, from [`Layer::connect`] (empty until then: any input).
     in_shape: Vec<usize>,
 }
 
 impl<T: Float> Flatten<T> {
-    /// A flatten for samples of shape `in_shape` (batch excluded).
-    pub fn new(name: &str, in_shape: &[usize]) -> Self {
+    /// A flatten; it takes its input's shape from the layer before ([`Layer::connect`]).
+    pub fn new(name: &str) -> Self {
         Flatten {
             core: Core::new(name),
-            in_shape: in_shape.to_vec(),
+            in_shape: Vec::new(),
         }
     }
 }
@@ -28,16 +29,24 @@ impl<T: Float> Layer<T> for Flatten<T> {
     }
 
     fn output_shape(&self) -> Vec<usize> {
-        vec![self.in_shape.iter().product()]
+        match self.in_shape.is_empty() {
+            true => Vec::new(),
+            false => vec![self.in_shape.iter().product()],
+        }
+    }
+
+    fn connect(&mut self, input_shape: &[usize]) {
+        self.in_shape = input_shape.to_vec();
     }
 
     /// `y[n, i] = x[n, …]` with the same row-major order.
     fn forward(&mut self, x: &Tensor<T>) {
-        assert_eq!(
+        assert!(
+            self.in_shape.is_empty() || x.shape()[1..] == self.in_shape[..],
+            "{}: input shape {:?}, connected to {:?}",
+            self.core.name,
             &x.shape()[1..],
-            &self.in_shape[..],
-            "{}: input shape",
-            self.core.name
+            self.in_shape
         );
         self.core
             .y

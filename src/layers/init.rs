@@ -121,3 +121,14 @@ fn truncated_unit_normal(rng: &mut impl Rng) -> f64 {
         }
     }
 }
+
+/// A generator seeded by a layer's name (its FNV-1a hash): where a layer draws its weights when
+/// no generator is given ([`crate::layers::Dense::new`], [`crate::layers::Conv2d::new`]), so a
+/// network built twice starts the same, and two layers of one network start differently.
+pub fn named_rng(name: &str) -> rand_chacha::ChaCha8Rng {
+    use rand::SeedableRng;
+    let hash = name.bytes().fold(0xCBF2_9CE4_8422_2325_u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01B3)
+    });
+    rand_chacha::ChaCha8Rng::seed_from_u64(hash)
+}

@@ -90,8 +90,15 @@ pub trait Layer<T: Float>: Send {
         &self.core().name
     }
 
-    /// Shape of one sample's output for one sample's input shape (batch dimension excluded).
+    /// Shape of one sample's output (batch dimension excluded). A layer whose output follows
+    /// its input's shape ([`Relu`], [`Flatten`]) knows it once [`Layer::connect`] has told it
+    /// the input's; before, it returns an empty shape.
     fn output_shape(&self) -> Vec<usize>;
+
+    /// Tells the layer the shape of one input sample: [`Sequential::push`] calls it with the
+    /// output shape of the layer before, so a layer needs no shape its input already gives.
+    /// Layers whose shapes are set when they are built ignore it.
+    fn connect(&mut self, _input_shape: &[usize]) {}
 
     /// Computes `y = f(x)` into the layer's output buffer, keeping what backward needs.
     fn forward(&mut self, x: &Tensor<T>);

@@ -12,15 +12,16 @@ const CHUNK: usize = 1 << 15;
 pub struct Relu<T> {
     /// The name, output `y` and input gradient `dX` ([`Core`]).
     core: Core<T>,
+    /// One sample's shape, from [`Layer::connect`] (empty until then).
     shape: Vec<usize>,
 }
 
 impl<T: Float> Relu<T> {
-    /// A ReLU on samples of the given shape (batch excluded).
-    pub fn new(name: &str, shape: &[usize]) -> Self {
+    /// A ReLU; it takes its shape from its input ([`Layer::connect`]).
+    pub fn new(name: &str) -> Self {
         Relu {
             core: Core::new(name),
-            shape: shape.to_vec(),
+            shape: Vec::new(),
         }
     }
 }
@@ -32,6 +33,10 @@ impl<T: Float> Layer<T> for Relu<T> {
 
     fn output_shape(&self) -> Vec<usize> {
         self.shape.clone()
+    }
+
+    fn connect(&mut self, input_shape: &[usize]) {
+        self.shape = input_shape.to_vec();
     }
 
     /// `y = max(x, 0)`.

@@ -19,8 +19,11 @@ impl<T: Float> Sequential<T> {
         Sequential { layers: Vec::new() }
     }
 
-    /// Appends a layer.
-    pub fn push(&mut self, layer: impl Layer<T> + 'static) {
+    /// Appends a layer, telling it the output shape of the one before ([`Layer::connect`]).
+    pub fn push(&mut self, mut layer: impl Layer<T> + 'static) {
+        if let Some(before) = self.layers.last() {
+            layer.connect(&before.output_shape());
+        }
         self.layers.push(Box::new(layer));
     }
 
