@@ -135,7 +135,7 @@ fn the_real_files_load() {
     for (a, b) in s.learner.online.params().zip(c.learner.online.params()) {
         assert_eq!(a.value.data(), b.value.data(), "{}", a.name);
     }
-    for (a, b) in s.learner.target.params().zip(c.learner.online.params()) {
+    for (a, b) in s.learner.target().params().zip(c.learner.online.params()) {
         assert_eq!(a.value.data(), b.value.data(), "{}", a.name);
     }
 }

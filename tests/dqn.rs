@@ -692,7 +692,7 @@ fn checkpoints_round_trip_and_refuse_damage() {
     assert_eq!(back.learner.adam.t, agent.learner.adam.t);
     for (restored, saved) in [
         (&back.learner.online, &agent.learner.online),
-        (&back.learner.target, &agent.learner.target),
+        (back.learner.target(), agent.learner.target()),
     ] {
         for (a, b) in restored.params().zip(saved.params()) {
             assert_eq!(a.value, b.value, "{}", a.name);

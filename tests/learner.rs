@@ -93,7 +93,7 @@ fn batch(ts: &[T]) -> Batch {
 fn learner(gamma: f32, online: ([f32; A], [f32; A]), target: ([f32; A], [f32; A])) -> Learner {
     let mut l = Learner::new(INPUT, A, 1e-3, gamma, &mut common::rng(1));
     set_q(&mut l.online, online.0, online.1);
-    set_q(&mut l.target, target.0, target.1);
+    set_q(l.target_mut(), target.0, target.1);
     l
 }
 
@@ -122,7 +122,7 @@ fn td_targets_match_a_hand_computation() {
     ];
     let batch = batch(&ts);
     // The construction: Q_target(s') is the hand formula's.
-    let got = l.target.forward(&batch.next_states).data().to_vec();
+    let got = l.target_mut().forward(&batch.next_states).data().to_vec();
     let want: Vec<f32> = ts.iter().flat_map(|t| q(wt, bt, t.next)).collect();
     assert_eq!(got, want, "Q_target(s', ·)");
     // By hand: max Q_target(s') = 1.25, 4.25, (done), 1.5.
@@ -358,7 +358,7 @@ fn same_networks<G: Game>(agent: &Agent<G>) -> bool {
         .learner
         .online
         .params()
-        .zip(agent.learner.target.params())
+        .zip(agent.learner.target().params())
         .all(|(a, b)| a.value == b.value)
 }
 
@@ -488,7 +488,7 @@ fn acting_with_the_target_network_uses_the_target() {
     for (switch, action) in [(false, 0), (true, 1)] {
         let mut agent = scripted_agent(&[5], 0.0, |c| c.act_with_target_network = switch);
         prefer(&mut agent.learner.online, 0);
-        prefer(&mut agent.learner.target, 1);
+        prefer(agent.learner.target_mut(), 1);
         agent.play_episode().unwrap();
         assert_eq!(
             agent.game.actions, [action; 5],
@@ -538,7 +538,11 @@ fn rule(double: bool) -> TargetRule {
 fn constant_learner(head: Head, double: bool, online: &[f32], target: &[f32]) -> Learner {
     let mut l = Learner::with_head(INPUT, A, head, 1e-3, 0.5, &mut common::rng(1));
     l.rule = rule(double);
-    for (net, b) in [(&mut l.online, online), (&mut l.target, target)] {
+    for (which, b) in [(0, online), (1, target)] {
+        let net = match which {
+            0 => &mut l.online,
+            _ => l.target_mut(),
+        };
         for p in net.params_mut() {
             p.value.data_mut().fill(0.0);
             if p.name == "dense2.bias" {

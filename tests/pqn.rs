@@ -290,18 +290,47 @@ fn pqn_is_deterministic_and_resumes_exactly() {
 /// A PQN checkpoint holds every game (observers, saved states, episodes in progress) and the
 /// rows not yet handed out: the agent it loads into continues exactly as the saved one. A
 /// checkpoint missing that state, or a DQN configuration's checkpoint given it, is refused.
+/// PQN's learner has no target network, so its checkpoint holds none; one written while it
+/// still had one (a copy of the online network) loads the same.
 #[test]
 fn pqn_checkpoints_round_trip() {
     let mut a = PqnAgent::new(toy_config(), corridors(4)).unwrap();
     for _ in 0..3 {
         a.play_rollout().unwrap();
     }
+    assert!(a.learner.target_if_any().is_none(), "PQN has no target");
     // Rows pending, and a NaN mean among them (episodes before the first gradient step).
     assert!(a.pending() > 0);
     let state = a.state();
     assert!(state.finished.iter().any(|r| r.mean_loss.is_nan()));
     assert_eq!(state.other_games.len(), 3);
     let bytes = checkpoint::to_bytes(&a.config, &a.counters, &a.learner, &state, None).unwrap();
+    let names = safetensors::SafeTensors::deserialize(&bytes)
+        .unwrap()
+        .names()
+        .len();
+    let mut old = a.config.clone();
+    old.pqn = None;
+    let mut with_target = Learner::from_config(&old, a.learner.n_actions(), &mut common::rng(0));
+    with_target.online.copy_params_from(&a.learner.online);
+    with_target.update_target();
+    with_target.adam = a.learner.adam.clone();
+    let older = checkpoint::to_bytes(&a.config, &a.counters, &with_target, &state, None).unwrap();
+    let older_names = safetensors::SafeTensors::deserialize(&older)
+        .unwrap()
+        .names()
+        .len();
+    assert_eq!(older_names, names + a.learner.online.params().count());
+    let from_older = checkpoint::from_bytes(&older).unwrap();
+    assert!(from_older.learner.target_if_any().is_none());
+    for (p, q) in from_older
+        .learner
+        .online
+        .params()
+        .zip(a.learner.online.params())
+    {
+        assert_eq!(p.value, q.value, "{}", p.name);
+    }
     let back = checkpoint::from_bytes(&bytes).unwrap();
     assert_eq!(back.counters, a.counters);
     assert_eq!(back.agent.players, state.players);

@@ -188,7 +188,7 @@ fn a_snapshot_continues_the_run_elsewhere() {
         weights(&full.learner.online)
     );
     assert_eq!(
-        weights(&small.learner.target),
+        weights(small.learner.target()),
         weights(&full.learner.online)
     );
     assert_eq!((small.learner.adam.t, small.learner.adam.m.len()), (0, 0));

@@ -100,7 +100,7 @@ fn a_reset_draws_the_layers_after_the_convolutions_afresh_and_keeps_the_rest() {
                 .map(|p| p.value.data().to_vec())
                 .collect();
             let target: Vec<Vec<f32>> = learner
-                .target
+                .target()
                 .params()
                 .map(|p| p.value.data().to_vec())
                 .collect();
@@ -131,7 +131,7 @@ fn a_reset_draws_the_layers_after_the_convolutions_afresh_and_keeps_the_rest() {
                 assert_eq!(learner.adam.v[i], v0[i], "{tag}: v kept");
             }
             let target_after: Vec<Vec<f32>> = learner
-                .target
+                .target()
                 .params()
                 .map(|p| p.value.data().to_vec())
                 .collect();
@@ -194,7 +194,11 @@ fn a_reset_at_the_last_step_changes_only_the_dense_layers() {
         assert_eq!(ca.learner.adam.v[i], cb.learner.adam.v[i], "{}: v", p.name);
     }
     assert_eq!(heads, 4, "dense1 and dense2, weights and biases");
-    let targets = ca.learner.target.params().zip(cb.learner.target.params());
+    let targets = ca
+        .learner
+        .target()
+        .params()
+        .zip(cb.learner.target().params());
     for (p, q) in targets {
         assert_eq!(p.value, q.value, "target {}", p.name);
     }

@@ -329,7 +329,7 @@ impl<G: Game> Agent<G> {
     /// target network if the config reproduces the notebook's swap).
     pub fn greedy_action(&mut self) -> usize {
         let net = if self.config.act_with_target_network {
-            &mut self.learner.target
+            self.learner.target_mut()
         } else {
             &mut self.learner.online
         };

@@ -19,6 +19,9 @@ use crate::optim::{clip_grad_norm, Adam};
 use crate::tensor::Tensor;
 use rand::Rng;
 
+/// The panic of a target network asked of a learner that has none.
+const NO_TARGET: &str = "this learner has no target network (PQN's: Learner::without_target)";
+
 /// What one train step measured.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct StepStats {
@@ -41,8 +44,9 @@ pub struct StepStats {
 pub struct Learner {
     /// The network being trained; it also picks the actions.
     pub online: Sequential<f32>,
-    /// A copy of `online` refreshed every `target_update` steps; it gives the bootstrap values.
-    pub target: Sequential<f32>,
+    /// A copy of `online` refreshed every `target_update` steps; it gives the bootstrap values
+    /// ([`Learner::target`]). PQN's learner has none: its targets come from its rollouts.
+    target: Option<Sequential<f32>>,
     /// The optimizer and its moments.
     pub adam: Adam<f32>,
     /// Discount factor γ.
@@ -88,6 +92,7 @@ impl Learner {
         let online = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
         let mut target = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
         target.copy_params_from(&online);
+        let target = Some(target);
         let values: Box<dyn ValueHead> = match (head.iqn, head.atoms) {
             (Some(iqn), _) => Box::new(Implicit {
                 iqn,
@@ -115,7 +120,8 @@ impl Learner {
         }
     }
 
-    /// A learner with every setting taken from a run's configuration.
+    /// A learner with every setting taken from a run's configuration; with a `[pqn]` table,
+    /// without a target network ([`Learner::without_target`]).
     pub fn from_config(config: &super::Config, n_actions: usize, rng: &mut impl Rng) -> Self {
         let mut l = Learner::with_head(
             config.input_shape(),
@@ -131,13 +137,47 @@ impl Learner {
         l.rule = config.target_rule();
         l.clip_norm = (config.clip_grad_norm > 0.0).then_some(config.clip_grad_norm as f32);
         l.set_precision(config.precision);
-        l
+        match config.pqn {
+            Some(_) => l.without_target(),
+            None => l,
+        }
+    }
+
+    /// The learner without its target network, for an algorithm that bootstraps otherwise (PQN:
+    /// [`Learner::regress_step`] with its rollouts' λ-returns). [`Learner::train_step`] then
+    /// panics, and [`Learner::update_target`] does nothing.
+    pub fn without_target(mut self) -> Self {
+        self.target = None;
+        self
+    }
+
+    /// The target network.
+    ///
+    /// # Panics
+    /// If the learner has none ([`Learner::without_target`]).
+    pub fn target(&self) -> &Sequential<f32> {
+        self.target.as_ref().expect(NO_TARGET)
+    }
+
+    /// The target network, mutably.
+    ///
+    /// # Panics
+    /// If the learner has none ([`Learner::without_target`]).
+    pub fn target_mut(&mut self) -> &mut Sequential<f32> {
+        self.target.as_mut().expect(NO_TARGET)
+    }
+
+    /// The target network, if the learner has one.
+    pub fn target_if_any(&self) -> Option<&Sequential<f32>> {
+        self.target.as_ref()
     }
 
     /// Both networks' training arithmetic ([`crate::ops::plan::Precision`]).
     pub fn set_precision(&mut self, precision: crate::ops::plan::Precision) {
         self.online.set_precision(precision);
-        self.target.set_precision(precision);
+        if let Some(target) = &mut self.target {
+            target.set_precision(precision);
+        }
     }
 
     /// The number of actions.
@@ -170,9 +210,11 @@ impl Learner {
         &self.td
     }
 
-    /// Copies the online network into the target network.
+    /// Copies the online network into the target network (none: nothing to do).
     pub fn update_target(&mut self) {
-        self.target.copy_params_from(&self.online);
+        if let Some(target) = &mut self.target {
+            target.copy_params_from(&self.online);
+        }
     }
 
     /// Draws the layers after the convolutions afresh (a reset against lost plasticity,
@@ -227,8 +269,9 @@ impl Learner {
         let (head, na, rule, gamma) = (&*self.head, self.n_actions, self.rule, self.gamma);
         // 1. The targets y: the rule's own pass first (Double DQN: `Q_online(s', ·)`;
         //    Munchausen: `Q_target(s, ·)`), then the target network's over s', beside step 2.
-        let policy = rule.policy(head, &mut self.online, &mut self.target, batch);
-        let (target, online, y) = (&mut self.target, &mut self.online, &mut self.y);
+        let target = self.target.as_mut().expect(NO_TARGET);
+        let policy = rule.policy(head, &mut self.online, target, batch);
+        let (online, y) = (&mut self.online, &mut self.y);
         let ((), out) = rayon::join(
             || targets(head, rule, target, batch, &policy, gamma, y),
             // 2. The forward pass; θ = Q(s, a) of the taken actions.

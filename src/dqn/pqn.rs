@@ -175,7 +175,7 @@ pub struct PqnAgent<G: Game> {
     observers: Vec<Observer>,
     /// Each game's episode in progress.
     players: Vec<Player>,
-    /// The network (its `target` is not used) and the optimizer.
+    /// The network and the optimizer; no target network ([`Learner::without_target`]).
     pub learner: Learner,
     /// Progress: `episodes` counts the rows handed out.
     pub counters: Counters,

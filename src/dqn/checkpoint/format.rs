@@ -132,11 +132,10 @@ fn encode(
     let other_composites: Vec<u8> = others.iter().flat_map(|g| g.composite.clone()).collect();
     let other_stacks: Vec<u8> = others.iter().flat_map(|g| g.stack.clone()).collect();
     let mut tensors: Vec<(String, TensorView<'_>)> = Vec::new();
-    let nets: &[(&str, &Sequential<f32>)] = if snapshot {
-        &[("online", &learner.online)]
-    } else {
-        &[("online", &learner.online), ("target", &learner.target)]
-    };
+    let mut nets: Vec<(&str, &Sequential<f32>)> = vec![("online", &learner.online)];
+    if let (false, Some(target)) = (snapshot, learner.target_if_any()) {
+        nets.push(("target", target));
+    }
     for (prefix, net) in nets {
         for p in net.params() {
             tensors.push((format!("{prefix}.{}", p.name), view(&p.value)?));
@@ -382,12 +381,23 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
     let mut learner = Learner::from_config(&config, n_actions, &mut rng);
     load_net(&st, "online", &mut learner.online)?;
+    let has_target = learner.target_if_any().is_some();
     if snapshot {
         // The target network starts as the online one (as after a copy, ALGO 7).
         learner.update_target();
-    } else {
-        load_net(&st, "target", &mut learner.target)?;
+    } else if has_target {
+        load_net(&st, "target", learner.target_mut())?;
     }
+    // A PQN learner has no target network; a PQN checkpoint written before it lost its own
+    // holds one, which is read past.
+    let old_target = match has_target {
+        true => 0,
+        false => st
+            .names()
+            .iter()
+            .filter(|n| n.starts_with("target."))
+            .count(),
+    };
     if adam_steps > 0 {
         for p in learner.online.params() {
             let mut m = Tensor::zeros(p.value.shape());
@@ -432,14 +442,13 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     let (other_games, players, finished) = read_pqn(&st, &meta, &config)?;
     let pqn_tensors = other_games.iter().filter(|g| g.game.is_some()).count()
         + if other_games.is_empty() { 0 } else { 2 };
-    let copies = if snapshot {
-        1
-    } else if adam_steps > 0 {
-        4
-    } else {
-        2
+    // A snapshot holds the online network only; a checkpoint also the target network (where the
+    // learner has one) and, once Adam stepped, its two moments.
+    let copies = match snapshot {
+        true => 1,
+        false => 1 + usize::from(has_target) + 2 * usize::from(adam_steps > 0),
     };
-    let nets = copies * learner.online.params().count();
+    let nets = copies * learner.online.params().count() + old_target;
     let expected = nets + 2 + game.is_some() as usize + pqn_tensors;
     if st.len() != expected {
         let mut names = st.names();
