@@ -93,14 +93,7 @@ impl Learner {
         let mut target = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
         target.copy_params_from(&online);
         let target = Some(target);
-        let values: Box<dyn ValueHead> = match (head.iqn, head.atoms) {
-            (Some(iqn), _) => Box::new(Implicit {
-                iqn,
-                actions: n_actions,
-            }),
-            (None, 1) => Box::new(QValues),
-            (None, n) => Box::new(Quantiles(n)),
-        };
+        let values = value_head(&head, n_actions);
         Learner {
             online,
             target,
@@ -422,7 +415,7 @@ fn taken(head: &dyn ValueHead, out: &[f32], batch: &Batch, na: usize, theta: &mu
 fn q_values(
     head: &dyn ValueHead, net: &mut Sequential<f32>, batch: &Batch, states: &Tensor<f32>,
 ) -> Vec<f32> {
-    head.fractions(net, Pass::Policy, batch);
+    head.policy_fractions(net, batch.len());
     let out = net.infer(states).data();
     let mut q = Vec::new();
     let mut all = Vec::new();
@@ -520,11 +513,10 @@ impl TargetRule {
     }
 }
 
-/// Which pass a network runs (an implicit quantile head takes different fractions in each).
+/// Which pass of the update a network runs (an implicit quantile head takes different fractions
+/// in each; a pass for `Q(s, ·)` alone takes [`ValueHead::policy_fractions`]).
 #[derive(Clone, Copy, Debug)]
 enum Pass {
-    /// `Q(s, ·)` for a policy: acting, Double DQN's pick, Munchausen's bonus.
-    Policy,
     /// The target network over `s'`: `Q(s', ·)` and the target samples.
     Next,
     /// The online network over `s`, the pass that is differentiated.
@@ -541,6 +533,10 @@ trait ValueHead: Send + Sync {
 
     /// Sets `net`'s quantile fractions for `pass` (an implicit head's; the others have none).
     fn fractions(&self, _net: &mut Sequential<f32>, _pass: Pass, _batch: &Batch) {}
+
+    /// Sets `net`'s quantile fractions for a pass that gives `Q(s, ·)` of `states` states and
+    /// nothing else: acting, Double DQN's pick, Munchausen's bonus.
+    fn policy_fractions(&self, _net: &mut Sequential<f32>, _states: usize) {}
 
     /// `Q(s, ·)` (`[A]`) from one state's output of a policy or online pass, into `q`.
     fn q_values(&self, out: &[f32], q: &mut Vec<f32>);
@@ -644,7 +640,6 @@ impl ValueHead for Implicit {
             "an implicit quantile head: draw the batch's fractions first"
         );
         let taus = match pass {
-            Pass::Policy => midpoints(k, b),
             Pass::Online => batch.taus.clone(),
             // Per next state: the K midpoints, then its N' drawn fractions.
             Pass::Next => {
@@ -656,6 +651,11 @@ impl ValueHead for Implicit {
             }
         };
         net.set_fractions(&taus);
+    }
+
+    /// The `K` midpoints `(2i + 1)/2K` for each state.
+    fn policy_fractions(&self, net: &mut Sequential<f32>, states: usize) {
+        net.set_fractions(&midpoints(self.iqn.policy_samples, states));
     }
 
     /// The mean over the state's rows (its fractions).
@@ -749,12 +749,27 @@ fn mean_rows(rows: &[f32], n_actions: usize, out: &mut [f32]) {
     }
 }
 
-/// The greedy action of an implicit quantile head's output for one state, `[K, A]` (its values at
-/// `K` fractions): the largest mean over the rows (the first on ties).
-pub fn greedy_rows(rows: &[f32], n_actions: usize) -> usize {
-    let mut q = vec![0.0f32; n_actions];
-    mean_rows(rows, n_actions, &mut q);
+/// `argmax_a Q(x, a)` for one state `x` (`[1, H, W, C]`) by `net`, built with `head`: a
+/// batch-1 [`Sequential::infer`] at the head's policy fractions, its output reduced to `Q(x, ·)`
+/// by the head's [`ValueHead::q_values`] as in the update (the first action on ties).
+pub fn greedy(head: &Head, net: &mut Sequential<f32>, x: &Tensor<f32>, n_actions: usize) -> usize {
+    let values = value_head(head, n_actions);
+    values.policy_fractions(net, 1);
+    let mut q = Vec::with_capacity(n_actions);
+    values.q_values(net.infer(x).data(), &mut q);
     argmax(&q)
+}
+
+/// The head's part of the update ([`ValueHead`]) for `head`'s outputs.
+fn value_head(head: &Head, n_actions: usize) -> Box<dyn ValueHead> {
+    match (head.iqn, head.atoms) {
+        (Some(iqn), _) => Box::new(Implicit {
+            iqn,
+            actions: n_actions,
+        }),
+        (None, 1) => Box::new(QValues),
+        (None, n) => Box::new(Quantiles(n)),
+    }
 }
 
 /// The TD errors for prioritized replay, `b` samples: the mean of each sample's predictions

@@ -126,17 +126,7 @@ impl Head {
     /// largest Q-value, the largest mean of a quantile head's atoms, or the largest mean over an
     /// implicit quantile head's `K` policy fractions. A batch-1 [`Sequential::infer`] (acting).
     pub fn greedy(&self, net: &mut Sequential<f32>, x: &Tensor<f32>, n_actions: usize) -> usize {
-        match self.iqn {
-            None => {
-                let out = net.infer(x).data();
-                super::learner::greedy_atoms(out, out.len() / n_actions)
-            }
-            Some(iqn) => {
-                net.set_fractions(&midpoints(iqn.policy_samples, 1));
-                let out = net.infer(x).data();
-                super::learner::greedy_rows(out, n_actions)
-            }
-        }
+        super::learner::greedy(self, net, x, n_actions)
     }
 }
 
