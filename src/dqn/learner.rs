@@ -72,6 +72,19 @@ pub struct Learner {
     /// `[B·R, A·k]`: the upstream gradient, non-zero only at the taken actions (`R` rows per
     /// state, `k` values per action: [`ValueHead::atoms`]).
     dq: Tensor<f32>,
+    /// The small buffers of steps 1 and 2, kept so that a step allocates none of them anew.
+    scratch: Scratch,
+}
+
+/// Buffers a train step writes and reads back within the step.
+#[derive(Default)]
+struct Scratch {
+    /// `[B, A]`: the rule's policy values ([`TargetRule::policy`]; empty for the max).
+    policy: Vec<f32>,
+    /// `[A]`: one next state's `Q(s', ·)`, then one state's `Q(s, ·)`.
+    q: Vec<f32>,
+    /// `[M, A]`: one next state's target samples.
+    z: Vec<f32>,
 }
 
 impl Learner {
@@ -110,6 +123,7 @@ impl Learner {
             per_sample: Vec::new(),
             td: Vec::new(),
             dq: Tensor::empty(),
+            scratch: Scratch::default(),
         }
     }
 
@@ -263,14 +277,15 @@ impl Learner {
         // 1. The targets y: the rule's own pass first (Double DQN: `Q_online(s', ·)`;
         //    Munchausen: `Q_target(s, ·)`), then the target network's over s', beside step 2.
         let target = self.target.as_mut().expect(NO_TARGET);
-        let policy = rule.policy(head, &mut self.online, target, batch);
+        let Scratch { policy, q, z } = &mut self.scratch;
+        rule.policy(head, &mut self.online, target, batch, q, policy);
         let (online, y) = (&mut self.online, &mut self.y);
         let ((), out) = rayon::join(
-            || targets(head, rule, target, batch, &policy, gamma, y),
+            || targets(head, rule, target, batch, policy, gamma, y, q, z),
             // 2. The forward pass; θ = Q(s, a) of the taken actions.
             || forward(head, online, batch),
         );
-        let max_q_sum = taken(head, out.data(), batch, na, &mut self.q_taken);
+        let max_q_sum = taken(head, out.data(), batch, na, &mut self.q_taken, q);
         // 3. The loss and ∂L/∂θ, weighted under prioritized sampling.
         let loss = self.loss_and_gradient(batch);
         // 4. Backward from dQ (non-zero at the taken actions only), then one Adam step.
@@ -299,6 +314,7 @@ impl Learner {
             batch,
             self.n_actions,
             &mut self.q_taken,
+            &mut self.scratch.q,
         );
         let loss = self.loss_and_gradient(batch);
         self.backward_and_step(batch, loss, max_q_sum)
@@ -359,17 +375,17 @@ impl Learner {
 /// Step 1 without the rule's own pass: the targets `y` (`[B, M]`) from the target network's
 /// outputs at the next states, each state's split by the head into `Q(s', ·)` (`[A]`) and the
 /// target samples `Z_j(s', ·)` (`[M, A]`), bootstrapped by `rule` with `policy` (`[B, A]` or
-/// empty, [`TargetRule::policy`]).
+/// empty, [`TargetRule::policy`]); `q_next` and `z` are scratch.
+#[allow(clippy::too_many_arguments)] // the step's inputs, then its two scratch buffers
 fn targets(
     head: &dyn ValueHead, rule: TargetRule, target: &mut Sequential<f32>, batch: &Batch,
-    policy: &[f32], gamma: f32, y: &mut Vec<f32>,
+    policy: &[f32], gamma: f32, y: &mut Vec<f32>, q_next: &mut Vec<f32>, z: &mut Vec<f32>,
 ) {
     head.fractions(target, Pass::Next, batch);
     let out = target.infer(&batch.next_states).data();
-    let (mut q_next, mut z) = (Vec::new(), Vec::new());
     y.clear();
     for (i, out) in out.chunks_exact(out.len() / batch.len()).enumerate() {
-        head.q_values(head.next(out, &mut z), &mut q_next);
+        head.q_values(head.next(out, z), q_next);
         let na = q_next.len();
         let t = Transition {
             r: batch.rewards[i],
@@ -378,7 +394,7 @@ fn targets(
             discount: gamma.powi(batch.steps[i] as i32),
         };
         let policy = policy.get(i * na..(i + 1) * na).unwrap_or(&[]);
-        rule.bootstrap(&t, &q_next, policy, &z, y);
+        rule.bootstrap(&t, q_next, policy, z, y);
     }
 }
 
@@ -393,10 +409,12 @@ fn forward<'n>(
 
 /// `θ`: the values of the taken actions from the online outputs `out` (each state's `R` rows of
 /// `A·k` values: `k` per action), into `theta` (`[B, R·k]`); returns the sum over the batch of
-/// `max_a Q(s, a)`.
-fn taken(head: &dyn ValueHead, out: &[f32], batch: &Batch, na: usize, theta: &mut Vec<f32>) -> f32 {
+/// `max_a Q(s, a)`; `q` is scratch.
+fn taken(
+    head: &dyn ValueHead, out: &[f32], batch: &Batch, na: usize, theta: &mut Vec<f32>,
+    q: &mut Vec<f32>,
+) -> f32 {
     let k = head.atoms();
-    let mut q = Vec::new();
     let mut max_q_sum = 0.0;
     theta.clear();
     for (i, out) in out.chunks_exact(out.len() / batch.len()).enumerate() {
@@ -404,26 +422,25 @@ fn taken(head: &dyn ValueHead, out: &[f32], batch: &Batch, na: usize, theta: &mu
         for row in out.chunks_exact(na * k) {
             theta.extend_from_slice(&row[a * k..(a + 1) * k]);
         }
-        head.q_values(out, &mut q);
-        max_q_sum += q[argmax(&q)];
+        head.q_values(out, q);
+        max_q_sum += q[argmax(q)];
     }
     max_q_sum
 }
 
-/// `Q(s, ·)` of every state of `states` by `net` (`[B, A]`): a pass at the head's policy
-/// fractions, each state's output reduced by [`ValueHead::q_values`].
+/// `Q(s, ·)` of every state of `states` by `net` into `all` (`[B, A]`): a pass at the head's
+/// policy fractions, each state's output reduced by [`ValueHead::q_values`] (`q` is scratch).
 fn q_values(
     head: &dyn ValueHead, net: &mut Sequential<f32>, batch: &Batch, states: &Tensor<f32>,
-) -> Vec<f32> {
+    q: &mut Vec<f32>, all: &mut Vec<f32>,
+) {
     head.policy_fractions(net, batch.len());
     let out = net.infer(states).data();
-    let mut q = Vec::new();
-    let mut all = Vec::new();
+    all.clear();
     for out in out.chunks_exact(out.len() / batch.len()) {
-        head.q_values(out, &mut q);
-        all.extend_from_slice(&q);
+        head.q_values(out, q);
+        all.extend_from_slice(q);
     }
-    all
 }
 
 /// The upstream gradient `dQ` (`[R, width]`), zero but at the taken actions: `d_taken` holds `k`
@@ -477,16 +494,16 @@ pub enum TargetRule {
 
 impl TargetRule {
     /// The values the rule needs besides the target network's at `s'`, `[B, A]` (empty for the
-    /// max): Double DQN's `Q_online(s', ·)`, whose greedy action the target evaluates;
-    /// Munchausen's `Q_target(s, ·)`, whose policy gives the bonus.
+    /// max), into `policy`: Double DQN's `Q_online(s', ·)`, whose greedy action the target
+    /// evaluates; Munchausen's `Q_target(s, ·)`, whose policy gives the bonus (`q` is scratch).
     fn policy(
         self, head: &dyn ValueHead, online: &mut Sequential<f32>, target: &mut Sequential<f32>,
-        batch: &Batch,
-    ) -> Vec<f32> {
+        batch: &Batch, q: &mut Vec<f32>, policy: &mut Vec<f32>,
+    ) {
         match self {
-            TargetRule::Max => Vec::new(),
-            TargetRule::Double => q_values(head, online, batch, &batch.next_states),
-            TargetRule::Munchausen(_) => q_values(head, target, batch, &batch.states),
+            TargetRule::Max => policy.clear(),
+            TargetRule::Double => q_values(head, online, batch, &batch.next_states, q, policy),
+            TargetRule::Munchausen(_) => q_values(head, target, batch, &batch.states, q, policy),
         }
     }
 
@@ -703,11 +720,17 @@ pub struct Munchausen {
 }
 
 impl Munchausen {
-    /// `τ·log π(·|s)` for one state's values `q` (`[A]`), into `out`.
-    pub fn scaled_log_policy(&self, q: &[f32], out: &mut [f32]) {
+    /// `(max q, τ·log Σ_a exp((q_a − max q)/τ))`, the two terms `τ·log π(a|s) = q_a − max q −
+    /// τ·log Σ …` subtracts, for one state's values `q` (`[A]`).
+    fn log_normaliser(&self, q: &[f32]) -> (f32, f32) {
         let max = q.iter().copied().fold(f32::NEG_INFINITY, f32::max);
         let sum: f32 = q.iter().map(|&v| ((v - max) / self.tau).exp()).sum();
-        let log_sum = self.tau * sum.ln();
+        (max, self.tau * sum.ln())
+    }
+
+    /// `τ·log π(·|s)` for one state's values `q` (`[A]`), into `out`.
+    pub fn scaled_log_policy(&self, q: &[f32], out: &mut [f32]) {
+        let (max, log_sum) = self.log_normaliser(q);
         for (o, &v) in out.iter_mut().zip(q) {
             *o = v - max - log_sum;
         }
@@ -715,21 +738,21 @@ impl Munchausen {
 
     /// The bonus `α·clamp(τ·log π(a|s), l0, 0)` for the values `q` of `s` and the action `a`.
     pub fn bonus(&self, q: &[f32], a: usize) -> f32 {
-        let mut log_pi = vec![0.0; q.len()];
-        self.scaled_log_policy(q, &mut log_pi);
-        self.alpha * log_pi[a].clamp(self.clip, 0.0)
+        let (max, log_sum) = self.log_normaliser(q);
+        self.alpha * (q[a] - max - log_sum).clamp(self.clip, 0.0)
     }
 
     /// The soft value `Σ_a π(a|s)·(v_a − τ·log π(a|s))` of a state whose policy comes from the
     /// values `q` and whose bootstrapped values are `v` (both `[A]`; `v = q` for M-DQN, a target
     /// sample's `Z_τ'` for M-IQN).
     pub fn soft_value(&self, q: &[f32], v: &[f32]) -> f32 {
-        let mut log_pi = vec![0.0; q.len()];
-        self.scaled_log_policy(q, &mut log_pi);
-        log_pi
-            .iter()
+        let (max, log_sum) = self.log_normaliser(q);
+        q.iter()
             .zip(v)
-            .map(|(&l, &v)| (l / self.tau).exp() * (v - l))
+            .map(|(&q, &v)| {
+                let l = q - max - log_sum;
+                (l / self.tau).exp() * (v - l)
+            })
             .sum()
     }
 }
