@@ -13,7 +13,7 @@
 //! `conv1p` and `conv2p` are conv1 and conv2 as built (VALID over a bordered input); a layer's
 //! batch and then `bf16` after the count time its bf16 products (`-- conv1p wgrad 300 48 bf16`).
 
-use invaders::dqn::{Batch, Learner};
+use invaders::dqn::{Batch, Config, Learner};
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::tensor::{ConvGeom, Padding, Tensor};
 use rand::{Rng, SeedableRng};
@@ -119,16 +119,10 @@ fn run() {
         // `strong`'s train step, or that of a configuration on it (`-- step strong 100 FILE`),
         // on a random batch as `invaders bench --config` times it, fractions drawn per step.
         let config = strong_config(args.get(4));
-        let mut learner = Learner::from_config(&config, 6, &mut rng);
-        let mut batch = Batch::random(&config, &mut rng);
-        let mut step = |rng: &mut ChaCha8Rng| {
-            if let Some(iqn) = config.iqn() {
-                batch.draw_fractions(rng, iqn.samples, iqn.target_samples);
-            }
-            learner.train_step(&batch);
-        };
-        step(&mut rng);
-        let (times, cpu) = timed(iters, |_| step(&mut rng));
+        let (mut learner, mut batch) = trained(&config, 1, &mut rng);
+        let (times, cpu) = timed(iters, |_| {
+            train_once(&config, &mut learner, &mut batch, &mut rng)
+        });
         println!(
             "step strong: {cpu:.3} ms CPU, min {:.3} median {:.3} per step (batch {})",
             times[0],
@@ -142,14 +136,7 @@ fn run() {
         // the online network after a few train steps, game frames from random play,
         // `Head::greedy` at batch 1 (an implicit quantile head's `K` policy midpoints).
         let config = strong_config(args.get(4));
-        let mut learner = Learner::from_config(&config, 6, &mut rng);
-        let mut batch = Batch::random(&config, &mut rng);
-        for _ in 0..5 {
-            if let Some(iqn) = config.iqn() {
-                batch.draw_fractions(&mut rng, iqn.samples, iqn.target_samples);
-            }
-            learner.train_step(&batch);
-        }
+        let (mut learner, _) = trained(&config, 5, &mut rng);
         time_acting("act strong", &config, &mut learner, iters, &mut rng);
         return;
     }
@@ -330,4 +317,22 @@ fn run() {
         f / cpu / 1e9,
         f / s / 1e9
     );
+}
+
+/// A learner of `config` and a random batch of it, after `steps` train steps on that batch.
+fn trained(config: &Config, steps: usize, rng: &mut ChaCha8Rng) -> (Learner, Batch) {
+    let mut learner = Learner::from_config(config, 6, rng);
+    let mut batch = Batch::random(config, rng);
+    for _ in 0..steps {
+        train_once(config, &mut learner, &mut batch, rng);
+    }
+    (learner, batch)
+}
+
+/// One train step on `batch`, an implicit quantile head's fractions drawn for it first.
+fn train_once(config: &Config, learner: &mut Learner, batch: &mut Batch, rng: &mut ChaCha8Rng) {
+    if let Some(iqn) = config.iqn() {
+        batch.draw_fractions(rng, iqn.samples, iqn.target_samples);
+    }
+    learner.train_step(batch);
 }

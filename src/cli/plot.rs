@@ -70,13 +70,7 @@ pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     let mut curves = Vec::new();
     for dir in &args.runs {
         let csv = dir.join("metrics.csv");
-        let points = read_metrics(&csv)?;
-        if points.is_empty() {
-            bail!(
-                "{} holds no finished episode: its curve would be empty, so nothing is drawn",
-                csv.display()
-            );
-        }
+        let points = nonempty(read_metrics(&csv)?, &csv, "its curve")?;
         // Label a run by its preset (from config.toml) and directory name.
         let preset = std::fs::read_to_string(dir.join("config.toml"))
             .ok()
@@ -98,6 +92,17 @@ pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `points` of `csv`, refused when empty: `curve` (what they would draw) would be empty.
+fn nonempty<P>(points: Vec<P>, csv: &std::path::Path, curve: &str) -> anyhow::Result<Vec<P>> {
+    if points.is_empty() {
+        bail!(
+            "{} holds no finished episode: {curve} would be empty, so nothing is drawn",
+            csv.display()
+        );
+    }
+    Ok(points)
+}
+
 /// `--group`: seeds against emulator frames, with published references.
 fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
     let mut groups = Vec::new();
@@ -107,13 +112,11 @@ fn plot_frames(args: &PlotArgs) -> anyhow::Result<()> {
         let mut seeds = Vec::new();
         for d in &dirs {
             let csv = d.join("metrics.csv");
-            let points = read_frame_metrics(&csv)?;
-            if points.is_empty() {
-                bail!(
-                    "{} holds no finished episode: group {label}'s curve would be empty, so nothing is drawn",
-                    csv.display()
-                );
-            }
+            let points = nonempty(
+                read_frame_metrics(&csv)?,
+                &csv,
+                &format!("group {label}'s curve"),
+            )?;
             seeds.push(points);
             inputs.push(csv);
         }
