@@ -43,18 +43,17 @@ pub(super) fn prepare_new_dir(dir: &Path) -> anyhow::Result<guard::RunLock> {
             dir.display()
         );
     }
-    if let Some(other) = names.iter().find(|n| !is_run_file(n)) {
-        bail!(
-            "run directory {} is not empty (it holds `{other}`); choose another --out",
-            dir.display()
-        );
-    }
-    if let Some(lost) = lost_checkpoint(dir, &names)? {
-        bail!(
-            "run directory {} holds a run whose checkpoint is lost ({lost}); its files are left as they are: choose another --out",
-            dir.display()
-        );
-    }
+    let d = dir.display();
+    refuse_foreign_or_lost(
+        dir,
+        &names,
+        |other| {
+            format!("run directory {d} is not empty (it holds `{other}`); choose another --out")
+        },
+        |lost| {
+            format!("run directory {d} holds a run whose checkpoint is lost ({lost}); its files are left as they are: choose another --out")
+        },
+    )?;
     std::fs::create_dir_all(dir)
         .with_context(|| format!("cannot create run directory {}", dir.display()))?;
     let lock = guard::RunLock::acquire(dir)?;
@@ -83,21 +82,35 @@ pub(super) fn restart_unsaved(dir: &Path, preset: Option<Preset>) -> anyhow::Res
     }
     // Starting again clears the run's files: only where the directory holds nothing else (a
     // model exported beside its config.toml, say, is not a stopped run).
-    if let Some(other) = names.iter().find(|n| !is_run_file(n)) {
-        bail!(
-            "{} holds no checkpoint, and {other}, which a run does not write: it is not a stopped run, so it is not resumed (a weights-only model plays with `eval --checkpoint`; train a new run with --out)",
-            dir.display()
-        );
-    }
-    if let Some(lost) = lost_checkpoint(dir, &names)? {
-        bail!(
-            "{} holds no {}, but its run had one ({lost}): the checkpoint is lost, so the run cannot continue; its files are left as they are (restore the checkpoint, or train a new run with --out)",
-            dir.display(),
-            checkpoint::CHECKPOINT_FILE
-        );
-    }
+    let (d, ckpt) = (dir.display(), checkpoint::CHECKPOINT_FILE);
+    refuse_foreign_or_lost(
+        dir,
+        &names,
+        |other| {
+            format!("{d} holds no checkpoint, and {other}, which a run does not write: it is not a stopped run, so it is not resumed (a weights-only model plays with `eval --checkpoint`; train a new run with --out)")
+        },
+        |lost| {
+            format!("{d} holds no {ckpt}, but its run had one ({lost}): the checkpoint is lost, so the run cannot continue; its files are left as they are (restore the checkpoint, or train a new run with --out)")
+        },
+    )?;
     let text = guard::read_text(&saved, "the run's configuration")?;
     Config::resolve(preset, Some(&text)).with_context(|| format!("{}", saved.display()))
+}
+
+/// Refuses `dir` (holding `names`, and no checkpoint) as a run's directory, with the message
+/// `foreign` gives, if it holds a file a run does not write; with the message `lost` gives, if
+/// its run's checkpoint was written and is gone ([`lost_checkpoint`]).
+fn refuse_foreign_or_lost(
+    dir: &Path, names: &[String], foreign: impl FnOnce(&str) -> String,
+    lost: impl FnOnce(&str) -> String,
+) -> anyhow::Result<()> {
+    if let Some(other) = names.iter().find(|n| !is_run_file(n)) {
+        bail!(foreign(other));
+    }
+    if let Some(why) = lost_checkpoint(dir, names)? {
+        bail!(lost(&why));
+    }
+    Ok(())
 }
 
 /// Why `dir` (holding `names`, and no checkpoint) is a run whose checkpoint was written and is
