@@ -5,7 +5,7 @@ mod common;
 
 use common::corridor::{Corridor, LEN};
 use invaders::dqn::checkpoint;
-use invaders::dqn::{argmax, greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
+use invaders::dqn::{greedy, input_border, Agent, Batch, Config, Learner, Preset, Replay};
 use invaders::env::{Game, Observer, Pipeline, StepResult, FRAME_LEN};
 use invaders::ops::plan::Precision;
 use invaders::tensor::bf16::to_bf16;
@@ -198,13 +198,7 @@ fn learns(set: impl FnOnce(&mut Config)) {
                     .collect()
             }
         };
-        let want = 0.9f32.powi((LEN - 2 - cell) as i32);
-        assert_eq!(argmax(&q), 1, "cell {cell}: Q = {q:?}");
-        assert!(
-            (q[1] - want).abs() < 0.15,
-            "cell {cell}: Q(right) = {} vs {want}",
-            q[1]
-        );
+        common::corridor::assert_learned(cell, &q);
     }
 }
 

@@ -5,7 +5,7 @@ mod common;
 
 use common::corridor::{Corridor, LEN};
 use invaders::dqn::checkpoint::Counters;
-use invaders::dqn::{argmax, checkpoint, q_lambda_returns, Config, Learner, Pqn, PqnAgent, Preset};
+use invaders::dqn::{checkpoint, q_lambda_returns, Config, Learner, Pqn, PqnAgent, Preset};
 use invaders::env::{Observer, Pipeline};
 use invaders::ops::plan::Precision;
 use invaders::tensor::Tensor;
@@ -167,14 +167,7 @@ fn pqn_learns_a_toy_corridor() {
         agent.counters.agent_steps / 64 * 16
     );
     for cell in 0..LEN - 1 {
-        let q = q_of(&mut agent, cell);
-        let want = 0.9f32.powi((LEN - 2 - cell) as i32);
-        assert_eq!(argmax(&q), 1, "cell {cell}: Q = {q:?}");
-        assert!(
-            (q[1] - want).abs() < 0.15,
-            "cell {cell}: Q(right) = {}, want about {want}",
-            q[1]
-        );
+        common::corridor::assert_learned(cell, &q_of(&mut agent, cell));
     }
     // Late episodes walk straight to the goal (ε = 0.05 aside): the rows of the rollouts
     // played so far are handed out first, oldest first.

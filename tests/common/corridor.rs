@@ -93,3 +93,15 @@ impl Default for Corridor {
         Corridor::new()
     }
 }
+
+/// Asserts that an agent has learned the corridor at `cell` from its values `q` there: moving
+/// right is greedy, and its value is within 0.15 of `Q*(cell, right) = γ^(LEN − 2 − cell)`, γ = 0.9.
+pub fn assert_learned(cell: usize, q: &[f32]) {
+    let want = 0.9f32.powi((LEN - 2 - cell) as i32);
+    assert_eq!(invaders::dqn::argmax(q), 1, "cell {cell}: Q = {q:?}");
+    assert!(
+        (q[1] - want).abs() < 0.15,
+        "cell {cell}: Q(right) = {}, want about {want}",
+        q[1]
+    );
+}
