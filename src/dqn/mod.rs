@@ -3,6 +3,7 @@
 mod agent;
 pub mod checkpoint;
 mod config;
+mod heads;
 mod learner;
 mod pqn;
 mod precision;
