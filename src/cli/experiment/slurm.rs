@@ -35,8 +35,8 @@ pub(super) const TASKS_FILE: &str = "slurm-tasks.txt";
 /// Where the tasks keep their records when the experiment has no `--keep`.
 const RECORDS_DIR: &str = "records";
 
-/// The file of `--slurm`'s folder that names the experiment it was written for (beside the
-/// script, its README, the program and `logs/`); any other file there is someone else's.
+/// What `--slurm` writes into its folder beside the script (`KIND.sbatch`): the README, the
+/// program's copy and `logs/`. Any other file there is someone else's.
 const OWN_FILES: &[&str] = &["README.md", "invaders", "logs"];
 
 /// The flags of every experiment that run it on Slurm.
@@ -87,7 +87,8 @@ impl SlurmArgs {
         self.slurm.is_some() || self.task.is_some() || out.join(TASKS_FILE).exists()
     }
 
-    /// Refuses `--submit` where no `sbatch` is on the path, before anything is written.
+    /// Refuses, before anything is written, a `--slurm` folder that is a file or holds other
+    /// things than `--slurm` writes, and `--submit` where no `sbatch` is on the PATH.
     pub(super) fn check(&self) -> anyhow::Result<()> {
         if let Some(dir) = &self.slurm {
             check_slurm_dir(dir)?;
