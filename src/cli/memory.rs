@@ -5,13 +5,16 @@ use anyhow::bail;
 
 use invaders::dqn::Config;
 
+/// What a run needs beside its replay memory: networks, optimizer state and batch buffers,
+/// generously.
+pub(super) const NETWORKS_BYTES: u64 = 512 << 20;
+
 /// Refuses a run whose replay memory (or PQN rollout) needs more memory than this process may
 /// use ([`usable_bytes`]): the allocation would fail (under `ulimit -v` or a cgroup's limit)
 /// or the pages would run out when touched. Says how much it needs, and which limit is the
 /// lowest.
 pub(super) fn check_memory(config: &Config) -> anyhow::Result<()> {
-    const NETWORKS: u64 = 512 << 20; // networks, optimizer state and batch buffers, generously
-    let need = config.replay_bytes() + NETWORKS;
+    let need = config.replay_bytes() + NETWORKS_BYTES;
     let Some((have, which)) = usable_bytes() else {
         return Ok(());
     };

@@ -125,6 +125,8 @@ pub struct AblationArgs {
     /// The experiment directory.
     #[arg(long, default_value = "runs/experiment-ablation")]
     out: PathBuf,
+    #[command(flatten)]
+    slurm: SlurmArgs,
 }
 
 /// `experiment ablation`: the preset and the arms of [`ABLATIONS`] that `--arms` names (all by
@@ -148,6 +150,9 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         .collect();
     let text = read_overrides(args.config.as_deref())?;
     let overrides: toml::Table = text.parse().context("--config is not valid TOML")?;
+    args.slurm.check()?;
+    let keep = slurm::keep_dir(&args.slurm, args.keep.as_deref(), &args.out);
+    let keep = keep.as_deref();
     let preset =
         super::super::config_errors::resolve_file(Some(args.preset), &text, args.config.as_deref())
             .context("configuration of the runs")?;
@@ -179,21 +184,20 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         }
         check_reuse(
             &args.out.join(format!("{}-seed{}", arm.name, args.seed)),
-            args.keep.as_deref(),
+            keep,
             args.preset,
             &arm_text,
             args.seed,
         )?;
         texts.push(arm_text);
     }
-    make_keep(args.keep.as_deref())?;
+    make_keep(keep)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     let mut jobs = Vec::new();
     for (arm, arm_text) in arms.iter().zip(texts) {
         let cfg = args.out.join(format!("{}.toml", arm.name));
-        std::fs::write(&cfg, &arm_text)
-            .with_context(|| format!("cannot write {}", cfg.display()))?;
+        write_config(&cfg, &arm_text)?;
         jobs.push(Job {
             label: arm.name,
             preset: args.preset,
@@ -215,9 +219,19 @@ pub(super) fn ablation(args: &AblationArgs) -> anyhow::Result<()> {
         workers,
         args.out.display()
     );
-    let exe = exe_path()?;
-    let keep = args.keep.as_deref();
-    let finished = run_for_frames(&exe, &jobs, workers, args.frames, args.eval_episodes, keep)?;
+    let sweep = Sweep {
+        kind: "ablation",
+        out: &args.out,
+        keep,
+        budget: Budget::Frames(args.frames),
+        evals: Evals {
+            protocol: args.eval_episodes,
+            own_game: None,
+        },
+    };
+    let Some(finished) = slurm::run_jobs(&args.slurm, &sweep, &jobs, Some(workers))? else {
+        return Ok(());
+    };
     let scores: Vec<Scores> = finished.iter().map(|f| f.record.protocol).collect();
     let summaries = finished
         .iter()

@@ -34,15 +34,19 @@
 //! experiment and loses nothing: the runs stop after their episode with a checkpoint, no new run
 //! or evaluation starts, and the command exits with 130 (see [`stop`]).
 //!
+//! On a cluster, `--slurm DIR` writes the runs as a Slurm job array instead, each task one run
+//! (`--task K`), and the same command then gathers their records (see [`slurm`]).
+//!
 //! One file a job: `preprocessing.rs`, `strong.rs` and `ablation.rs` the three experiments;
 //! `runner.rs` runs their jobs (training and evaluating each as a child process); `records.rs`
 //! the records `--keep` keeps and the check of a reused run's configuration; `stop.rs` passes a
-//! stop on to the runs.
+//! stop on to the runs; `slurm.rs` the job arrays.
 
 mod ablation;
 mod preprocessing;
 mod records;
 mod runner;
+mod slurm;
 mod stop;
 mod strong;
 
@@ -71,6 +75,7 @@ use invaders::layers::loss::LossKind;
 use preprocessing::{preprocessing, PreprocessingArgs};
 use records::*;
 use runner::*;
+use slurm::{SlurmArgs, Sweep};
 use strong::{strong, StrongArgs};
 
 #[derive(Debug, Subcommand)]
@@ -134,6 +139,17 @@ fn worker_count(jobs: Option<usize>) -> usize {
             .unwrap_or(1)
     })
     .max(1)
+}
+
+/// Writes a run's configuration file (`OUT/LABEL.toml`) unless it already holds `text`, and then
+/// atomically: the tasks of a Slurm sweep start at once, each writing every such file while the
+/// others' runs may be reading them.
+fn write_config(path: &Path, text: &str) -> anyhow::Result<()> {
+    if std::fs::read_to_string(path).is_ok_and(|t| t == text) {
+        return Ok(());
+    }
+    checkpoint::write_atomic(path, text.as_bytes())
+        .with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// `--keep`'s directory, made before anything trains so a bad path fails now.

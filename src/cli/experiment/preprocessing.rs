@@ -38,6 +38,8 @@ pub struct PreprocessingArgs {
     /// The experiment directory.
     #[arg(long, default_value = "runs/experiment-preprocessing")]
     out: PathBuf,
+    #[command(flatten)]
+    slurm: SlurmArgs,
 }
 
 /// One configuration of the comparison.
@@ -84,7 +86,9 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         )?],
         None => Vec::new(),
     };
-    let exe = exe_path()?;
+    args.slurm.check()?;
+    let keep = slurm::keep_dir(&args.slurm, args.keep.as_deref(), &args.out);
+    let keep = keep.as_deref();
     let arms = arms(args);
     // Every run's configuration, checked before anything is written or starts (and each run
     // already in --out against it).
@@ -104,18 +108,17 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
             .with_context(|| format!("configuration of {}", arm.label))?;
         for seed in 0..args.seeds {
             let dir = args.out.join(format!("{}-seed{seed}", arm.label));
-            check_reuse(&dir, args.keep.as_deref(), arm.preset, &text, seed)?;
+            check_reuse(&dir, keep, arm.preset, &text, seed)?;
         }
         arm_texts.push(text);
     }
     // Only now is anything made: a bad configuration leaves no folder behind.
-    make_keep(args.keep.as_deref())?;
+    make_keep(keep)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     for (arm, text) in arms.iter().zip(arm_texts) {
         let cfg_path = args.out.join(format!("{}.toml", arm.label));
-        std::fs::write(&cfg_path, &text)
-            .with_context(|| format!("cannot write {}", cfg_path.display()))?;
+        write_config(&cfg_path, &text)?;
         for seed in 0..args.seeds {
             jobs.push(Job {
                 label: &arm.label,
@@ -138,14 +141,16 @@ pub(super) fn preprocessing(args: &PreprocessingArgs) -> anyhow::Result<()> {
         protocol: PROTOCOL_EPISODES,
         own_game: Some(args.eval_episodes),
     };
-    let finished = run_all(
-        &exe,
-        &jobs,
-        args.jobs,
-        Budget::Episodes(args.episodes),
+    let sweep = Sweep {
+        kind: "preprocessing",
+        out: &args.out,
+        keep,
+        budget: Budget::Episodes(args.episodes),
         evals,
-        args.keep.as_deref(),
-    )?;
+    };
+    let Some(finished) = slurm::run_jobs(&args.slurm, &sweep, &jobs, args.jobs)? else {
+        return Ok(());
+    };
     let mut finished = finished.into_iter();
     let (mut rows, mut run_rows, mut stretch_rows) = (Vec::new(), Vec::new(), Vec::new());
     let mut groups = Vec::new();

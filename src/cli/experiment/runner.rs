@@ -109,23 +109,39 @@ pub(super) fn run_all(
     Ok(finished)
 }
 
-/// [`run_all`] for `frames` per run, `workers` at a time, each final network evaluated by the
-/// protocol's `episodes` only (the `strong` and `ablation` experiments).
-pub(super) fn run_for_frames(
-    exe: &Path, jobs: &[Job<'_>], workers: usize, frames: u64, episodes: u32, keep: Option<&Path>,
-) -> anyhow::Result<Vec<Finished>> {
-    let evals = Evals {
-        protocol: episodes,
-        own_game: None,
+/// The `--keep` record of `job` (`KEEP/LABEL-seedS`) if it answers the same question (preset,
+/// seed, overrides, evaluations, and a budget reached), as a finished run; `None` otherwise.
+pub(super) fn kept_run(
+    job: &Job<'_>, budget: Budget, evals: Evals, keep: Option<&Path>,
+) -> anyhow::Result<Option<Finished>> {
+    let name = format!("{}-seed{}", job.label, job.seed);
+    let Some(k) = keep.map(|k| k.join(&name)) else {
+        return Ok(None);
     };
-    run_all(
-        exe,
-        jobs,
-        Some(workers),
-        Budget::Frames(frames),
-        evals,
-        keep,
-    )
+    let Some(r) = read_record(&k)? else {
+        return Ok(None);
+    };
+    let overrides = std::fs::read_to_string(&job.cfg)
+        .with_context(|| format!("cannot read {}", job.cfg.display()))?;
+    let same = r.preset == job.preset.name()
+        && r.seed == job.seed
+        && r.overrides == overrides
+        && r.protocol_episodes == evals.protocol
+        && r.own_game_episodes == evals.own_game
+        && budget.done(&r.counters);
+    if !same {
+        return Ok(None);
+    }
+    say!(
+        "{name}: kept in {} ({} episodes, {} frames, evaluated)",
+        k.display(),
+        r.counters.episodes,
+        r.counters.frames
+    );
+    Ok(Some(Finished {
+        record: r,
+        metrics: k.join("metrics.csv"),
+    }))
 }
 
 /// One job of [`run_all`]: its `--keep` record if that answers the same question, else trained,
@@ -133,30 +149,15 @@ pub(super) fn run_for_frames(
 pub(super) fn finish_one(
     exe: &Path, job: &Job<'_>, budget: Budget, evals: Evals, keep: Option<&Path>,
 ) -> anyhow::Result<Finished> {
+    if let Some(f) = kept_run(job, budget, evals, keep)? {
+        return Ok(f);
+    }
     let name = format!("{}-seed{}", job.label, job.seed);
     let overrides = std::fs::read_to_string(&job.cfg)
         .with_context(|| format!("cannot read {}", job.cfg.display()))?;
     let kept = keep.map(|k| k.join(&name));
     if let Some(k) = &kept {
-        if let Some(r) = read_record(k)? {
-            if r.preset == job.preset.name()
-                && r.seed == job.seed
-                && r.overrides == overrides
-                && r.protocol_episodes == evals.protocol
-                && r.own_game_episodes == evals.own_game
-                && budget.done(&r.counters)
-            {
-                say!(
-                    "{name}: kept in {} ({} episodes, {} frames, evaluated)",
-                    k.display(),
-                    r.counters.episodes,
-                    r.counters.frames
-                );
-                return Ok(Finished {
-                    record: r,
-                    metrics: k.join("metrics.csv"),
-                });
-            }
+        if read_record(k)?.is_some() {
             check_record(k, job.preset, &overrides, job.seed)?;
             say!(
                 "{name}: the record in {} is of this configuration but not of this question \
@@ -465,20 +466,23 @@ pub(super) fn invaders_command(exe: &Path) -> Command {
 /// This command as a shell would take it back: `invaders` and its arguments, each quoted where
 /// the shell would otherwise split or expand it.
 pub(super) fn command_line() -> String {
-    let quote = |a: String| {
-        if !a.is_empty()
-            && a.chars()
-                .all(|c| c.is_ascii_alphanumeric() || "-_./,=:+".contains(c))
-        {
-            a
-        } else {
-            format!("'{}'", a.replace('\'', "'\\''"))
-        }
-    };
     std::iter::once("invaders".to_string())
-        .chain(std::env::args().skip(1).map(quote))
+        .chain(std::env::args().skip(1).map(|a| shell_quote(&a)))
         .collect::<Vec<_>>()
         .join(" ")
+}
+
+/// `a` as a shell takes it back: as it is where it holds nothing the shell would split or
+/// expand, else in single quotes.
+pub(super) fn shell_quote(a: &str) -> String {
+    if !a.is_empty()
+        && a.chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_./,=:+".contains(c))
+    {
+        a.to_string()
+    } else {
+        format!("'{}'", a.replace('\'', "'\\''"))
+    }
 }
 
 /// What a finished run reports beside its score.

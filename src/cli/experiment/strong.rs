@@ -45,6 +45,8 @@ pub struct StrongArgs {
     /// The experiment directory.
     #[arg(long, default_value = "runs/experiment-strong")]
     out: PathBuf,
+    #[command(flatten)]
+    slurm: SlurmArgs,
 }
 
 /// `experiment strong`: the preset with seeds 1..=N, each evaluated by the protocol.
@@ -77,21 +79,23 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         Some(r) => read_references(r, &args.agents)?,
         None => Vec::new(),
     };
-    make_keep(args.keep.as_deref())?;
+    args.slurm.check()?;
+    let keep = slurm::keep_dir(&args.slurm, args.keep.as_deref(), &args.out);
+    let keep = keep.as_deref();
+    make_keep(keep)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
     for seed in 1..=args.seeds {
         check_reuse(
             &args.out.join(format!("strong-seed{seed}")),
-            args.keep.as_deref(),
+            keep,
             preset,
             &text,
             seed,
         )?;
     }
     let cfg = args.out.join("strong.toml");
-    std::fs::write(&cfg, &text).with_context(|| format!("cannot write {}", cfg.display()))?;
-    let exe = exe_path()?;
+    write_config(&cfg, &text)?;
     let jobs: Vec<Job<'_>> = (1..=args.seeds)
         .map(|seed| Job {
             label: "strong",
@@ -113,8 +117,19 @@ pub(super) fn strong(args: &StrongArgs) -> anyhow::Result<()> {
         .jobs
         .unwrap_or_else(|| worker_count(None) / args.threads)
         .max(1);
-    let keep = args.keep.as_deref();
-    let finished = run_for_frames(&exe, &jobs, workers, frames, args.eval_episodes, keep)?;
+    let sweep = Sweep {
+        kind: "strong",
+        out: &args.out,
+        keep,
+        budget: Budget::Frames(frames),
+        evals: Evals {
+            protocol: args.eval_episodes,
+            own_game: None,
+        },
+    };
+    let Some(finished) = slurm::run_jobs(&args.slurm, &sweep, &jobs, Some(workers))? else {
+        return Ok(());
+    };
     let (mut rows, mut means, mut seeds) = (Vec::new(), Vec::new(), Vec::new());
     for (job, run) in jobs.iter().zip(&finished) {
         let (r, s) = (summarize(run)?, run.record.protocol);
