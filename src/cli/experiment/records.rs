@@ -193,19 +193,14 @@ pub(super) fn check_reuse(
     } else {
         return Ok(());
     };
-    let mut asked = Config::resolve(Some(preset), Some(overrides))?;
-    asked.seed = seed;
-    let differ = config_differences(&had, &asked);
-    if !differ.is_empty() {
-        bail!(
+    refuse_other(&had, preset, overrides, seed, |differ| {
+        format!(
             "{} holds a run trained with another configuration than this experiment asks for \
-             ({}): it is not taken as this experiment's run. Give another --out, or move that \
-             run away",
-            dir.display(),
-            differ.join("; ")
-        );
-    }
-    Ok(())
+             ({differ}): it is not taken as this experiment's run. Give another --out, or move \
+             that run away",
+            dir.display()
+        )
+    })
 }
 
 /// Refuses to replace the `--keep` record in `dir` by a run of `preset`, `overrides` and `seed`
@@ -220,17 +215,27 @@ pub(super) fn check_record(
     let text = crate::cli::guard::read_text(&saved, "the record's configuration")?;
     let had = Config::resolve(None, Some(&text))
         .with_context(|| format!("cannot read the record in {}", dir.display()))?;
+    refuse_other(&had, preset, overrides, seed, |differ| {
+        format!(
+            "{} holds the record of a run trained with another configuration than this \
+             experiment asks for ({differ}): it is not replaced. Give another --keep, or move \
+             that record away",
+            dir.display()
+        )
+    })
+}
+
+/// Refuses `had` with the message `refusal` gives for the keys that differ (`key: A, not B`,
+/// joined by `; `), if it is not the configuration of `preset`, `overrides` and `seed`
+/// ([`config_differences`]).
+fn refuse_other(
+    had: &Config, preset: Preset, overrides: &str, seed: u64, refusal: impl FnOnce(&str) -> String,
+) -> anyhow::Result<()> {
     let mut asked = Config::resolve(Some(preset), Some(overrides))?;
     asked.seed = seed;
-    let differ = config_differences(&had, &asked);
+    let differ = config_differences(had, &asked);
     if !differ.is_empty() {
-        bail!(
-            "{} holds the record of a run trained with another configuration than this \
-             experiment asks for ({}): it is not replaced. Give another --keep, or move that \
-             record away",
-            dir.display(),
-            differ.join("; ")
-        );
+        bail!(refusal(&differ.join("; ")));
     }
     Ok(())
 }
