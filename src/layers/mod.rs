@@ -126,14 +126,18 @@ pub trait Layer<T: Float>: Send {
         &self.core().dx
     }
 
-    /// The parameters, in a fixed order (none by default).
-    fn params(&self) -> &[Param<T>] {
-        &[]
+    /// The parameters, in a fixed order (none by default): weight before bias, and a layer made
+    /// of layers lists its children's in order. The order is part of the checkpoint format.
+    ///
+    /// A `Vec` of references rather than a slice, so that a composite layer can hand out
+    /// parameters its children own.
+    fn params(&self) -> Vec<&Param<T>> {
+        Vec::new()
     }
 
-    /// The parameters, mutably.
-    fn params_mut(&mut self) -> &mut [Param<T>] {
-        &mut []
+    /// The parameters, mutably, in the order of [`Layer::params`].
+    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
+        Vec::new()
     }
 
     /// Multiply-adds of one sample's forward pass (for FLOP counts).

@@ -104,14 +104,12 @@ impl<T: Float> Sequential<T> {
 
     /// Every parameter, layer by layer, weight before bias.
     pub fn params(&self) -> impl Iterator<Item = &Param<T>> {
-        self.layers.iter().flat_map(|l| l.params().iter())
+        self.layers.iter().flat_map(|l| l.params())
     }
 
     /// Every parameter, mutably.
     pub fn params_mut(&mut self) -> impl Iterator<Item = &mut Param<T>> {
-        self.layers
-            .iter_mut()
-            .flat_map(|l| l.params_mut().iter_mut())
+        self.layers.iter_mut().flat_map(|l| l.params_mut())
     }
 
     /// Sets every parameter gradient to zero (gradients accumulate across `backward` calls).
