@@ -19,6 +19,7 @@ pub mod loss;
 mod max_pool;
 mod quantile_embedding;
 mod relu;
+mod residual;
 mod sequential;
 
 pub use conv2d::Conv2d;
@@ -29,6 +30,7 @@ pub use layer_norm::LayerNorm;
 pub use max_pool::MaxPool2d;
 pub use quantile_embedding::QuantileEmbedding;
 pub use relu::Relu;
+pub use residual::Residual;
 pub use sequential::Sequential;
 
 use crate::ops::Precision;
@@ -129,8 +131,8 @@ pub trait Layer<T: Float>: Send {
     /// The parameters, in a fixed order (none by default): weight before bias, and a layer made
     /// of layers lists its children's in order. The order is part of the checkpoint format.
     ///
-    /// A `Vec` of references rather than a slice, so that a composite layer can hand out
-    /// parameters its children own.
+    /// A `Vec` of references rather than a slice, so that a composite layer
+    /// ([`Residual`]) can hand out parameters its children own.
     fn params(&self) -> Vec<&Param<T>> {
         Vec::new()
     }

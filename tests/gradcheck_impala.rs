@@ -1,0 +1,140 @@
+//! Gradient checks of the IMPALA encoder's pieces (issue #99): the residual block against central
+//! finite differences in f64 (as `tests/gradcheck.rs` does for the other layers; see
+//! `common::check_layer`), and known values of the block.
+
+mod common;
+
+use common::*;
+use invaders::layers::{Conv2d, Layer, Residual};
+use invaders::tensor::Tensor;
+use proptest::prelude::*;
+
+/// Fills a layer's parameters with uniform values in [-1, 1).
+fn randomise(layer: &mut dyn Layer<f64>, seed: u64) {
+    let mut r = rng(seed);
+    for p in layer.params_mut() {
+        let t: Tensor<f64> = uniform(p.value.shape(), &mut r);
+        p.value.data_mut().copy_from_slice(t.data());
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: common::cases(96), ..ProptestConfig::default() })]
+
+    /// The residual block `y = x + conv2(relu(conv1(relu(x))))`: images 1..5 x 1..5, 1..3
+    /// channels, batch 1..2, every input and parameter entry. Its two ReLUs have kinks: the
+    /// input is drawn at least 1e-3 from zero (relu0), and cases with a pre-activation of conv1
+    /// within 1e-3 of zero are redrawn, so no step of `±H` crosses a kink.
+    #[test]
+    fn residual_gradients(
+        h in 1usize..=5, w in 1usize..=5, c in 1usize..=3, n in 1usize..=2, seed in any::<u64>(),
+    ) {
+        let mut block = Residual::<f64>::new("block", [h, w, c]);
+        randomise(&mut block, seed);
+        let mut r = rng(seed ^ 1);
+        let x = uniform_away_from_zero(&[n, h, w, c], 1e-3, &mut r);
+        // conv1's pre-activations: the same convolution without its ReLU, on relu(x).
+        let mut plain = Conv2d::<f64>::new("plain", block.geom());
+        let conv1: Vec<&Tensor<f64>> = block.params()[..2].iter().map(|p| &p.value).collect();
+        set_params(&mut plain, &conv1);
+        let a = Tensor::from_vec(x.shape(), x.data().iter().map(|v| v.max(0.0)).collect());
+        plain.forward(&a);
+        prop_assume!(plain.output().data().iter().all(|z| z.abs() > 1e-3));
+        let dy = uniform(&[n, h, w, c], &mut r);
+        check_layer(&mut block, &x, &dy, 1000, seed).map_err(TestCaseError::fail)?;
+    }
+}
+
+/// A block lists its four parameters, conv1's then conv2's, weight before bias, named after
+/// the block (the names checkpoints use), the same through `params_mut`.
+#[test]
+fn residual_params_in_order() {
+    let mut block = Residual::<f32>::new("stage2.block1", [5, 4, 3]);
+    let want = [
+        ("stage2.block1.conv1.weight", vec![3, 3, 3, 3]),
+        ("stage2.block1.conv1.bias", vec![3]),
+        ("stage2.block1.conv2.weight", vec![3, 3, 3, 3]),
+        ("stage2.block1.conv2.bias", vec![3]),
+    ];
+    let got: Vec<(String, Vec<usize>)> = block
+        .params()
+        .iter()
+        .map(|p| (p.name.clone(), p.value.shape().to_vec()))
+        .collect();
+    let want: Vec<(String, Vec<usize>)> = want
+        .iter()
+        .map(|(n, s)| (n.to_string(), s.clone()))
+        .collect();
+    assert_eq!(got, want);
+    let names: Vec<String> = block.params_mut().iter().map(|p| p.name.clone()).collect();
+    let want_names: Vec<String> = want.into_iter().map(|(n, _)| n).collect();
+    assert_eq!(names, want_names);
+    assert_eq!(block.output_shape(), [5, 4, 3]);
+    // Two 3x3 C -> C convolutions over every pixel.
+    assert_eq!(block.macs(), 2 * 5 * 4 * 3 * 9 * 3);
+}
+
+/// With zero weights and biases both convolutions give 0, so `y = x` and `dX = dY`; conv2's
+/// bias gradient is `Σ dY` per channel (it adds to every pixel), and every other gradient is 0
+/// (`h = relu(0) = 0` multiplies `dW2`, and `W2 = 0` stops the gradient before conv1).
+#[test]
+fn residual_with_zero_weights_is_the_identity() {
+    let mut block = Residual::<f64>::new("block", [3, 4, 2]);
+    for p in block.params_mut() {
+        p.value.fill_zero();
+    }
+    let mut r = rng(5);
+    let x = uniform::<f64>(&[2, 3, 4, 2], &mut r);
+    let dy = uniform::<f64>(&[2, 3, 4, 2], &mut r);
+    block.forward(&x);
+    assert_eq!(block.output().data(), x.data());
+    block.infer(&x);
+    assert_eq!(block.output().data(), x.data());
+    block.forward(&x);
+    block.backward(&x, &dy, true);
+    assert_eq!(block.input_grad().data(), dy.data());
+    let mut db2 = [0.0; 2];
+    for (i, d) in dy.data().iter().enumerate() {
+        db2[i % 2] += d;
+    }
+    let params = block.params();
+    assert!(params[0].grad.data().iter().all(|&g| g == 0.0));
+    assert!(params[1].grad.data().iter().all(|&g| g == 0.0));
+    assert!(params[2].grad.data().iter().all(|&g| g == 0.0));
+    for (g, want) in params[3].grad.data().iter().zip(db2) {
+        assert!((g - want).abs() < 1e-12, "db2 {g} vs {want}");
+    }
+}
+
+/// Worked by hand on 1x1 images with one channel: a 3x3 SAME convolution of a 1x1 image reads
+/// only its centre tap (the rest is padding), so with centre taps `w1 = 3`, `w2 = 0.5` and
+/// biases `b1 = −1`, `b2 = 0.25`, `y = x + 0.5·relu(3·relu(x) − 1) + 0.25`:
+/// - `x = 2`: `h = relu(6 − 1) = 5`, `y = 2 + 2.5 + 0.25 = 4.75`, and with `dY = 1`,
+///   `dX = 1 + w2·w1 = 2.5`;
+/// - `x = −2`: `relu(x) = 0`, `h = relu(−1) = 0`, `y = −2 + 0.25 = −1.75`, `dX = dY = 1`.
+///
+/// Gradients: `dW2 = Σ h·dY = 5`, `db2 = Σ dY = 2`, `dW1 = Σ w2·[h > 0]·relu(x) = 1`,
+/// `db1 = Σ w2·[h > 0] = 0.5` (only the first sample passes conv1's ReLU).
+#[test]
+fn residual_known_values() {
+    let mut block = Residual::<f64>::new("block", [1, 1, 1]);
+    let centre = |v: f64| {
+        let mut w = vec![0.0; 9];
+        w[4] = v;
+        Tensor::from_vec(&[3, 3, 1, 1], w)
+    };
+    let (w1, b1) = (centre(3.0), Tensor::from_vec(&[1], vec![-1.0]));
+    let (w2, b2) = (centre(0.5), Tensor::from_vec(&[1], vec![0.25]));
+    set_params(&mut block, &[&w1, &b1, &w2, &b2]);
+    let x = Tensor::from_vec(&[2, 1, 1, 1], vec![2.0, -2.0]);
+    block.forward(&x);
+    assert_eq!(block.output().data(), [4.75, -1.75]);
+    block.backward(&x, &Tensor::from_vec(&[2, 1, 1, 1], vec![1.0, 1.0]), true);
+    assert_eq!(block.input_grad().data(), [2.5, 1.0]);
+    let grads: Vec<f64> = block
+        .params()
+        .iter()
+        .map(|p| p.grad.data().iter().sum())
+        .collect();
+    assert_eq!(grads, [1.0, 0.5, 5.0, 2.0]);
+}
