@@ -1,8 +1,10 @@
-//! The article's Q-network.
+//! The article's Q-network, and the IMPALA encoder.
 
 use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
-use crate::layers::{Conv2d, Dense, Dueling, LayerNorm, QuantileEmbedding, Relu, Sequential};
+use crate::layers::{
+    Conv2d, Dense, Dueling, LayerNorm, MaxPool2d, QuantileEmbedding, Relu, Residual, Sequential,
+};
 use crate::ops::plan;
 use crate::tensor::{Border, ConvGeom, Float, Padding, Tensor};
 use rand::Rng;
@@ -261,4 +263,66 @@ fn conv_geometries(input: [usize; 3], padding: Padding) -> Vec<ConvGeom> {
 /// and right; with VALID padding, none.
 pub fn input_border(input: [usize; 3], padding: Padding) -> Border {
     conv_geometries(input, padding)[0].as_valid().1
+}
+
+/// The IMPALA encoder (Espeholt et al. 2018, Dopamine's `ImpalaEncoder`) for `[H, W, C]` inputs:
+/// for each stage `i` (`channels[i]` channels) a 3x3 stride-1 SAME convolution, a 3x3 stride-2
+/// SAME max-pool ([`MaxPool2d`]) and `blocks_per_stage` residual blocks ([`Residual`]); after the
+/// last stage a ReLU, as Dopamine applies before flattening. It ends in features, not Q-values:
+/// a head (dense layers) goes after it, reading its output in place as a vector.
+///
+/// With Dopamine's `channels = [16, 32, 32]` and 2 blocks per stage, on the 88 x 80 frame:
+///
+/// ```text
+/// input                                    [N, 88, 80, C]
+/// stage1.conv    16 @ 3x3, stride 1, SAME  [N, 88, 80, 16]
+/// stage1.pool    3x3, stride 2, SAME       [N, 44, 40, 16]
+/// stage1.block1, stage1.block2             [N, 44, 40, 16]
+/// stage2.conv    32 @ 3x3                  [N, 44, 40, 32]
+/// stage2.pool                              [N, 22, 20, 32]
+/// stage2.block1, stage2.block2             [N, 22, 20, 32]
+/// stage3.conv    32 @ 3x3                  [N, 22, 20, 32]
+/// stage3.pool                              [N, 11, 10, 32]
+/// stage3.block1, stage3.block2             [N, 11, 10, 32]
+/// relu                                     [N, 11, 10, 32]   3 520 features
+/// ```
+///
+/// Multiply-adds per sample ([`Sequential::macs`]): 52 715 520 for `C = 4` (49 674 240 for
+/// `C = 1`), of which the twelve residual convolutions are 36 495 360; the article's whole
+/// Q-network is 12 165 888 at `C = 4`.
+///
+/// Parameters are named `stage{i}.conv.weight`, `stage{i}.block{j}.conv1.weight` and so on,
+/// stage by stage in the table's order. Weights are drawn with `init`, biases start at zero.
+/// The 3x3 convolutions run by Winograd's minimal filtering where the plan says it pays
+/// ([`plan::winograd_pays`]: 32 input channels or more). Any input size works (every layer is
+/// SAME).
+pub fn impala_encoder<T: Float>(
+    input: [usize; 3], channels: &[usize], blocks_per_stage: usize, init: &VarianceScaling,
+    rng: &mut impl Rng,
+) -> Sequential<T> {
+    let mut net = Sequential::new();
+    let [mut h, mut w, mut c] = input;
+    for (i, &ch) in channels.iter().enumerate() {
+        let stage = format!("stage{}", i + 1);
+        let g = ConvGeom::input(h, w, c)
+            .filters(ch, 3, 3)
+            .same()
+            .unwrap_or_else(|| panic!("{stage}: no 3x3 SAME convolution of {h}x{w}x{c}"));
+        net.push(Conv2d::new(&format!("{stage}.conv"), g).with_winograd(plan::winograd_pays(&g)));
+        let pool = MaxPool2d::square(&format!("{stage}.pool"), [h, w, ch], 3, 2, Padding::Same);
+        [h, w, c] = [pool.geom.oh, pool.geom.ow, ch];
+        net.push(pool);
+        for j in 0..blocks_per_stage {
+            let block = Residual::new(&format!("{stage}.block{}", j + 1), [h, w, c]);
+            let winograd = plan::winograd_pays(&block.geom());
+            net.push(block.with_winograd(winograd));
+        }
+    }
+    net.push(Relu::new("relu"));
+    for p in net.params_mut() {
+        if p.name.ends_with(".weight") {
+            init.fill(&mut p.value, rng);
+        }
+    }
+    net
 }
