@@ -256,3 +256,49 @@ fn impala_encoder_on_the_frame() {
     let inferred = net.infer(&x).clone();
     assert_close("infer", inferred.data(), y.data(), 1e-5).unwrap();
 }
+
+/// The encoder in f32, by whatever kernels the plan picks for this CPU (batch 8 and 32 channels:
+/// Winograd for the residual convolutions where it pays), against the same encoder in f64 (the
+/// im2col + GEMM path the gradient checks prove): the output, the input gradient and every
+/// parameter gradient agree to `1e-3·(1 + m)`, `m` the largest magnitude of the f64 tensor.
+#[test]
+fn impala_encoder_f32_matches_f64() {
+    let mut r = rng(11);
+    let (input, channels) = ([16, 12, 4], [8, 32]);
+    let mut wide: Sequential<f64> =
+        impala_encoder(input, &channels, 1, &VarianceScaling::HE, &mut r);
+    let mut narrow: Sequential<f32> =
+        impala_encoder(input, &channels, 1, &VarianceScaling::HE, &mut r);
+    for (p, q) in narrow.params_mut().zip(wide.params_mut()) {
+        let t: Tensor<f64> = uniform(q.value.shape(), &mut r);
+        for (v, (w, t)) in p
+            .value
+            .data_mut()
+            .iter_mut()
+            .zip(q.value.data_mut().iter_mut().zip(t.data()))
+        {
+            if q.name.ends_with(".bias") {
+                *w = 0.1 * t;
+            }
+            *v = *w as f32;
+        }
+    }
+    let x = uniform::<f64>(&[8, 16, 12, 4], &mut r);
+    let dy = uniform::<f64>(&[8, 4, 3, 32], &mut r);
+    let f32s =
+        |t: &Tensor<f64>| Tensor::from_vec(t.shape(), t.data().iter().map(|&v| v as f32).collect());
+    let f64s = |t: &Tensor<f32>| t.data().iter().map(|&v| v as f64).collect::<Vec<f64>>();
+    let (x32, dy32) = (f32s(&x), f32s(&dy));
+    wide.zero_grad();
+    narrow.zero_grad();
+    let y = wide.forward(&x).clone();
+    let y32 = narrow.forward(&x32).clone();
+    assert_close("y", &f64s(&y32), y.data(), 1e-3).unwrap();
+    let dx = wide.backward(&x, &dy, true).unwrap().clone();
+    let dx32 = narrow.backward(&x32, &dy32, true).unwrap().clone();
+    assert_close("dx", &f64s(&dx32), dx.data(), 1e-3).unwrap();
+    for (p, q) in narrow.params().zip(wide.params()) {
+        assert_eq!(p.name, q.name);
+        assert_close(&p.name, &f64s(&p.grad), q.grad.data(), 1e-3).unwrap();
+    }
+}
