@@ -5,7 +5,7 @@
 mod common;
 
 use common::*;
-use invaders::dqn::{article_qnet, impala_encoder};
+use invaders::dqn::{article_qnet, impala_encoder, qnet, Batch, Config, Encoder, Head, Learner};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::{Conv2d, Layer, Residual, Sequential};
 use invaders::tensor::Tensor;
@@ -301,4 +301,82 @@ fn impala_encoder_f32_matches_f64() {
         assert_eq!(p.name, q.name);
         assert_close(&p.name, &f64s(&p.grad), q.grad.data(), 1e-3).unwrap();
     }
+}
+
+/// The Q-network with `encoder = Impala` (the encoder, dense1 of 8 units, dense2 of 6) on a
+/// 9 x 8 x 2 input (→ 5 x 4 → 3 x 2 → 2 x 1), against finite differences at 40 entries of the
+/// input and of each parameter. Seed 8 puts no ReLU kink or pooling tie within the step.
+#[test]
+fn impala_qnet_gradients() {
+    let mut r = rng(8);
+    let head = Head {
+        hidden: 8,
+        encoder: Encoder::Impala,
+        ..Head::ARTICLE
+    };
+    let mut net = qnet::<f64>([9, 8, 2], 6, head, &VarianceScaling::HE, &mut r);
+    let names: Vec<&str> = net.layers().iter().map(|l| l.name()).collect();
+    assert_eq!(names[0], "stage1.conv");
+    assert_eq!(names[names.len() - 3..], ["dense1", "relu4", "dense2"]);
+    for p in net.params_mut() {
+        if p.name.ends_with(".bias") {
+            let t: Tensor<f64> = uniform(p.value.shape(), &mut r);
+            for (v, t) in p.value.data_mut().iter_mut().zip(t.data()) {
+                *v = 0.1 * t;
+            }
+        }
+    }
+    let x = uniform::<f64>(&[2, 9, 8, 2], &mut r);
+    let dy = uniform::<f64>(&[2, 6], &mut r);
+    net.zero_grad();
+    net.forward(&x);
+    let dx = net.backward(&x, &dy, true).unwrap().clone();
+    let grads: Vec<(String, Tensor<f64>)> = net
+        .params()
+        .map(|p| (p.name.clone(), p.grad.clone()))
+        .collect();
+    check_sequential(&mut net, &x, &dy, &dx, &grads, |len, _| {
+        indices(len, 40, &mut r)
+    });
+}
+
+/// `encoder = "impala"` in a configuration: the learner's network is the encoder and the
+/// article's dense layers (dense1 reads 3 520 features), the training batch is laid out inside
+/// stage1.conv's one-pixel padding, a training step runs and keeps the weights finite, and
+/// `reset_dense` draws dense1 and dense2 afresh, not the encoder. A
+/// configuration that asks for the encoder with `layer_norm` or VALID padding is refused.
+#[test]
+fn impala_config_trains_a_step() {
+    let config = Config::resolve(None, Some("encoder = \"impala\"\nbatch_size = 8\n")).unwrap();
+    config.validate().unwrap();
+    assert_eq!(config.encoder, Encoder::Impala);
+    assert!(config.to_toml().contains("encoder = \"impala\""));
+    let mut learner = Learner::from_config(&config, 6, &mut rng(1));
+    let dense1 = learner
+        .online
+        .params()
+        .find(|p| p.name == "dense1.weight")
+        .unwrap();
+    assert_eq!(dense1.value.shape(), [3520, 128]);
+    let batch = Batch::random(&config, &mut rng(2));
+    assert_eq!(batch.states.shape(), [8, 90, 82, 4]);
+    let stats = learner.train_step(&batch);
+    assert!(stats.loss.is_finite() && stats.grad_norm > 0.0 && stats.weights_finite);
+    // reset_dense_at draws the dense layers afresh and keeps the encoder.
+    let fresh = qnet::<f32>(
+        config.input_shape(),
+        6,
+        Head::of(&config),
+        &VarianceScaling::HE,
+        &mut rng(3),
+    );
+    assert_eq!(learner.reset_dense(&fresh), 4);
+    for bad in ["layer_norm = true", "padding = \"valid\""] {
+        let text = format!("encoder = \"impala\"\n{bad}\n");
+        assert!(Config::resolve(None, Some(&text)).is_err(), "{bad}");
+    }
+    assert_eq!(
+        Config::resolve(None, None).unwrap().encoder,
+        Encoder::Article
+    );
 }

@@ -67,7 +67,27 @@ pub struct Head {
     pub iqn: Option<Iqn>,
     /// A [`LayerNorm`] before each convolution's and dense1's ReLU.
     pub layer_norm: bool,
+    /// The convolutions before dense1: the article's three, or the IMPALA encoder.
+    pub encoder: Encoder,
 }
+
+/// The convolutional trunk of the Q-network, before dense1.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Encoder {
+    /// The article's three convolutions, conv1 to conv3 ([`article_qnet`]).
+    #[default]
+    Article,
+    /// Dopamine's IMPALA encoder ([`impala_encoder`]): channels [`IMPALA_CHANNELS`],
+    /// [`IMPALA_BLOCKS`] residual blocks per stage; SAME padding only, no layer normalisation.
+    Impala,
+}
+
+/// The IMPALA encoder's channels per stage, as Dopamine's `ImpalaEncoder`.
+pub const IMPALA_CHANNELS: [usize; 3] = [16, 32, 32];
+
+/// The IMPALA encoder's residual blocks per stage, as Dopamine's.
+pub const IMPALA_BLOCKS: usize = 2;
 
 /// An implicit quantile network's settings (Dabney et al. 2018): where the cosine embedding of
 /// `τ` enters ([`QuantileEmbedding`]), its size, and how many fractions each pass takes.
@@ -110,6 +130,7 @@ impl Head {
         atoms: 1,
         iqn: None,
         layer_norm: false,
+        encoder: Encoder::Article,
     };
 
     /// The head a configuration asks for.
@@ -121,6 +142,24 @@ impl Head {
             atoms: config.atoms(),
             iqn: config.iqn(),
             layer_norm: config.layer_norm,
+            encoder: config.encoder,
+        }
+    }
+
+    /// The zero border around `[H, W, C]` states that the network's first convolution reads in
+    /// place as its padding ([`input_border`] for the article's conv1; one pixel around for the
+    /// IMPALA encoder's 3x3 SAME `stage1.conv`).
+    pub fn input_border(&self, input: [usize; 3]) -> Border {
+        match self.encoder {
+            Encoder::Article => input_border(input, self.padding),
+            Encoder::Impala => {
+                let [h, w, c] = input;
+                let g = ConvGeom::input(h, w, c)
+                    .filters(IMPALA_CHANNELS[0], 3, 3)
+                    .same()
+                    .expect("a 3x3 SAME convolution of any input");
+                g.as_valid().1
+            }
         }
     }
 
@@ -146,14 +185,32 @@ pub fn midpoints(k: usize, batch: usize) -> Vec<f64> {
 /// advantage per action, which [`Dueling`] combines into `n_actions·atoms` outputs
 /// (`Q = V + A − mean A`, atom by atom). With `head.layer_norm`, a [`LayerNorm`] normalises
 /// each convolution's and dense1's pre-activations (`ln1` to `ln4`) and applies their ReLU,
-/// writing the border the convolution would otherwise have written.
+/// writing the border the convolution would otherwise have written. With
+/// `head.encoder = Impala` the IMPALA encoder ([`impala_encoder`]) takes the three
+/// convolutions' place, and dense1 reads its `[11, 10, 32]` output (3 520 features).
 pub fn qnet<T: Float>(
     input: [usize; 3], n_actions: usize, head: Head, init: &VarianceScaling, rng: &mut impl Rng,
 ) -> Sequential<T> {
     let mut net = Sequential::new();
+    if head.encoder == Encoder::Impala {
+        assert!(
+            head.padding == Padding::Same && !head.layer_norm,
+            "the IMPALA encoder is SAME and has no layer normalisation"
+        );
+        net.append(impala_encoder(
+            input,
+            &IMPALA_CHANNELS,
+            IMPALA_BLOCKS,
+            init,
+            rng,
+        ));
+    }
     // The three convolutions as the article defines them (SAME, or VALID if the head says so),
-    // on the unbordered shapes.
-    let convs = conv_geometries(input, head.padding);
+    // on the unbordered shapes; none after the IMPALA encoder.
+    let convs = match head.encoder {
+        Encoder::Article => conv_geometries(input, head.padding),
+        Encoder::Impala => Vec::new(),
+    };
     for (i, g) in convs.iter().enumerate() {
         // conv1 pads its own input (the network's input); the others read their padding from
         // the border the layer before wrote (and skip its gradient: it is a constant).

@@ -27,6 +27,11 @@ impl<T: Float> Sequential<T> {
         self.layers.push(Box::new(layer));
     }
 
+    /// Appends every layer of `other`, in order.
+    pub fn append(&mut self, other: Sequential<T>) {
+        self.layers.extend(other.layers);
+    }
+
     /// Shape of one sample's output (of the last layer).
     pub fn output_shape(&self) -> Vec<usize> {
         self.layers
