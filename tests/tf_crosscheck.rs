@@ -152,12 +152,12 @@ fn check_case<T: Float>(
     let w_shape = layer.params()[0].value.shape().to_vec();
     let fan_in = w_shape[..w_shape.len() - 1].iter().product();
     set(
-        &mut layer.params_mut()[0],
+        layer.params_mut()[0],
         &he(&format!("{case}.w"), &w_shape, fan_in),
     );
     let b_shape = layer.params()[1].value.shape().to_vec();
     set(
-        &mut layer.params_mut()[1],
+        layer.params_mut()[1],
         &draw(&format!("{case}.b"), &b_shape, -0.1, 0.1),
     );
     layer.forward(&x);

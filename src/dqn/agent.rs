@@ -247,7 +247,11 @@ impl<G: Game> Agent<G> {
             input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
             batch: Batch {
                 keep_bf16: crate::ops::plan::bf16_runs(config.precision),
-                ..Batch::padded(config.batch_size, input, config.padding)
+                ..Batch::with_border(
+                    config.batch_size,
+                    input,
+                    Head::of(&config).input_border(input),
+                )
             },
             explore_rng: stream(config.seed, 2 + 2 * counters.episodes),
             sample_rng: stream(config.seed, 3 + 2 * counters.episodes),

@@ -234,10 +234,13 @@ impl Learner {
     /// `conv3`, and `ln1` to `ln3` with layer normalisation), the target network and Adam's step
     /// count are kept. Returns how many parameters (tensors) were reset.
     pub fn reset_dense(&mut self, fresh: &Sequential<f32>) -> usize {
+        // The convolutions: the article's, or the IMPALA encoder's stages.
         let trunk = |name: &str| {
-            ["conv1.", "conv2.", "conv3.", "ln1.", "ln2.", "ln3."]
-                .iter()
-                .any(|p| name.starts_with(p))
+            [
+                "conv1.", "conv2.", "conv3.", "ln1.", "ln2.", "ln3.", "stage",
+            ]
+            .iter()
+            .any(|p| name.starts_with(p))
         };
         let mut theirs = fresh.params();
         let mut reset = 0;

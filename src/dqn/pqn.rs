@@ -246,7 +246,11 @@ impl<G: Game> PqnAgent<G> {
             input: Tensor::zeros(&[pqn.games, h, w, k]),
             batch: Batch {
                 keep_bf16: bf16,
-                ..Batch::padded(pqn.minibatch(), [h, w, k], config.padding)
+                ..Batch::with_border(
+                    pqn.minibatch(),
+                    [h, w, k],
+                    super::Head::of(&config).input_border([h, w, k]),
+                )
             },
             rollout: Rollout::new(&pqn, k * FRAME_LEN),
             finished: VecDeque::new(),

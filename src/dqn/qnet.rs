@@ -1,8 +1,10 @@
-//! The article's Q-network.
+//! The article's Q-network, and the IMPALA encoder.
 
 use super::config::ARTICLE_HIDDEN;
 use crate::layers::init::VarianceScaling;
-use crate::layers::{Conv2d, Dense, Dueling, LayerNorm, QuantileEmbedding, Relu, Sequential};
+use crate::layers::{
+    Conv2d, Dense, Dueling, LayerNorm, MaxPool2d, QuantileEmbedding, Relu, Residual, Sequential,
+};
 use crate::ops::plan;
 use crate::tensor::{Border, ConvGeom, Float, Padding, Tensor};
 use rand::Rng;
@@ -65,7 +67,27 @@ pub struct Head {
     pub iqn: Option<Iqn>,
     /// A [`LayerNorm`] before each convolution's and dense1's ReLU.
     pub layer_norm: bool,
+    /// The convolutions before dense1: the article's three, or the IMPALA encoder.
+    pub encoder: Encoder,
 }
+
+/// The convolutional trunk of the Q-network, before dense1.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Encoder {
+    /// The article's three convolutions, conv1 to conv3 ([`article_qnet`]).
+    #[default]
+    Article,
+    /// Dopamine's IMPALA encoder ([`impala_encoder`]): channels [`IMPALA_CHANNELS`],
+    /// [`IMPALA_BLOCKS`] residual blocks per stage; SAME padding only, no layer normalisation.
+    Impala,
+}
+
+/// The IMPALA encoder's channels per stage, as Dopamine's `ImpalaEncoder`.
+pub const IMPALA_CHANNELS: [usize; 3] = [16, 32, 32];
+
+/// The IMPALA encoder's residual blocks per stage, as Dopamine's.
+pub const IMPALA_BLOCKS: usize = 2;
 
 /// An implicit quantile network's settings (Dabney et al. 2018): where the cosine embedding of
 /// `τ` enters ([`QuantileEmbedding`]), its size, and how many fractions each pass takes.
@@ -108,6 +130,7 @@ impl Head {
         atoms: 1,
         iqn: None,
         layer_norm: false,
+        encoder: Encoder::Article,
     };
 
     /// The head a configuration asks for.
@@ -119,6 +142,24 @@ impl Head {
             atoms: config.atoms(),
             iqn: config.iqn(),
             layer_norm: config.layer_norm,
+            encoder: config.encoder,
+        }
+    }
+
+    /// The zero border around `[H, W, C]` states that the network's first convolution reads in
+    /// place as its padding ([`input_border`] for the article's conv1; one pixel around for the
+    /// IMPALA encoder's 3x3 SAME `stage1.conv`).
+    pub fn input_border(&self, input: [usize; 3]) -> Border {
+        match self.encoder {
+            Encoder::Article => input_border(input, self.padding),
+            Encoder::Impala => {
+                let [h, w, c] = input;
+                let g = ConvGeom::input(h, w, c)
+                    .filters(IMPALA_CHANNELS[0], 3, 3)
+                    .same()
+                    .expect("a 3x3 SAME convolution of any input");
+                g.as_valid().1
+            }
         }
     }
 
@@ -144,14 +185,32 @@ pub fn midpoints(k: usize, batch: usize) -> Vec<f64> {
 /// advantage per action, which [`Dueling`] combines into `n_actions·atoms` outputs
 /// (`Q = V + A − mean A`, atom by atom). With `head.layer_norm`, a [`LayerNorm`] normalises
 /// each convolution's and dense1's pre-activations (`ln1` to `ln4`) and applies their ReLU,
-/// writing the border the convolution would otherwise have written.
+/// writing the border the convolution would otherwise have written. With
+/// `head.encoder = Impala` the IMPALA encoder ([`impala_encoder`]) takes the three
+/// convolutions' place, and dense1 reads its `[11, 10, 32]` output (3 520 features).
 pub fn qnet<T: Float>(
     input: [usize; 3], n_actions: usize, head: Head, init: &VarianceScaling, rng: &mut impl Rng,
 ) -> Sequential<T> {
     let mut net = Sequential::new();
+    if head.encoder == Encoder::Impala {
+        assert!(
+            head.padding == Padding::Same && !head.layer_norm,
+            "the IMPALA encoder is SAME and has no layer normalisation"
+        );
+        net.append(impala_encoder(
+            input,
+            &IMPALA_CHANNELS,
+            IMPALA_BLOCKS,
+            init,
+            rng,
+        ));
+    }
     // The three convolutions as the article defines them (SAME, or VALID if the head says so),
-    // on the unbordered shapes.
-    let convs = conv_geometries(input, head.padding);
+    // on the unbordered shapes; none after the IMPALA encoder.
+    let convs = match head.encoder {
+        Encoder::Article => conv_geometries(input, head.padding),
+        Encoder::Impala => Vec::new(),
+    };
     for (i, g) in convs.iter().enumerate() {
         // conv1 pads its own input (the network's input); the others read their padding from
         // the border the layer before wrote (and skip its gradient: it is a constant).
@@ -261,4 +320,66 @@ fn conv_geometries(input: [usize; 3], padding: Padding) -> Vec<ConvGeom> {
 /// and right; with VALID padding, none.
 pub fn input_border(input: [usize; 3], padding: Padding) -> Border {
     conv_geometries(input, padding)[0].as_valid().1
+}
+
+/// The IMPALA encoder (Espeholt et al. 2018, Dopamine's `ImpalaEncoder`) for `[H, W, C]` inputs:
+/// for each stage `i` (`channels[i]` channels) a 3x3 stride-1 SAME convolution, a 3x3 stride-2
+/// SAME max-pool ([`MaxPool2d`]) and `blocks_per_stage` residual blocks ([`Residual`]); after the
+/// last stage a ReLU, as Dopamine applies before flattening. It ends in features, not Q-values:
+/// a head (dense layers) goes after it, reading its output in place as a vector.
+///
+/// With Dopamine's `channels = [16, 32, 32]` and 2 blocks per stage, on the 88 x 80 frame:
+///
+/// ```text
+/// input                                    [N, 88, 80, C]
+/// stage1.conv    16 @ 3x3, stride 1, SAME  [N, 88, 80, 16]
+/// stage1.pool    3x3, stride 2, SAME       [N, 44, 40, 16]
+/// stage1.block1, stage1.block2             [N, 44, 40, 16]
+/// stage2.conv    32 @ 3x3                  [N, 44, 40, 32]
+/// stage2.pool                              [N, 22, 20, 32]
+/// stage2.block1, stage2.block2             [N, 22, 20, 32]
+/// stage3.conv    32 @ 3x3                  [N, 22, 20, 32]
+/// stage3.pool                              [N, 11, 10, 32]
+/// stage3.block1, stage3.block2             [N, 11, 10, 32]
+/// relu                                     [N, 11, 10, 32]   3 520 features
+/// ```
+///
+/// Multiply-adds per sample ([`Sequential::macs`]): 52 715 520 for `C = 4` (49 674 240 for
+/// `C = 1`), of which the twelve residual convolutions are 36 495 360; the article's whole
+/// Q-network is 12 165 888 at `C = 4`.
+///
+/// Parameters are named `stage{i}.conv.weight`, `stage{i}.block{j}.conv1.weight` and so on,
+/// stage by stage in the table's order. Weights are drawn with `init`, biases start at zero.
+/// The 3x3 convolutions run by Winograd's minimal filtering where the plan says it pays
+/// ([`plan::winograd_pays`]: 32 input channels or more). Any input size works (every layer is
+/// SAME).
+pub fn impala_encoder<T: Float>(
+    input: [usize; 3], channels: &[usize], blocks_per_stage: usize, init: &VarianceScaling,
+    rng: &mut impl Rng,
+) -> Sequential<T> {
+    let mut net = Sequential::new();
+    let [mut h, mut w, mut c] = input;
+    for (i, &ch) in channels.iter().enumerate() {
+        let stage = format!("stage{}", i + 1);
+        let g = ConvGeom::input(h, w, c)
+            .filters(ch, 3, 3)
+            .same()
+            .unwrap_or_else(|| panic!("{stage}: no 3x3 SAME convolution of {h}x{w}x{c}"));
+        net.push(Conv2d::new(&format!("{stage}.conv"), g).with_winograd(plan::winograd_pays(&g)));
+        let pool = MaxPool2d::square(&format!("{stage}.pool"), [h, w, ch], 3, 2, Padding::Same);
+        [h, w, c] = [pool.geom.oh, pool.geom.ow, ch];
+        net.push(pool);
+        for j in 0..blocks_per_stage {
+            let block = Residual::new(&format!("{stage}.block{}", j + 1), [h, w, c]);
+            let winograd = plan::winograd_pays(&block.geom());
+            net.push(block.with_winograd(winograd));
+        }
+    }
+    net.push(Relu::new("relu"));
+    for p in net.params_mut() {
+        if p.name.ends_with(".weight") {
+            init.fill(&mut p.value, rng);
+        }
+    }
+    net
 }

@@ -630,7 +630,8 @@ impl Batch {
     /// workload of the benchmarks and of `precision = "auto"`'s measurement.
     pub fn random(config: &super::Config, rng: &mut impl Rng) -> Batch {
         let input = config.input_shape();
-        let mut b = Batch::padded(config.batch_size, input, config.padding);
+        let border = super::Head::of(config).input_border(input);
+        let mut b = Batch::with_border(config.batch_size, input, border);
         for states in [&mut b.states, &mut b.next_states] {
             for v in states.data_mut() {
                 *v = rng.random_range(-1.0..1.0);

@@ -166,15 +166,15 @@ impl<T: Float> Layer<T> for Dense<T> {
         }
     }
 
-    fn params(&self) -> &[Param<T>] {
-        &self.params
+    fn params(&self) -> Vec<&Param<T>> {
+        self.params.iter().collect()
     }
 
     /// The parameters to change: the bf16 kernels' packed copy of the weights is dropped
     /// ([`DenseOps::weights_changed`]), since the caller may change them.
-    fn params_mut(&mut self) -> &mut [Param<T>] {
+    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
         self.ops.weights_changed();
-        &mut self.params
+        self.params.iter_mut().collect()
     }
 
     fn macs(&self) -> usize {

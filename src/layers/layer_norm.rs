@@ -248,11 +248,11 @@ impl<T: Float> Layer<T> for LayerNorm<T> {
             });
     }
 
-    fn params(&self) -> &[Param<T>] {
-        &self.params
+    fn params(&self) -> Vec<&Param<T>> {
+        self.params.iter().collect()
     }
 
-    fn params_mut(&mut self) -> &mut [Param<T>] {
-        &mut self.params
+    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
+        self.params.iter_mut().collect()
     }
 }

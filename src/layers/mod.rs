@@ -19,6 +19,7 @@ pub mod loss;
 mod max_pool;
 mod quantile_embedding;
 mod relu;
+mod residual;
 mod sequential;
 
 pub use conv2d::Conv2d;
@@ -29,6 +30,7 @@ pub use layer_norm::LayerNorm;
 pub use max_pool::MaxPool2d;
 pub use quantile_embedding::QuantileEmbedding;
 pub use relu::Relu;
+pub use residual::Residual;
 pub use sequential::Sequential;
 
 use crate::ops::Precision;
@@ -126,14 +128,18 @@ pub trait Layer<T: Float>: Send {
         &self.core().dx
     }
 
-    /// The parameters, in a fixed order (none by default).
-    fn params(&self) -> &[Param<T>] {
-        &[]
+    /// The parameters, in a fixed order (none by default): weight before bias, and a layer made
+    /// of layers lists its children's in order. The order is part of the checkpoint format.
+    ///
+    /// A `Vec` of references rather than a slice, so that a composite layer
+    /// ([`Residual`]) can hand out parameters its children own.
+    fn params(&self) -> Vec<&Param<T>> {
+        Vec::new()
     }
 
-    /// The parameters, mutably.
-    fn params_mut(&mut self) -> &mut [Param<T>] {
-        &mut []
+    /// The parameters, mutably, in the order of [`Layer::params`].
+    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
+        Vec::new()
     }
 
     /// Multiply-adds of one sample's forward pass (for FLOP counts).

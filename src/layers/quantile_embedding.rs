@@ -337,12 +337,12 @@ impl<T: Float> Layer<T> for QuantileEmbedding<T> {
         }
     }
 
-    fn params(&self) -> &[Param<T>] {
-        &self.params
+    fn params(&self) -> Vec<&Param<T>> {
+        self.params.iter().collect()
     }
 
-    fn params_mut(&mut self) -> &mut [Param<T>] {
-        &mut self.params
+    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
+        self.params.iter_mut().collect()
     }
 
     /// Per sample, for each of its fractions: the embedding's dense layer and the product.

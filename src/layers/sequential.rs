@@ -27,6 +27,11 @@ impl<T: Float> Sequential<T> {
         self.layers.push(Box::new(layer));
     }
 
+    /// Appends every layer of `other`, in order.
+    pub fn append(&mut self, other: Sequential<T>) {
+        self.layers.extend(other.layers);
+    }
+
     /// Shape of one sample's output (of the last layer).
     pub fn output_shape(&self) -> Vec<usize> {
         self.layers
@@ -104,14 +109,12 @@ impl<T: Float> Sequential<T> {
 
     /// Every parameter, layer by layer, weight before bias.
     pub fn params(&self) -> impl Iterator<Item = &Param<T>> {
-        self.layers.iter().flat_map(|l| l.params().iter())
+        self.layers.iter().flat_map(|l| l.params())
     }
 
     /// Every parameter, mutably.
     pub fn params_mut(&mut self) -> impl Iterator<Item = &mut Param<T>> {
-        self.layers
-            .iter_mut()
-            .flat_map(|l| l.params_mut().iter_mut())
+        self.layers.iter_mut().flat_map(|l| l.params_mut())
     }
 
     /// Sets every parameter gradient to zero (gradients accumulate across `backward` calls).

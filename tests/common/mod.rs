@@ -5,7 +5,7 @@ pub mod cli;
 pub mod corridor;
 pub mod hostile;
 
-use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::layers::{Conv2d, Dense, Layer, Sequential};
 use invaders::ops::plan::Precision;
 use invaders::tensor::cpu::{self, Family};
 use invaders::tensor::{
@@ -169,6 +169,49 @@ pub fn check_layer(
         }
     }
     Ok(())
+}
+
+/// Checks a network's input gradient `dx` and its parameters' gradients `grads` (named, in
+/// `params()` order), taken from one forward and backward pass with upstream gradient `dy`,
+/// against central differences of `L = Σ dy · net(x)`, at the entries `pick(len, is_input)`
+/// chooses.
+pub fn check_sequential(
+    net: &mut Sequential<f64>, x: &Tensor<f64>, dy: &Tensor<f64>, dx: &Tensor<f64>,
+    grads: &[(String, Tensor<f64>)], mut pick: impl FnMut(usize, bool) -> Vec<usize>,
+) {
+    let objective =
+        |net: &mut Sequential<f64>, x: &Tensor<f64>| dot(net.forward(x).data(), dy.data());
+    let mut xp = x.clone();
+    for i in pick(x.len(), true) {
+        let v = xp.data()[i];
+        xp.data_mut()[i] = v + H;
+        let sp = objective(net, &xp);
+        xp.data_mut()[i] = v - H;
+        let sm = objective(net, &xp);
+        xp.data_mut()[i] = v;
+        let num = (sp - sm) / (2.0 * H);
+        assert!(
+            close(dx.data()[i], num, ATOL, RTOL),
+            "dx[{i}]: {} vs {num}",
+            dx.data()[i]
+        );
+    }
+    for (k, (name, grad)) in grads.iter().enumerate() {
+        for i in pick(grad.len(), false) {
+            let v = net.params().nth(k).unwrap().value.data()[i];
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v + H;
+            let sp = objective(net, x);
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v - H;
+            let sm = objective(net, x);
+            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v;
+            let num = (sp - sm) / (2.0 * H);
+            assert!(
+                close(grad.data()[i], num, ATOL, RTOL),
+                "{name}[{i}]: {} vs {num}",
+                grad.data()[i]
+            );
+        }
+    }
 }
 
 /// `max |a − b| ≤ tol · (1 + max |b|)`, compared in f64, for proptest.

@@ -309,6 +309,11 @@ pub struct Config {
     /// preset.
     #[serde(default)]
     pub layer_norm: bool,
+    /// The convolutions before the dense layers: `article` (conv1 to conv3) or `impala`
+    /// (Dopamine's IMPALA encoder, [`super::impala_encoder`]: 4.3 times the article's
+    /// multiply-adds per sample; SAME padding, no `layer_norm`); `article` in every preset.
+    #[serde(default)]
+    pub encoder: super::Encoder,
     /// An implicit quantile head (IQN, Dabney et al. 2018) trained at this many random fractions
     /// `τ` per state (`N`), with the quantile Huber loss (then `loss` is not used); 0: none.
     /// ([`super::Iqn`].)
@@ -458,6 +463,7 @@ impl Config {
             quantiles: 0,
             dueling: false,
             layer_norm: false,
+            encoder: super::Encoder::Article,
             iqn_samples: 0,
             iqn_target_samples: iqn_samples_default(),
             iqn_policy_samples: iqn_samples_default(),

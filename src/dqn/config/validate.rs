@@ -109,6 +109,11 @@ impl Config {
                 c.iqn_embedding
             );
         }
+        if c.encoder == super::super::Encoder::Impala
+            && (c.layer_norm || c.padding != Padding::Same)
+        {
+            bail!("encoder = \"impala\" is SAME-padded and has no layer_norm: drop padding or layer_norm");
+        }
         if c.iqn_samples > 0 && c.quantiles > 0 {
             bail!("iqn_samples and quantiles are two heads: ask for one of them");
         }
