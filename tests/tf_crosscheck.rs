@@ -3,8 +3,9 @@
 //! `tools/tf_reference.py` wrote `tests/data/tf_reference.bin`: TensorFlow's outputs and all
 //! gradients (computed by `tf.GradientTape`) for the article's three convolutions (88x80x4 input,
 //! SAME), an uneven-SAME and a VALID convolution, both dense layers, four max poolings (the IMPALA
-//! encoder's 3x3 stride-2 SAME one, uneven SAME, VALID, and one full of ties), the whole
-//! Q-network, three Keras Adam steps and the two losses. The file holds no inputs: every input,
+//! encoder's 3x3 stride-2 SAME one, uneven SAME, VALID, and one full of ties), a small IMPALA
+//! encoder (its residual blocks included), the whole Q-network, three Keras Adam steps and the
+//! two losses. The file holds no inputs: every input,
 //! weight and upstream gradient is drawn from its name by [`draw`], here and in the script alike.
 //! The two 7040 x 128 weight gradients are stored as a sketch, `dw · R` with `R` drawn `[128, 8]`.
 //!
@@ -15,7 +16,7 @@
 
 mod common;
 
-use invaders::dqn::article_qnet;
+use invaders::dqn::{article_qnet, impala_encoder};
 use invaders::layers::init::VarianceScaling;
 use invaders::layers::loss::{huber, mse};
 use invaders::layers::{Conv2d, Dense, Layer, MaxPool2d, Param};
@@ -268,6 +269,41 @@ fn max_poolings_match_tensorflow() {
     for spec in &POOLS {
         check_pool::<f32>(&re, spec, "");
         check_pool::<f64>(&re, spec, ".f64");
+    }
+}
+
+/// A small IMPALA encoder (`impala_encoder`: two stages of 4 and 8 channels, one residual block
+/// each, on 22x20x3 inputs) against the same network built of TensorFlow's ops: its output,
+/// input gradient and every parameter's gradient, in f32 and in f64.
+#[test]
+fn impala_encoder_matches_tensorflow() {
+    let re = reference();
+    check_encoder::<f32>(&re, "", F32_TOL);
+    check_encoder::<f64>(&re, ".f64", F64_TOL);
+}
+
+fn check_encoder<T: Float>(re: &Reference, suffix: &str, tol: f64) {
+    let he_init = &VarianceScaling::HE;
+    let mut net = impala_encoder::<T>([22, 20, 3], &[4, 8], 1, he_init, &mut common::rng(0));
+    for p in net.params_mut() {
+        let shape = p.value.shape().to_vec();
+        let name = format!("encoder.{}", p.name);
+        let value = match shape.len() {
+            1 => draw(&name, &shape, -0.1, 0.1),
+            _ => he(&name, &shape, shape[..shape.len() - 1].iter().product()),
+        };
+        set(p, &value);
+    }
+    let x = draw::<T>("encoder.x", &[2, 22, 20, 3], -1.0, 1.0);
+    net.zero_grad();
+    let theirs = |what: &str| re.get::<T>(&format!("encoder.{what}{suffix}"));
+    assert_matches("encoder.y", net.forward(&x).data(), &theirs("y"), tol);
+    let dy = draw::<T>("encoder.dy", net.output().shape(), -1.0, 1.0);
+    let dx = net.backward(&x, &dy, true).unwrap();
+    assert_matches("encoder.dx", dx.data(), &theirs("dx"), tol);
+    for p in net.params() {
+        let what = format!("grad.{}", p.name);
+        assert_matches(&what, p.grad.data(), &theirs(&what), tol);
     }
 }
 

@@ -198,6 +198,67 @@ pool_case("pool_ties", 12, 10, 4, 3, 2, "SAME", ties=True)
 
 
 # --------------------------------------------------------------------------
+# A small IMPALA encoder (src/dqn/qnet.rs, `impala_encoder`): per stage a 3x3 SAME convolution,
+# a 3x3 stride-2 SAME max pool and residual blocks `h + conv2(relu(conv1(relu(h))))` (both 3x3
+# SAME), then a ReLU. Two stages of 4 and 8 channels, one block each, on 22x20x3 inputs:
+# 22x20 -> 11x10 -> 6x5. Weights He-uniform, biases in ±0.1, all drawn by their library names.
+# --------------------------------------------------------------------------
+ENCODER_CHANNELS = [4, 8]
+
+
+def encoder_params():
+    """(name, shape) of every parameter, in the library's order."""
+    out, cin = [], 3
+    for i, ch in enumerate(ENCODER_CHANNELS):
+        st = f"stage{i + 1}"
+        out += [(f"{st}.conv.weight", [3, 3, cin, ch]), (f"{st}.conv.bias", [ch])]
+        for conv in ("conv1", "conv2"):
+            out += [(f"{st}.block1.{conv}.weight", [3, 3, ch, ch]),
+                    (f"{st}.block1.{conv}.bias", [ch])]
+        cin = ch
+    return out
+
+
+def encoder_draws():
+    return {name: he(f"encoder.{name}", shape, math.prod(shape[:-1])) if len(shape) > 1
+            else draw(f"encoder.{name}", shape, -0.1, 0.1) for name, shape in encoder_params()}
+
+
+def encoder_forward(x, P, conv, pool):
+    """The encoder with `conv(h, w)` (SAME, stride 1) and `pool(h)` given: TF's or numpy's."""
+    relu = lambda v: v * (v > 0) if isinstance(v, np.ndarray) else tf.nn.relu(v)
+    h = x
+    for i in range(len(ENCODER_CHANNELS)):
+        st = f"stage{i + 1}"
+        h = pool(conv(h, P[f"{st}.conv.weight"]) + P[f"{st}.conv.bias"])
+        b = f"{st}.block1"
+        t = relu(conv(relu(h), P[f"{b}.conv1.weight"]) + P[f"{b}.conv1.bias"])
+        h = h + conv(t, P[f"{b}.conv2.weight"]) + P[f"{b}.conv2.bias"]
+    return relu(h)
+
+
+ex = draw("encoder.x", [N, 22, 20, 3])
+for dtype, suffix in [(np.float32, ""), (np.float64, ".f64")]:
+    P = {k: tf.Variable(v.astype(dtype)) for k, v in encoder_draws().items()}
+    tx = tf.constant(ex.astype(dtype))
+    with tf.GradientTape() as tape:
+        tape.watch(tx)
+        y = encoder_forward(
+            tx, P,
+            lambda h, w: tf.nn.conv2d(h, w, strides=1, padding="SAME"),
+            lambda h: tf.nn.max_pool2d(h, ksize=3, strides=2, padding="SAME"),
+        )
+        dy = draw("encoder.dy", list(y.shape))
+        loss = tf.reduce_sum(y * tf.constant(dy.astype(dtype)))
+    names = [n for n, _ in encoder_params()]
+    grads = tape.gradient(loss, [tx] + [P[n] for n in names])
+    put(f"encoder.y{suffix}", y, dtype)
+    put(f"encoder.dx{suffix}", grads[0], dtype)
+    for n, g in zip(names, grads[1:]):
+        put(f"encoder.grad.{n}{suffix}", g, dtype)
+
+
+# --------------------------------------------------------------------------
 # The whole Q-network, float32:
 #   conv1 -> ReLU -> conv2 -> ReLU -> conv3 -> ReLU -> flatten (NHWC order)
 #   -> dense 128 -> ReLU -> dense 6 (linear)
@@ -439,6 +500,15 @@ for name, h, wd, c, k, s, pad, ties in [("pool_impala", 22, 20, 32, 3, 2, "SAME"
     for sfx, tol in [("", 1e-6), (".f64", 1e-12)]:
         ok &= check(f"{name}.y{sfx}", y, T[f"{name}.y{sfx}"], tol)
         ok &= check(f"{name}.dx{sfx} (first max)", dx, T[f"{name}.dx{sfx}"], tol)
+# The encoder's forward in numpy (im2col convolution, max over windows).
+P = {k: v.astype(np.float64) for k, v in encoder_draws().items()}
+y = encoder_forward(
+    draw("encoder.x", [N, 22, 20, 3]).astype(np.float64), P,
+    lambda h, w: np_conv(h, w, 1, "SAME"),
+    lambda h: windows(h, 3, 3, 2, "SAME", -np.inf).max(axis=(3, 4)),
+)
+for sfx, tol in [("", 1e-5), (".f64", 1e-12)]:
+    ok &= check(f"encoder.y{sfx}", y, T[f"encoder.y{sfx}"], tol)
 # Q-network forward in numpy.
 h = draw("qnet.x", [N, 88, 80, 4], 0.0, 1.0).astype(np.float64)
 P = {}
