@@ -118,13 +118,10 @@ pub fn check_layer(
     };
     let mut xp = x.clone();
     for i in indices(x.len(), max_per_tensor, &mut rng) {
-        let v = xp.data()[i];
-        xp.data_mut()[i] = v + H;
-        let sp = objective(layer, &xp);
-        xp.data_mut()[i] = v - H;
-        let sm = objective(layer, &xp);
-        xp.data_mut()[i] = v;
-        let num = (sp - sm) / (2.0 * H);
+        let num = central(xp.data()[i], |v| {
+            xp.data_mut()[i] = v;
+            objective(layer, &xp)
+        });
         if !close(dx.data()[i], num, ATOL, RTOL) {
             return Err(format!(
                 "dx[{i}]: backward {} vs numeric {num}",
@@ -134,13 +131,10 @@ pub fn check_layer(
     }
     for (k, grad) in grads.iter().enumerate() {
         for i in indices(grad.len(), max_per_tensor, &mut rng) {
-            let v = layer.params()[k].value.data()[i];
-            layer.params_mut()[k].value.data_mut()[i] = v + H;
-            let sp = objective(layer, x);
-            layer.params_mut()[k].value.data_mut()[i] = v - H;
-            let sm = objective(layer, x);
-            layer.params_mut()[k].value.data_mut()[i] = v;
-            let num = (sp - sm) / (2.0 * H);
+            let num = central(layer.params()[k].value.data()[i], |v| {
+                layer.params_mut()[k].value.data_mut()[i] = v;
+                objective(layer, x)
+            });
             if !close(grad.data()[i], num, ATOL, RTOL) {
                 let name = &layer.params()[k].name;
                 return Err(format!(
@@ -171,25 +165,46 @@ pub fn check_layer(
     Ok(())
 }
 
-/// Checks a network's input gradient `dx` and its parameters' gradients `grads` (named, in
-/// `params()` order), taken from one forward and backward pass with upstream gradient `dy`,
-/// against central differences of `L = Σ dy · net(x)`, at the entries `pick(len, is_input)`
-/// chooses.
+/// Fills a layer's parameters with uniform values in [-1, 1).
+pub fn randomise(layer: &mut dyn Layer<f64>, seed: u64) {
+    let mut r = rng(seed);
+    for p in layer.params_mut() {
+        let t: Tensor<f64> = uniform(p.value.shape(), &mut r);
+        p.value.data_mut().copy_from_slice(t.data());
+    }
+}
+
+/// `(f(v + H) − f(v − H)) / 2H`, the central difference at `v` of `f`, which sets one entry to
+/// the value it is given and returns the loss there; the entry is set back to `v` after.
+pub fn central(v: f64, mut f: impl FnMut(f64) -> f64) -> f64 {
+    let (sp, sm) = (f(v + H), f(v - H));
+    f(v);
+    (sp - sm) / (2.0 * H)
+}
+
+/// Checks a network's input gradient and its parameters' gradients, from one forward and
+/// backward pass with upstream gradient `dy`, against central differences of
+/// `L = Σ dy · net(x)`, at the entries `pick(len, is_input)` chooses. Returns the gradients
+/// (named, in `params()` order).
 pub fn check_sequential(
-    net: &mut Sequential<f64>, x: &Tensor<f64>, dy: &Tensor<f64>, dx: &Tensor<f64>,
-    grads: &[(String, Tensor<f64>)], mut pick: impl FnMut(usize, bool) -> Vec<usize>,
-) {
+    net: &mut Sequential<f64>, x: &Tensor<f64>, dy: &Tensor<f64>,
+    mut pick: impl FnMut(usize, bool) -> Vec<usize>,
+) -> Vec<(String, Tensor<f64>)> {
+    net.zero_grad();
+    net.forward(x);
+    let dx = net.backward(x, dy, true).unwrap().clone();
+    let grads: Vec<(String, Tensor<f64>)> = net
+        .params()
+        .map(|p| (p.name.clone(), p.grad.clone()))
+        .collect();
     let objective =
         |net: &mut Sequential<f64>, x: &Tensor<f64>| dot(net.forward(x).data(), dy.data());
     let mut xp = x.clone();
     for i in pick(x.len(), true) {
-        let v = xp.data()[i];
-        xp.data_mut()[i] = v + H;
-        let sp = objective(net, &xp);
-        xp.data_mut()[i] = v - H;
-        let sm = objective(net, &xp);
-        xp.data_mut()[i] = v;
-        let num = (sp - sm) / (2.0 * H);
+        let num = central(xp.data()[i], |v| {
+            xp.data_mut()[i] = v;
+            objective(net, &xp)
+        });
         assert!(
             close(dx.data()[i], num, ATOL, RTOL),
             "dx[{i}]: {} vs {num}",
@@ -198,13 +213,11 @@ pub fn check_sequential(
     }
     for (k, (name, grad)) in grads.iter().enumerate() {
         for i in pick(grad.len(), false) {
-            let v = net.params().nth(k).unwrap().value.data()[i];
-            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v + H;
-            let sp = objective(net, x);
-            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v - H;
-            let sm = objective(net, x);
-            net.params_mut().nth(k).unwrap().value.data_mut()[i] = v;
-            let num = (sp - sm) / (2.0 * H);
+            let at = net.params().nth(k).unwrap().value.data()[i];
+            let num = central(at, |v| {
+                net.params_mut().nth(k).unwrap().value.data_mut()[i] = v;
+                objective(net, x)
+            });
             assert!(
                 close(grad.data()[i], num, ATOL, RTOL),
                 "{name}[{i}]: {} vs {num}",
@@ -212,6 +225,7 @@ pub fn check_sequential(
             );
         }
     }
+    grads
 }
 
 /// `max |a − b| ≤ tol · (1 + max |b|)`, compared in f64, for proptest.
