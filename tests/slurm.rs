@@ -2,8 +2,10 @@
 //! script holds, a task run by hand with `SLURM_ARRAY_TASK_ID` set, the gathering that starts
 //! nothing while tasks are unfinished, and the bad inputs. Where `sbatch` answers (a cluster, or
 //! `tools/slurm-single-node.sh up`): a tiny sweep submitted to Slurm runs to its table, and a
-//! task stopped by `scancel --signal=TERM --full` and requeued ends with the `metrics.csv` of an
-//! uninterrupted run; elsewhere that test prints why it is skipped.
+//! task stopped by `scancel --signal=TERM --full` requeues itself and ends with the `metrics.csv`
+//! of an uninterrupted run; elsewhere that test prints why it is skipped. A task's shell sent
+//! SIGTERM alone (as Slurm's warning is) requeues its task, tested always with a stand-in
+//! `scontrol`.
 
 mod common;
 
@@ -92,17 +94,44 @@ fn the_script_holds_the_array_and_a_task_runs_by_hand() {
         .find_map(|l| l.strip_prefix("#SBATCH --mem="))
         .unwrap();
     assert_eq!(mem, "1550M", "{script}");
-    let exec = script.lines().find(|l| l.starts_with("exec ")).unwrap();
+    // From `set -eu` on, the script is exactly this: the program as the shell's child, which
+    // passes Slurm's warning on once, waits for it, and requeues a task it stopped.
     let program = dir.join("invaders");
-    for want in [
-        format!("exec {} experiment preprocessing", program.display()),
-        format!("--config {}", cfg.display()),
-        format!("--out {}", out.display()),
-        "--task \"$SLURM_ARRAY_TASK_ID\"".into(),
-    ] {
-        assert!(exec.contains(&want), "{want} in {exec}");
-    }
-    assert!(!exec.contains("--slurm"), "{exec}");
+    let tail = &script[script.find("set -eu\n").expect("set -eu")..];
+    let (cd, tail) = tail
+        .split_once("\ncd ")
+        .and_then(|(head, rest)| Some((head, rest.split_once('\n')?)))
+        .map(|(head, (cd, rest))| (format!("{head}\ncd {cd}\n"), rest))
+        .unwrap();
+    assert!(
+        cd.starts_with(
+            "set -eu\n: \"${SLURM_ARRAY_TASK_ID:?submit this with sbatch, or set \
+             SLURM_ARRAY_TASK_ID=K to run task K here}\"\ncd "
+        ),
+        "{cd}"
+    );
+    let want = format!(
+        "# The program runs as this shell's child. Slurm's warning reaches this shell alone
+# (B:TERM), which passes its first SIGTERM on to the program; stopped by it with a
+# checkpoint (exit 130), the task requeues itself, to continue from there. A task that
+# finishes, or fails otherwise, ends with the program's exit status.
+child=
+traps=0
+trap 'traps=$((traps + 1)); if [ \"$traps\" = 1 ]; then kill -TERM \"$child\" 2>/dev/null || true; fi' TERM
+{} experiment preprocessing --eval-episodes 1 --seeds 1 --episodes 2 --config {} --out {} --task \"$SLURM_ARRAY_TASK_ID\" &
+child=$!
+# `wait` returns 143 as soon as the trap has run, the program still running: wait again.
+while seen=$traps; status=0; wait \"$child\" || status=$?; [ \"$status\" = 143 ] && [ \"$traps\" != \"$seen\" ]; do :; done
+if [ \"$status\" = 130 ] && [ \"$traps\" -gt 0 ] && [ -n \"${{SLURM_ARRAY_JOB_ID:-}}\" ]; then
+  scontrol requeue \"${{SLURM_ARRAY_JOB_ID}}_${{SLURM_ARRAY_TASK_ID}}\" || true
+fi
+exit \"$status\"
+",
+        program.display(),
+        cfg.display(),
+        out.display()
+    );
+    assert_eq!(tail, want);
     for (k, name) in [
         "article-vanilla-seed0",
         "article-seed0",
@@ -190,7 +219,8 @@ fn the_script_holds_the_array_and_a_task_runs_by_hand() {
 
 /// `strong` and `ablation` write their arrays too (two threads: two CPUs per task; the `strong`
 /// preset's 7 GB replay memory in `--mem`); `--slurm` pointed at a file or at a folder of
-/// something else, and `--submit` where there is no `sbatch`, are refused before anything is
+/// something else, `--submit` where there is no `sbatch`, a `--slurm-warning` not shorter than
+/// `--slurm-time` and a `--slurm-time` sbatch does not take are refused before anything is
 /// written.
 #[test]
 fn every_experiment_writes_its_array_and_bad_folders_are_refused() {
@@ -294,10 +324,106 @@ fn every_experiment_writes_its_array_and_bad_folders_are_refused() {
         &no_sbatch,
         &["--submit runs `sbatch`, and there is none on the PATH"],
     );
+    // A warning that is not shorter than the time limit, and a time sbatch does not take.
+    fails_with(
+        &run(&strong(
+            f,
+            &["--slurm-time", "10", "--slurm-warning", "600"],
+        )),
+        &["--slurm-warning 600 is not shorter than --slurm-time 10 (600 s)"],
+    );
+    fails_with(
+        &run(&strong(
+            f,
+            &["--slurm-time", "0:05:00", "--slurm-warning", "900"],
+        )),
+        &["--slurm-warning 900 is not shorter than --slurm-time 0:05:00 (300 s)"],
+    );
+    fails_with(
+        &run(&strong(f, &["--slurm-time", "1h"])),
+        &["--slurm-time 1h is not a time sbatch takes"],
+    );
     assert!(!fresh.exists() && !fo.exists(), "nothing written");
     assert_eq!(std::fs::read_to_string(&cfg).unwrap(), TINY);
     let _ = std::fs::remove_dir_all(&root);
     let _ = std::fs::remove_dir_all(&empty);
+}
+
+/// The script run by hand as Slurm would run a task (`SLURM_ARRAY_JOB_ID`, `SLURM_ARRAY_TASK_ID`
+/// set, an `scontrol` on the PATH that notes its arguments): SIGTERM to the shell alone, as
+/// Slurm's warning (`B:TERM`) sends it, stops the program with a checkpoint, and the shell exits
+/// with 130 after `scontrol requeue JOB_TASK`; run again, the task continues, finishes (0) and
+/// requeues nothing.
+#[test]
+fn a_warned_task_requeues_itself() {
+    let (root, cfg) = setup("warned");
+    let (out, dir) = (root.join("exp"), root.join("slurm"));
+    ok(&run(&preprocessing(
+        &cfg,
+        &out,
+        1,
+        12,
+        &["--slurm", s(&dir)],
+    )));
+    let bin_dir = root.join("bin");
+    std::fs::create_dir_all(&bin_dir).unwrap();
+    let noted = root.join("scontrol.args");
+    let fake = bin_dir.join("scontrol");
+    std::fs::write(
+        &fake,
+        format!("#!/bin/sh\necho \"$@\" >> {}\n", noted.display()),
+    )
+    .unwrap();
+    std::fs::set_permissions(&fake, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
+    let path = format!("{}:{}", bin_dir.display(), std::env::var("PATH").unwrap());
+    let task = || {
+        let mut c = Command::new("bash");
+        c.arg(dir.join("preprocessing.sbatch"))
+            .env("SLURM_ARRAY_TASK_ID", "0")
+            .env("SLURM_ARRAY_JOB_ID", "77")
+            .env("PATH", &path)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped());
+        c
+    };
+    let metrics = out.join("article-vanilla-seed0/metrics.csv");
+    let rows =
+        || std::fs::read_to_string(&metrics).map_or(0, |t| t.lines().count().saturating_sub(1));
+    let shell = task().spawn().unwrap();
+    wait_for("2 episodes of task 0", Duration::from_secs(300), || {
+        rows() >= 2
+    });
+    let term = Command::new("kill")
+        .args(["-TERM", &shell.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(term.success());
+    let stopped = shell.wait_with_output().unwrap();
+    let said = String::from_utf8_lossy(&stopped.stderr);
+    assert_eq!(stopped.status.code(), Some(130), "{said}");
+    assert!(said.contains("stopped with a checkpoint"), "{said}");
+    assert_eq!(
+        std::fs::read_to_string(&noted).unwrap(),
+        "requeue 77_0\n",
+        "the shell requeued its task"
+    );
+    let at = rows();
+    assert!(at < 12, "stopped mid-run: {at} rows");
+    // Requeued: it continues from its checkpoint to its end, and requeues nothing.
+    let again = task().output().unwrap();
+    let said = ok(&again);
+    assert!(
+        said.contains("task 0: article-vanilla-seed0 finished"),
+        "{said}"
+    );
+    assert_eq!(rows(), 12);
+    assert_eq!(std::fs::read_to_string(&noted).unwrap(), "requeue 77_0\n");
+    let log = std::fs::read_to_string(out.join("article-vanilla-seed0.log")).unwrap();
+    assert!(
+        log.contains("resum"),
+        "continued from its checkpoint:\n{log}"
+    );
+    let _ = std::fs::remove_dir_all(&root);
 }
 
 /// Why Slurm cannot be used here, if it cannot: `sbatch` must answer and `sinfo` show a node up.
@@ -329,13 +455,20 @@ fn no_slurm() -> Option<String> {
 
 /// `scontrol show job ID`'s `JobState`, or `None` once Slurm has forgotten the job.
 fn job_state(id: &str) -> Option<String> {
+    job_field(id, "JobState")
+}
+
+/// `scontrol show job ID`'s field `name` (`JobState`, `Restarts`), or `None` once Slurm has
+/// forgotten the job.
+fn job_field(id: &str, name: &str) -> Option<String> {
     let o = Command::new("scontrol")
         .args(["show", "job", id])
         .output()
         .ok()?;
     let text = String::from_utf8_lossy(&o.stdout);
+    let key = format!("{name}=");
     text.split_whitespace()
-        .find_map(|w| w.strip_prefix("JobState="))
+        .find_map(|w| w.strip_prefix(key.as_str()))
         .map(String::from)
 }
 
@@ -363,9 +496,9 @@ fn slurm(cmd: &str, args: &[&str]) -> String {
 
 /// Where Slurm answers: `--submit` sends a tiny sweep (3 arms × 2 seeds) whose tasks run to the
 /// gathered table; and a task of 30 episodes sent SIGTERM mid-run by `scancel --signal=TERM
-/// --full`, then requeued by `scontrol requeue`, ends with the same `metrics.csv` (but wall
-/// time) as an uninterrupted run of its seed on its one thread. Elsewhere it prints why it is
-/// skipped.
+/// --full` requeues itself (its shell runs `scontrol requeue`, no one else) and ends with the
+/// same `metrics.csv` (but wall time) as an uninterrupted run of its seed on its one thread.
+/// Elsewhere it prints why it is skipped.
 #[test]
 fn a_sweep_runs_on_a_live_slurm() {
     if let Some(why) = no_slurm() {
@@ -422,17 +555,19 @@ fn a_sweep_runs_on_a_live_slurm() {
         rows() >= 5
     });
     slurm("scancel", &["--signal=TERM", "--full", &task]);
-    wait_for("task 0 to stop", Duration::from_secs(120), || {
-        job_state(&task).is_some_and(|s| s != "RUNNING" && s != "COMPLETING")
+    // No `scontrol requeue` here: the task's shell requeues it once the program has stopped.
+    wait_for("task 0 to requeue itself", Duration::from_secs(120), || {
+        job_field(&task, "Restarts").is_some_and(|r| r != "0")
     });
     let stopped_at = rows();
     println!(
-        "task {task} stopped by SIGTERM with {stopped_at} of 30 episodes in metrics.csv: {:?}",
-        job_state(&task)
+        "task {task} stopped by SIGTERM with {stopped_at} of 30 episodes in metrics.csv and \
+         requeued itself: {:?}, Restarts={:?}",
+        job_state(&task),
+        job_field(&task, "Restarts")
     );
     assert!(stopped_at < 30, "stopped mid-run");
     // It starts again once its killed credential has expired (`AuthInfo=cred_expire`).
-    slurm("scontrol", &["requeue", &task]);
     wait_for("the requeued task", Duration::from_secs(600), || {
         job_state(&task).is_none_or(|s| s == "COMPLETED" || s == "FAILED")
     });
@@ -440,6 +575,17 @@ fn a_sweep_runs_on_a_live_slurm() {
         job_state(&task).as_deref().unwrap_or("COMPLETED"),
         "COMPLETED"
     );
+    assert_eq!(job_field(&task, "Restarts").as_deref(), Some("1"));
+    let slurm_log = std::fs::read_dir(dir.join("logs"))
+        .unwrap()
+        .map(|e| std::fs::read_to_string(e.unwrap().path()).unwrap())
+        .collect::<String>();
+    for line in slurm_log
+        .lines()
+        .filter(|l| l.contains("stop") || l.contains("task 0"))
+    {
+        println!("  log: {line}");
+    }
     let log = std::fs::read_to_string(out.join("article-vanilla-seed0.log")).unwrap();
     assert!(
         log.contains("resum"),

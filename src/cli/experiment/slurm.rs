@@ -14,13 +14,26 @@
 //! (continuing it from its checkpoint if it has one), evaluates it and writes its record
 //! (`--keep DIR`, or `OUT/records` without one); a run already recorded is not trained again.
 //!
-//! The script runs the task with `exec`, so the program is the batch step itself: Slurm's
-//! warning before the time limit (`--signal=B:TERM@S`, to the batch step) reaches the experiment,
-//! which passes it on once to its `train`, which finishes its episode, checkpoints and exits
-//! with 130. A task requeued (by Slurm on preemption, `--requeue`, or by `scontrol requeue`)
-//! continues from that checkpoint exactly. A signal to every process of the task at once
-//! (`scancel --signal=TERM --full`) reaches `train` twice, which then stops at once and keeps
-//! its last periodic checkpoint: the requeued task replays from there, to the same end.
+//! The script runs the task as a child of its shell (the batch step), which traps SIGTERM:
+//!
+//! - **Slurm's warning** before the time limit (`--signal=B:TERM@S`) reaches the shell alone. It
+//!   passes the first SIGTERM on to the experiment (and no later one), which passes it on once to
+//!   its `train`, which finishes its episode, checkpoints and exits with 130, and so does the
+//!   experiment (one warned while it evaluates ends the evaluation at once, to play it again).
+//!   The shell waits for it (its `wait` returns as the trap runs: it waits again
+//!   until the experiment has exited, with that status), and since the experiment stopped with
+//!   130 after the trap ran, requeues its task (`scontrol requeue JOB_TASK`, which `--requeue`
+//!   allows): Slurm starts it again, and it continues from that checkpoint exactly. The shell then
+//!   exits with 130. A task that finishes (0), or fails otherwise, is not requeued.
+//! - **`scancel --signal=TERM --full`** signals every process of the task at once: the shell
+//!   (which passes it on to the experiment), the experiment and `train`. The experiment gets two
+//!   SIGTERMs, Slurm's and the shell's, and `train` two or more (Slurm's and one passed on for
+//!   each of the experiment's): `train` stops at once, keeping its last periodic checkpoint
+//!   (`checkpoint_every`), and exits with 130, and so does the experiment, "stopping the runs at
+//!   once". The shell requeues the task as above, and it replays from that checkpoint to the same
+//!   end. (`scancel --signal=TERM --batch` reaches the shell alone, as the warning does.)
+//! - Preemption with `--requeue` is Slurm's own requeue; run by hand
+//!   (`SLURM_ARRAY_TASK_ID=K bash SCRIPT`, no `SLURM_ARRAY_JOB_ID`) the shell requeues nothing.
 //!
 //! Once the folder has its task list, the same command without `--task` trains nothing: it
 //! gathers the records into the table and figure when every task has finished, and otherwise
@@ -57,7 +70,8 @@ pub struct SlurmArgs {
     )]
     slurm_time: String,
     /// With --slurm: how many seconds before the limit Slurm sends the task SIGTERM
-    /// (`--signal=B:TERM@S`), for it to finish its episode and write its checkpoint.
+    /// (`--signal=B:TERM@S`; shorter than --slurm-time), for it to finish its episode, write its
+    /// checkpoint and requeue itself.
     #[arg(long, value_name = "S", default_value_t = 600, requires = "slurm")]
     slurm_warning: u32,
     /// With --slurm: submit the script with `sbatch`.
@@ -91,6 +105,23 @@ impl SlurmArgs {
     /// things than `--slurm` writes, and `--submit` where no `sbatch` is on the PATH.
     pub(super) fn check(&self) -> anyhow::Result<()> {
         if let Some(dir) = &self.slurm {
+            let Some(limit) = time_seconds(&self.slurm_time) else {
+                bail!(
+                    "--slurm-time {} is not a time sbatch takes: give MINUTES, MINUTES:SECONDS, \
+                     H:MM:SS, D-HH, D-HH:MM or D-HH:MM:SS; nothing was written",
+                    self.slurm_time
+                );
+            };
+            if limit.is_some_and(|l| u64::from(self.slurm_warning) >= l) {
+                bail!(
+                    "--slurm-warning {} is not shorter than --slurm-time {} ({} s): the warning \
+                     would come before the task starts; give a shorter --slurm-warning or a \
+                     longer --slurm-time; nothing was written",
+                    self.slurm_warning,
+                    self.slurm_time,
+                    limit.unwrap_or_default()
+                );
+            }
             check_slurm_dir(dir)?;
             if self.submit && find_on_path("sbatch").is_none() {
                 bail!(
@@ -103,6 +134,33 @@ impl SlurmArgs {
         }
         Ok(())
     }
+}
+
+/// A time limit as sbatch's `--time` takes it, in seconds: `Some(None)` for no limit (`0`,
+/// `UNLIMITED`, `INFINITE`), `None` for what sbatch does not take.
+fn time_seconds(time: &str) -> Option<Option<u64>> {
+    if ["UNLIMITED", "INFINITE"].contains(&time.to_ascii_uppercase().as_str()) {
+        return Some(None);
+    }
+    let (days, rest) = match time.split_once('-') {
+        Some((d, r)) => (Some(d), r),
+        None => (None, time),
+    };
+    let number = |s: &str| -> Option<u64> {
+        (!s.is_empty() && s.bytes().all(|b| b.is_ascii_digit()))
+            .then(|| s.parse().ok())
+            .flatten()
+    };
+    let parts: Vec<u64> = rest.split(':').map(number).collect::<Option<_>>()?;
+    let seconds = match (days, parts.as_slice()) {
+        (None, [m]) => m * 60,
+        (None, [m, s]) => m * 60 + s,
+        (None, [h, m, s]) | (Some(_), [h, m, s]) => h * 3600 + m * 60 + s,
+        (Some(_), [h]) => h * 3600,
+        (Some(_), [h, m]) => h * 3600 + m * 60,
+        _ => return None,
+    } + days.map_or(Some(0), number)? * 86_400;
+    Some((seconds > 0).then_some(seconds))
 }
 
 /// The folder the runs' records go to: `--keep`, or for Slurm tasks without one `OUT/records`
@@ -379,8 +437,9 @@ fn task_mem_mib(jobs: &[Job<'_>]) -> anyhow::Result<u64> {
     Ok(with_margin.div_ceil(1 << 20))
 }
 
-/// The sbatch script: the array's resources, then `exec` of this experiment's command with
-/// `--task $SLURM_ARRAY_TASK_ID` (the same flags, paths made absolute, the program `exe`).
+/// The sbatch script: the array's resources, then this experiment's command with `--task
+/// $SLURM_ARRAY_TASK_ID` (the same flags, paths made absolute, the program `exe`) as a child of
+/// the shell, which passes Slurm's warning on and requeues the task it stopped.
 fn script_text(
     s: &SlurmArgs, sweep: &Sweep<'_>, jobs: &[Job<'_>], names: &[String], exe: &Path, dir: &Path,
 ) -> anyhow::Result<String> {
@@ -408,7 +467,8 @@ fn script_text(
          # The largest run's replay memory and networks, and a margin of a quarter (at least 1 GiB).\n\
          #SBATCH --mem={mem}M\n\
          #SBATCH --time={time}\n\
-         # SIGTERM to the task {warn} s before its limit: it finishes its episode and checkpoints.\n\
+         # SIGTERM to the task {warn} s before its limit: it finishes its episode, checkpoints and\n\
+         # requeues itself (below).\n\
          #SBATCH --signal=B:TERM@{warn}\n\
          #SBATCH --requeue\n\
          #SBATCH --open-mode=append\n\
@@ -416,8 +476,21 @@ fn script_text(
          set -eu\n\
          : \"${{SLURM_ARRAY_TASK_ID:?submit this with sbatch, or set SLURM_ARRAY_TASK_ID=K to run task K here}}\"\n\
          cd {cwd}\n\
-         # exec: the program is the batch step, so Slurm's SIGTERM reaches it.\n\
-         exec {command} --task \"$SLURM_ARRAY_TASK_ID\"\n",
+         # The program runs as this shell's child. Slurm's warning reaches this shell alone\n\
+         # (B:TERM), which passes its first SIGTERM on to the program; stopped by it with a\n\
+         # checkpoint (exit 130), the task requeues itself, to continue from there. A task that\n\
+         # finishes, or fails otherwise, ends with the program's exit status.\n\
+         child=\n\
+         traps=0\n\
+         trap 'traps=$((traps + 1)); if [ \"$traps\" = 1 ]; then kill -TERM \"$child\" 2>/dev/null || true; fi' TERM\n\
+         {command} --task \"$SLURM_ARRAY_TASK_ID\" &\n\
+         child=$!\n\
+         # `wait` returns 143 as soon as the trap has run, the program still running: wait again.\n\
+         while seen=$traps; status=0; wait \"$child\" || status=$?; [ \"$status\" = 143 ] && [ \"$traps\" != \"$seen\" ]; do :; done\n\
+         if [ \"$status\" = 130 ] && [ \"$traps\" -gt 0 ] && [ -n \"${{SLURM_ARRAY_JOB_ID:-}}\" ]; then\n\
+         \x20 scontrol requeue \"${{SLURM_ARRAY_JOB_ID}}_${{SLURM_ARRAY_TASK_ID}}\" || true\n\
+         fi\n\
+         exit \"$status\"\n",
         kind = sweep.kind,
         cmd = command_line(),
         out = sweep.out.display(),
@@ -476,4 +549,33 @@ fn find_on_path(program: &str) -> Option<PathBuf> {
     std::env::split_paths(&path)
         .map(|d| d.join(program))
         .find(|p| p.is_file())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::time_seconds;
+
+    #[test]
+    fn sbatch_times_in_seconds() {
+        for (time, want) in [
+            ("30", Some(Some(1800))),
+            ("30:15", Some(Some(1815))),
+            ("0:30:00", Some(Some(1800))),
+            ("24:00:00", Some(Some(86_400))),
+            ("1-2", Some(Some(93_600))),
+            ("1-2:30", Some(Some(95_400))),
+            ("1-02:30:05", Some(Some(95_405))),
+            ("0", Some(None)),
+            ("unlimited", Some(None)),
+            ("INFINITE", Some(None)),
+            ("", None),
+            ("1:2:3:4", None),
+            ("1-", None),
+            ("-5", None),
+            ("1h", None),
+            ("+5", None),
+        ] {
+            assert_eq!(time_seconds(time), want, "{time:?}");
+        }
+    }
 }
