@@ -228,7 +228,7 @@ fn every_experiment_writes_its_array_and_bad_folders_are_refused() {
     let dir = root.join("strong-slurm");
     let out = root.join("strong");
     let (d, c, o) = (s(&dir), s(&cfg), s(&out));
-    ok(&invaders(&[
+    let strong = [
         "experiment",
         "strong",
         "--seeds",
@@ -239,7 +239,8 @@ fn every_experiment_writes_its_array_and_bad_folders_are_refused() {
         d,
         "--out",
         o,
-    ]));
+    ];
+    ok(&invaders(&strong));
     let script = std::fs::read_to_string(dir.join("strong.sbatch")).unwrap();
     let dirs = directives(&script);
     assert!(dirs.contains(&"#SBATCH --array=0-2"), "{script}");
@@ -258,18 +259,7 @@ fn every_experiment_writes_its_array_and_bad_folders_are_refused() {
         "{tasks}"
     );
     // Written again into its own folder: fine.
-    ok(&invaders(&[
-        "experiment",
-        "strong",
-        "--seeds",
-        "3",
-        "--threads",
-        "2",
-        "--slurm",
-        d,
-        "--out",
-        o,
-    ]));
+    ok(&invaders(&strong));
 
     let adir = root.join("ablation-slurm");
     let aout = root.join("ablation");
