@@ -355,3 +355,54 @@ fn impala_config_trains_a_step() {
         Encoder::Article
     );
 }
+
+/// `impala_channels` and `impala_blocks` thin the encoder: 8, 16 and 16 channels with one block
+/// per stage give that network (dense1 reads 11 x 10 x 16 features, three blocks), whose
+/// multiply-adds fall below Dopamine's; out-of-range shapes, and the keys without
+/// `encoder = "impala"`, are refused.
+#[test]
+fn impala_channels_and_blocks_thin_the_encoder() {
+    let text = "encoder = \"impala\"\nimpala_channels = [8, 16, 16]\nimpala_blocks = 1\n";
+    let config = Config::resolve(None, Some(text)).unwrap();
+    assert_eq!(config.impala_channels, [8, 16, 16]);
+    assert_eq!(
+        Config::resolve(None, Some(&config.to_toml())).unwrap(),
+        config
+    );
+    let head = Head::of(&config);
+    let net = qnet::<f32>(
+        config.input_shape(),
+        6,
+        head,
+        &VarianceScaling::HE,
+        &mut rng(1),
+    );
+    let names: Vec<&str> = net.layers().iter().map(|l| l.name()).collect();
+    assert_eq!(names.iter().filter(|n| n.contains(".block")).count(), 3);
+    let dense1 = net.params().find(|p| p.name == "dense1.weight").unwrap();
+    assert_eq!(dense1.value.shape(), [11 * 10 * 16, 128]);
+    let dopamine = Config::resolve(None, Some("encoder = \"impala\"\n")).unwrap();
+    let full = qnet::<f32>(
+        dopamine.input_shape(),
+        6,
+        Head::of(&dopamine),
+        &VarianceScaling::HE,
+        &mut rng(1),
+    );
+    assert!(
+        net.macs() * 4 < full.macs(),
+        "{} vs {}",
+        net.macs(),
+        full.macs()
+    );
+    for bad in [
+        "encoder = \"impala\"\nimpala_channels = [0, 16, 16]",
+        "encoder = \"impala\"\nimpala_channels = [8, 16, 1000]",
+        "encoder = \"impala\"\nimpala_blocks = 9",
+        "impala_blocks = 1",
+        "impala_channels = [8, 16, 16]",
+    ] {
+        let err = format!("{:#}", Config::resolve(None, Some(bad)).unwrap_err());
+        assert!(err.contains("impala_"), "{bad}: {err}");
+    }
+}

@@ -24,8 +24,8 @@ pub use learner::{argmax, greedy_atoms, Learner, Munchausen, StepStats, TargetRu
 pub use pqn::{game_seed, q_lambda_returns, Player, PqnAgent};
 pub use precision::{resolve_precision, Resolved};
 pub use qnet::{
-    article_qnet, impala_encoder, input_border, midpoints, qnet, Encoder, Head, Iqn, IqnMerge,
-    IMPALA_BLOCKS, IMPALA_CHANNELS,
+    article_qnet, impala_encoder, input_border, midpoints, qnet, Encoder, Head, Impala, Iqn,
+    IqnMerge, IMPALA_BLOCKS, IMPALA_CHANNELS,
 };
 pub use replay::{shift_frame, Batch, Replay, FLAG_ACTED, FLAG_DONE, FLAG_START, PRIORITY_EPSILON};
 pub use sumtree::SumTree;

@@ -69,6 +69,25 @@ pub struct Head {
     pub layer_norm: bool,
     /// The convolutions before dense1: the article's three, or the IMPALA encoder.
     pub encoder: Encoder,
+    /// The IMPALA encoder's widths and depth (with `encoder = Impala`).
+    pub impala: Impala,
+}
+
+/// The IMPALA encoder's shape: three stages of `channels`, `blocks` residual blocks each.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Impala {
+    /// Each stage's channels (Dopamine's: [`IMPALA_CHANNELS`]).
+    pub channels: [usize; 3],
+    /// Residual blocks per stage (Dopamine's: [`IMPALA_BLOCKS`]).
+    pub blocks: usize,
+}
+
+impl Impala {
+    /// Dopamine's `ImpalaEncoder`: 16, 32 and 32 channels, 2 blocks per stage.
+    pub const DOPAMINE: Impala = Impala {
+        channels: IMPALA_CHANNELS,
+        blocks: IMPALA_BLOCKS,
+    };
 }
 
 /// The convolutional trunk of the Q-network, before dense1.
@@ -78,8 +97,9 @@ pub enum Encoder {
     /// The article's three convolutions, conv1 to conv3 ([`article_qnet`]).
     #[default]
     Article,
-    /// Dopamine's IMPALA encoder ([`impala_encoder`]): channels [`IMPALA_CHANNELS`],
-    /// [`IMPALA_BLOCKS`] residual blocks per stage; SAME padding only, no layer normalisation.
+    /// The IMPALA encoder ([`impala_encoder`]) of the head's [`Impala`] shape (Dopamine's:
+    /// channels [`IMPALA_CHANNELS`], [`IMPALA_BLOCKS`] residual blocks per stage); SAME padding
+    /// only, no layer normalisation.
     Impala,
 }
 
@@ -131,6 +151,7 @@ impl Head {
         iqn: None,
         layer_norm: false,
         encoder: Encoder::Article,
+        impala: Impala::DOPAMINE,
     };
 
     /// The head a configuration asks for.
@@ -143,6 +164,10 @@ impl Head {
             iqn: config.iqn(),
             layer_norm: config.layer_norm,
             encoder: config.encoder,
+            impala: Impala {
+                channels: config.impala_channels,
+                blocks: config.impala_blocks,
+            },
         }
     }
 
@@ -155,7 +180,7 @@ impl Head {
             Encoder::Impala => {
                 let [h, w, c] = input;
                 let g = ConvGeom::input(h, w, c)
-                    .filters(IMPALA_CHANNELS[0], 3, 3)
+                    .filters(self.impala.channels[0], 3, 3)
                     .same()
                     .expect("a 3x3 SAME convolution of any input");
                 g.as_valid().1
@@ -199,8 +224,8 @@ pub fn qnet<T: Float>(
         );
         net.append(impala_encoder(
             input,
-            &IMPALA_CHANNELS,
-            IMPALA_BLOCKS,
+            &head.impala.channels,
+            head.impala.blocks,
             init,
             rng,
         ));

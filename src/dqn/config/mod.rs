@@ -121,6 +121,20 @@ fn iqn_embedding_default() -> usize {
     64
 }
 
+fn impala_channels_default() -> [usize; 3] {
+    super::IMPALA_CHANNELS
+}
+
+fn impala_blocks_default() -> usize {
+    super::IMPALA_BLOCKS
+}
+
+/// The widest stage an IMPALA encoder may ask for (`impala_channels`).
+pub const MAX_IMPALA_CHANNELS: usize = 256;
+
+/// The most residual blocks per stage an IMPALA encoder may ask for (`impala_blocks`).
+pub const MAX_IMPALA_BLOCKS: usize = 8;
+
 fn iqn_samples_default() -> usize {
     32
 }
@@ -314,6 +328,14 @@ pub struct Config {
     /// multiply-adds per sample; SAME padding, no `layer_norm`); `article` in every preset.
     #[serde(default)]
     pub encoder: super::Encoder,
+    /// With `encoder = "impala"`: each of its three stages' channels (Dopamine's `[16, 32, 32]`;
+    /// fewer thin it, and its cost falls about as their square).
+    #[serde(default = "impala_channels_default")]
+    pub impala_channels: [usize; 3],
+    /// With `encoder = "impala"`: residual blocks per stage (Dopamine's 2; 0 leaves the
+    /// convolutions and poolings).
+    #[serde(default = "impala_blocks_default")]
+    pub impala_blocks: usize,
     /// An implicit quantile head (IQN, Dabney et al. 2018) trained at this many random fractions
     /// `τ` per state (`N`), with the quantile Huber loss (then `loss` is not used); 0: none.
     /// ([`super::Iqn`].)
@@ -464,6 +486,8 @@ impl Config {
             dueling: false,
             layer_norm: false,
             encoder: super::Encoder::Article,
+            impala_channels: super::IMPALA_CHANNELS,
+            impala_blocks: super::IMPALA_BLOCKS,
             iqn_samples: 0,
             iqn_target_samples: iqn_samples_default(),
             iqn_policy_samples: iqn_samples_default(),

@@ -114,6 +114,27 @@ impl Config {
         {
             bail!("encoder = \"impala\" is SAME-padded and has no layer_norm: drop padding or layer_norm");
         }
+        if c.impala_channels
+            .iter()
+            .any(|&ch| !(1..=MAX_IMPALA_CHANNELS).contains(&ch))
+        {
+            bail!(
+                "impala_channels must each be in 1..={MAX_IMPALA_CHANNELS}, got {:?}",
+                c.impala_channels
+            );
+        }
+        if c.impala_blocks > MAX_IMPALA_BLOCKS {
+            bail!(
+                "impala_blocks must be in 0..={MAX_IMPALA_BLOCKS}, got {}",
+                c.impala_blocks
+            );
+        }
+        let dopamine = (super::super::IMPALA_CHANNELS, super::super::IMPALA_BLOCKS);
+        if c.encoder != super::super::Encoder::Impala
+            && (c.impala_channels, c.impala_blocks) != dopamine
+        {
+            bail!("impala_channels and impala_blocks shape the IMPALA encoder: they need encoder = \"impala\"");
+        }
         if c.iqn_samples > 0 && c.quantiles > 0 {
             bail!("iqn_samples and quantiles are two heads: ask for one of them");
         }
