@@ -1,12 +1,8 @@
 //! Rectified linear unit.
 
 use super::{Core, Layer};
-use crate::ops::vectorized;
+use crate::ops::{map, map2};
 use crate::tensor::{Float, Tensor};
-use rayon::prelude::*;
-
-/// Elements per rayon task: element-wise work, so any split gives the same result.
-const CHUNK: usize = 1 << 15;
 
 /// `y = max(x, 0)`, element-wise, any shape.
 pub struct Relu<T> {
@@ -42,18 +38,14 @@ impl<T: Float> Layer<T> for Relu<T> {
     /// `y = max(x, 0)`.
     fn forward(&mut self, x: &Tensor<T>) {
         self.core.y.set_shape(x.shape());
-        self.core
-            .y
-            .data_mut()
-            .par_chunks_mut(CHUNK)
-            .zip(x.data().par_chunks(CHUNK))
-            .for_each(|(y, x)| {
-                vectorized(|| {
-                    for (y, &x) in y.iter_mut().zip(x) {
-                        *y = if x > T::zero() { x } else { T::zero() };
-                    }
-                })
-            });
+        let zero = T::zero();
+        map(self.core.y.data_mut(), x.data(), |x| {
+            if x > zero {
+                x
+            } else {
+                zero
+            }
+        });
     }
 
     /// `∂y/∂x` is 1 where `x > 0` and 0 elsewhere (we take 0 at the kink, as TensorFlow does), so
@@ -63,18 +55,8 @@ impl<T: Float> Layer<T> for Relu<T> {
             return;
         }
         self.core.dx.set_shape(dy.shape());
-        self.core
-            .dx
-            .data_mut()
-            .par_chunks_mut(CHUNK)
-            .zip(dy.data().par_chunks(CHUNK))
-            .zip(self.core.y.data().par_chunks(CHUNK))
-            .for_each(|((dx, dy), y)| {
-                vectorized(|| {
-                    for ((dx, &dy), &y) in dx.iter_mut().zip(dy).zip(y) {
-                        *dx = if y > T::zero() { dy } else { T::zero() };
-                    }
-                })
-            });
+        let zero = T::zero();
+        let (dx, y) = (self.core.dx.data_mut(), self.core.y.data());
+        map2(dx, dy.data(), y, |dy, y| if y > zero { dy } else { zero });
     }
 }

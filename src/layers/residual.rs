@@ -2,12 +2,8 @@
 //! layers, two 3×3 convolutions around a skip connection.
 
 use super::{Conv2d, Core, Layer, Param, Relu};
-use crate::ops::Precision;
+use crate::ops::{map2, Precision};
 use crate::tensor::{ConvGeom, Float, Tensor};
-use rayon::prelude::*;
-
-/// Elements per rayon task for the sums: element-wise work, so any split gives the same result.
-const CHUNK: usize = 1 << 15;
 
 /// `y = x + conv2(relu(conv1(relu(x))))`, both convolutions 3×3, stride 1, SAME, `C → C`
 /// channels, so `y` has `x`'s shape. With the intermediate values the forward pass keeps:
@@ -80,17 +76,24 @@ impl<T: Float> Residual<T> {
         self.check_input(x);
         let z = self.conv2.output();
         self.core.y.set_shape(x.shape());
-        self.core
-            .y
-            .data_mut()
-            .par_chunks_mut(CHUNK)
-            .zip(x.data().par_chunks(CHUNK))
-            .zip(z.data().par_chunks(CHUNK))
-            .for_each(|((y, x), z)| {
-                for ((y, &x), &z) in y.iter_mut().zip(x).zip(z) {
-                    *y = x + z;
-                }
-            });
+        map2(self.core.y.data_mut(), x.data(), z.data(), |x, z| x + z);
+    }
+
+    /// `y = x + conv2(relu(conv1(relu(x))))` through each inner layer's `forward`, or its
+    /// `infer` if `infer`.
+    fn pass(&mut self, x: &Tensor<T>, infer: bool) {
+        fn run<T: Float>(layer: &mut dyn Layer<T>, x: &Tensor<T>, infer: bool) {
+            if infer {
+                layer.infer(x)
+            } else {
+                layer.forward(x)
+            }
+        }
+        self.check_input(x);
+        run(&mut self.relu0, x, infer);
+        run(&mut self.conv1, self.relu0.output(), infer);
+        run(&mut self.conv2, self.conv1.output(), infer);
+        self.add_skip(x);
     }
 
     fn check_input(&self, x: &Tensor<T>) {
@@ -115,20 +118,12 @@ impl<T: Float> Layer<T> for Residual<T> {
     /// `a = relu(x)`, `h = relu(conv1(a))`, `z = conv2(h)`, `y = x + z`; each inner layer keeps
     /// what its backward pass needs.
     fn forward(&mut self, x: &Tensor<T>) {
-        self.check_input(x);
-        self.relu0.forward(x);
-        self.conv1.forward(self.relu0.output());
-        self.conv2.forward(self.conv1.output());
-        self.add_skip(x);
+        self.pass(x, false);
     }
 
     /// The same `y` by each inner layer's [`Layer::infer`].
     fn infer(&mut self, x: &Tensor<T>) {
-        self.check_input(x);
-        self.relu0.infer(x);
-        self.conv1.infer(self.relu0.output());
-        self.conv2.infer(self.conv1.output());
-        self.add_skip(x);
+        self.pass(x, true);
     }
 
     /// The chain rule backwards through conv2, conv1 (with its ReLU) and relu0, then the skip
@@ -155,30 +150,20 @@ impl<T: Float> Layer<T> for Residual<T> {
         // dX = dY + dA ⊙ [x > 0].
         let da = self.relu0.input_grad();
         self.core.dx.set_shape(x.shape());
-        self.core
-            .dx
-            .data_mut()
-            .par_chunks_mut(CHUNK)
-            .zip(dy.data().par_chunks(CHUNK))
-            .zip(da.data().par_chunks(CHUNK))
-            .for_each(|((dx, dy), da)| {
-                for ((dx, &dy), &da) in dx.iter_mut().zip(dy).zip(da) {
-                    *dx = dy + da;
-                }
-            });
+        map2(self.core.dx.data_mut(), dy.data(), da.data(), |dy, da| {
+            dy + da
+        });
     }
 
     /// conv1's weight and bias, then conv2's.
-    fn params(&self) -> Vec<&Param<T>> {
-        let mut p = self.conv1.params();
-        p.extend(self.conv2.params());
-        p
+    fn visit_params<'a>(&'a self, f: &mut dyn FnMut(&'a Param<T>)) {
+        self.conv1.visit_params(f);
+        self.conv2.visit_params(f);
     }
 
-    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
-        let mut p = self.conv1.params_mut();
-        p.extend(self.conv2.params_mut());
-        p
+    fn visit_params_mut<'a>(&'a mut self, f: &mut dyn FnMut(&'a mut Param<T>)) {
+        self.conv1.visit_params_mut(f);
+        self.conv2.visit_params_mut(f);
     }
 
     /// The two convolutions' (the sum and the ReLUs are not multiply-adds).

@@ -20,7 +20,7 @@
 //! | convolution `dZ`, `dW`, `dX` | [`ConvOps::relu_grad`], [`ConvOps::weight_grad`], [`ConvOps::input_grad`] |
 //! | dense forward, acting, `dW`, `dX` | [`DenseOps::forward`], [`DenseOps::infer`], [`DenseOps::weight_grad`], [`DenseOps::input_grad`] |
 //! | small plain products (quantile embedding) | [`gemm`] |
-//! | element-wise loops (ReLU) | [`vectorized`] |
+//! | element-wise loops (ReLU, the residual sum) | [`map`], [`map2`], [`vectorized`] |
 //! | sums over a sample or a gradient (layer normalisation, the gradient's norm) | [`lanes`] |
 
 mod conv;
@@ -39,3 +39,41 @@ pub use crate::tensor::{gemm, Op};
 /// Runs an element-wise loop compiled for the widest vectors this CPU has (a layer's loop over
 /// its values, e.g. the ReLU's).
 pub use crate::tensor::vectorized;
+
+/// Elements per rayon task of [`map`] and [`map2`]: element-wise work, so any split gives the
+/// same result.
+const CHUNK: usize = 1 << 15;
+
+/// `out[i] = f(a[i])` for every `i`, in chunks across the threads, each compiled for the widest
+/// vectors this CPU has ([`vectorized`]). The slices have one length.
+pub fn map<T: crate::tensor::Float>(out: &mut [T], a: &[T], f: impl Fn(T) -> T + Sync) {
+    use rayon::prelude::*;
+    assert_eq!(out.len(), a.len(), "map: lengths");
+    out.par_chunks_mut(CHUNK)
+        .zip(a.par_chunks(CHUNK))
+        .for_each(|(out, a)| {
+            vectorized(|| {
+                for (o, &a) in out.iter_mut().zip(a) {
+                    *o = f(a);
+                }
+            })
+        });
+}
+
+/// `out[i] = f(a[i], b[i])` for every `i`, as [`map`].
+pub fn map2<T: crate::tensor::Float>(
+    out: &mut [T], a: &[T], b: &[T], f: impl Fn(T, T) -> T + Sync,
+) {
+    use rayon::prelude::*;
+    assert!(out.len() == a.len() && a.len() == b.len(), "map2: lengths");
+    out.par_chunks_mut(CHUNK)
+        .zip(a.par_chunks(CHUNK))
+        .zip(b.par_chunks(CHUNK))
+        .for_each(|((out, a), b)| {
+            vectorized(|| {
+                for ((o, &a), &b) in out.iter_mut().zip(a).zip(b) {
+                    *o = f(a, b);
+                }
+            })
+        });
+}
