@@ -20,7 +20,7 @@ fn main() {
         net.zero_grad();
         loss = mse(net.forward(&x).data(), &y, dy.data_mut()); // L and ∂L/∂y
         net.backward(&x, &dy, false); // every parameter's gradient
-        adam.step(net.params_mut());
+        adam.step_net(&mut net);
         if step % 500 == 0 {
             println!("step {step:>4}: loss {loss:.5}");
         }

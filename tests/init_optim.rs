@@ -205,13 +205,13 @@ fn sgd_and_clipping() {
         w.grad.data_mut().copy_from_slice(&[3.0, 0.0]);
         ps.next().unwrap().grad.data_mut().copy_from_slice(&[4.0]);
     }
-    assert_eq!(global_grad_norm(net.params()), 5.0);
+    assert_eq!(global_grad_norm(&net), 5.0);
     // Below the threshold nothing changes.
     assert_eq!(clip_grad_norm(&mut net, 10.0), 5.0);
     assert_eq!(net.params().nth(1).unwrap().grad.data(), &[4.0]);
     // Above it the whole vector is scaled to the threshold.
     assert_eq!(clip_grad_norm(&mut net, 1.0), 5.0);
-    assert!((global_grad_norm(net.params()) - 1.0).abs() < 1e-15);
+    assert!((global_grad_norm(&net) - 1.0).abs() < 1e-15);
     let g: Vec<f64> = net.params().flat_map(|p| p.grad.data().to_vec()).collect();
     assert!(
         (g[0] - 0.6).abs() < 1e-15 && g[1] == 0.0 && (g[2] - 0.8).abs() < 1e-15,
@@ -223,6 +223,48 @@ fn sgd_and_clipping() {
         (v[0] + 0.3).abs() < 1e-15 && (v[2] + 0.4).abs() < 1e-15,
         "{v:?}"
     );
+}
+
+/// `Adam::step_net` (the train step's, by [`Sequential::visit_params_mut`]) is `Adam::step`
+/// over `params_mut()` bit for bit, three steps of a network with a residual block (whose
+/// parameters are its convolutions'), a layer normalisation and a dense layer; and the visits
+/// see the parameters in `params()`'s order.
+#[test]
+fn adam_on_a_network_is_adam_over_its_parameter_list() {
+    let net = || {
+        let mut net = Sequential::<f64>::new();
+        net.push(invaders::layers::Residual::new("block", [5, 4, 3]));
+        net.push(invaders::layers::LayerNorm::new("ln", &[5, 4, 3]));
+        net.push(Flatten::new("flat"));
+        net.push(Dense::new("d", 60, 2));
+        net
+    };
+    let (mut a, mut b) = (net(), net());
+    let mut names = Vec::new();
+    a.visit_params(|p| names.push(p.name.clone()));
+    let listed: Vec<String> = a.params().map(|p| p.name.clone()).collect();
+    assert_eq!(names, listed);
+    assert_eq!(names.len(), 8, "{names:?}");
+    let (mut adam_a, mut adam_b) = (Adam::new(0.01), Adam::new(0.01));
+    let mut r = rng(4);
+    let x = common::uniform::<f64>(&[2, 5, 4, 3], &mut r);
+    let dy = common::uniform::<f64>(&[2, 2], &mut r);
+    for _ in 0..3 {
+        for (net, adam, by_list) in [(&mut a, &mut adam_a, true), (&mut b, &mut adam_b, false)] {
+            net.zero_grad();
+            net.forward(&x);
+            net.backward(&x, &dy, false);
+            assert!(if by_list {
+                adam.step(net.params_mut())
+            } else {
+                adam.step_net(net)
+            });
+        }
+    }
+    for (pa, pb) in a.params().zip(b.params()) {
+        assert_eq!(pa.value.data(), pb.value.data(), "{}", pa.name);
+    }
+    assert_eq!((adam_a.t, adam_a.m.len()), (adam_b.t, 8));
 }
 
 /// A dense layer and a convolution start from the article's He initialiser without being told:

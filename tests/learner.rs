@@ -224,7 +224,7 @@ fn the_learner_clips_gradients_by_global_norm() {
         l.clip_norm = clip;
         let stats = l.train_step(&batch);
         let grads: Vec<Vec<f32>> = l.online.params().map(|p| p.grad.data().to_vec()).collect();
-        (stats.grad_norm, grads, global_grad_norm(l.online.params()))
+        (stats.grad_norm, grads, global_grad_norm(&l.online))
     };
     let (norm, free, after) = run(None);
     assert!(

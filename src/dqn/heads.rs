@@ -4,7 +4,7 @@
 //! each head through this one trait, so its four steps are written once.
 
 use super::learner::mean;
-use super::qnet::midpoints;
+use super::qnet::midpoint;
 use super::{Batch, Head, Iqn};
 use crate::layers::loss::{quantile_huber, quantile_huber_at, LossKind};
 use crate::layers::Sequential;
@@ -39,12 +39,16 @@ pub(super) trait ValueHead: Send + Sync {
         1
     }
 
-    /// Sets `net`'s quantile fractions for `pass` (an implicit head's; the others have none).
-    fn fractions(&self, _net: &mut Sequential<f32>, _pass: Pass, _batch: &Batch) {}
+    /// Sets `net`'s quantile fractions for `pass` (an implicit head's; the others have none);
+    /// `taus` is scratch.
+    fn fractions(
+        &self, _net: &mut Sequential<f32>, _pass: Pass, _batch: &Batch, _taus: &mut Vec<f64>,
+    ) {
+    }
 
     /// Sets `net`'s quantile fractions for a pass that gives `Q(s, ·)` of `states` states and
-    /// nothing else: acting, Double DQN's pick, Munchausen's bonus.
-    fn policy_fractions(&self, _net: &mut Sequential<f32>, _states: usize) {}
+    /// nothing else: acting, Double DQN's pick, Munchausen's bonus; `taus` is scratch.
+    fn policy_fractions(&self, _net: &mut Sequential<f32>, _states: usize, _taus: &mut Vec<f64>) {}
 
     /// `Q(s, ·)` (`[A]`) from one state's output of a policy or online pass, into `q`.
     fn q_values(&self, out: &[f32], q: &mut Vec<f32>);
@@ -135,7 +139,7 @@ struct Implicit {
 }
 
 impl ValueHead for Implicit {
-    fn fractions(&self, net: &mut Sequential<f32>, pass: Pass, batch: &Batch) {
+    fn fractions(&self, net: &mut Sequential<f32>, pass: Pass, batch: &Batch, taus: &mut Vec<f64>) {
         let Iqn {
             samples: n,
             target_samples: n2,
@@ -147,23 +151,26 @@ impl ValueHead for Implicit {
             batch.taus.len() == b * n && batch.target_taus.len() == b * n2,
             "an implicit quantile head: draw the batch's fractions first"
         );
-        let taus = match pass {
-            Pass::Online => batch.taus.clone(),
+        match pass {
+            Pass::Online => net.set_fractions(&batch.taus),
             // Per next state: the K midpoints, then its N' drawn fractions.
             Pass::Next => {
-                let mids = midpoints(k, 1);
-                let per_state = batch.target_taus.chunks_exact(n2);
-                per_state
-                    .flat_map(|drawn| mids.iter().chain(drawn).copied())
-                    .collect()
+                taus.clear();
+                for drawn in batch.target_taus.chunks_exact(n2) {
+                    taus.extend((0..k).map(|i| midpoint(i, k)));
+                    taus.extend_from_slice(drawn);
+                }
+                net.set_fractions(taus);
             }
-        };
-        net.set_fractions(&taus);
+        }
     }
 
     /// The `K` midpoints `(2i + 1)/2K` for each state.
-    fn policy_fractions(&self, net: &mut Sequential<f32>, states: usize) {
-        net.set_fractions(&midpoints(self.iqn.policy_samples, states));
+    fn policy_fractions(&self, net: &mut Sequential<f32>, states: usize, taus: &mut Vec<f64>) {
+        let k = self.iqn.policy_samples;
+        taus.clear();
+        taus.extend((0..states).flat_map(|_| (0..k).map(move |i| midpoint(i, k))));
+        net.set_fractions(taus);
     }
 
     /// The mean over the state's rows (its fractions).
@@ -185,8 +192,7 @@ impl ValueHead for Implicit {
         &self, theta: &[f32], y: &[f32], batch: &Batch, _: LossKind, d: &mut [f32],
         per_sample: &mut [f32],
     ) -> f32 {
-        let taus: Vec<f32> = batch.taus.iter().map(|&t| t as f32).collect();
-        quantile_huber_at(theta, &taus, y, self.iqn.samples, d, per_sample)
+        quantile_huber_at(theta, &batch.taus, y, self.iqn.samples, d, per_sample)
     }
 }
 

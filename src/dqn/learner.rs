@@ -85,6 +85,8 @@ struct Scratch {
     q: Vec<f32>,
     /// `[M, A]`: one next state's target samples.
     z: Vec<f32>,
+    /// An implicit quantile head's fractions for a pass over several states.
+    taus: Vec<f64>,
 }
 
 impl Learner {
@@ -280,11 +282,11 @@ impl Learner {
         // 1. The targets y: the rule's own pass first (Double DQN: `Q_online(s', ·)`;
         //    Munchausen: `Q_target(s, ·)`), then the target network's over s', beside step 2.
         let target = self.target.as_mut().expect(NO_TARGET);
-        let Scratch { policy, q, z } = &mut self.scratch;
-        rule.policy(head, &mut self.online, target, batch, q, policy);
+        let Scratch { policy, q, z, taus } = &mut self.scratch;
+        rule.policy(head, &mut self.online, target, batch, q, taus, policy);
         let (online, y) = (&mut self.online, &mut self.y);
         let ((), out) = rayon::join(
-            || targets(head, rule, target, batch, policy, gamma, y, q, z),
+            || targets(head, rule, target, batch, policy, gamma, y, [q, z], taus),
             // 2. The forward pass; θ = Q(s, a) of the taken actions.
             || forward(head, online, batch),
         );
@@ -363,9 +365,9 @@ impl Learner {
         self.online.backward(&batch.states, &self.dq, false);
         let grad_norm = match self.clip_norm {
             Some(max) => clip_grad_norm(&mut self.online, max),
-            None => crate::optim::global_grad_norm(self.online.params()),
+            None => crate::optim::global_grad_norm(&self.online),
         };
-        let weights_finite = self.adam.step(self.online.params_mut());
+        let weights_finite = self.adam.step_net(&mut self.online);
         StepStats {
             loss,
             mean_max_q: max_q_sum / batch.len() as f32,
@@ -378,13 +380,14 @@ impl Learner {
 /// Step 1 without the rule's own pass: the targets `y` (`[B, M]`) from the target network's
 /// outputs at the next states, each state's split by the head into `Q(s', ·)` (`[A]`) and the
 /// target samples `Z_j(s', ·)` (`[M, A]`), bootstrapped by `rule` with `policy` (`[B, A]` or
-/// empty, [`TargetRule::policy`]); `q_next` and `z` are scratch.
-#[allow(clippy::too_many_arguments)] // the step's inputs, then its two scratch buffers
+/// empty, [`TargetRule::policy`]); `q_next`, `z` and `taus` are scratch.
+#[allow(clippy::too_many_arguments)] // the step's inputs, then its scratch buffers
 fn targets(
     head: &dyn ValueHead, rule: TargetRule, target: &mut Sequential<f32>, batch: &Batch,
-    policy: &[f32], gamma: f32, y: &mut Vec<f32>, q_next: &mut Vec<f32>, z: &mut Vec<f32>,
+    policy: &[f32], gamma: f32, y: &mut Vec<f32>, [q_next, z]: [&mut Vec<f32>; 2],
+    taus: &mut Vec<f64>,
 ) {
-    head.fractions(target, Pass::Next, batch);
+    head.fractions(target, Pass::Next, batch, taus);
     let out = target.infer(&batch.next_states).data();
     y.clear();
     for (i, out) in out.chunks_exact(out.len() / batch.len()).enumerate() {
@@ -406,7 +409,7 @@ fn targets(
 fn forward<'n>(
     head: &dyn ValueHead, online: &'n mut Sequential<f32>, batch: &Batch,
 ) -> &'n Tensor<f32> {
-    head.fractions(online, Pass::Online, batch);
+    head.fractions(online, Pass::Online, batch, &mut Vec::new());
     online.forward(&batch.states)
 }
 
@@ -432,12 +435,13 @@ fn taken(
 }
 
 /// `Q(s, ·)` of every state of `states` by `net` into `all` (`[B, A]`): a pass at the head's
-/// policy fractions, each state's output reduced by [`ValueHead::q_values`] (`q` is scratch).
+/// policy fractions, each state's output reduced by [`ValueHead::q_values`] (`q` and `taus` are
+/// scratch).
 fn q_values(
     head: &dyn ValueHead, net: &mut Sequential<f32>, batch: &Batch, states: &Tensor<f32>,
-    q: &mut Vec<f32>, all: &mut Vec<f32>,
+    (q, taus): (&mut Vec<f32>, &mut Vec<f64>), all: &mut Vec<f32>,
 ) {
-    head.policy_fractions(net, batch.len());
+    head.policy_fractions(net, batch.len(), taus);
     let out = net.infer(states).data();
     all.clear();
     for out in out.chunks_exact(out.len() / batch.len()) {
@@ -498,15 +502,22 @@ pub enum TargetRule {
 impl TargetRule {
     /// The values the rule needs besides the target network's at `s'`, `[B, A]` (empty for the
     /// max), into `policy`: Double DQN's `Q_online(s', ·)`, whose greedy action the target
-    /// evaluates; Munchausen's `Q_target(s, ·)`, whose policy gives the bonus (`q` is scratch).
+    /// evaluates; Munchausen's `Q_target(s, ·)`, whose policy gives the bonus (`q` and `taus`
+    /// are scratch).
+    #[allow(clippy::too_many_arguments)] // the rule's inputs, then its scratch and its output
     fn policy(
         self, head: &dyn ValueHead, online: &mut Sequential<f32>, target: &mut Sequential<f32>,
-        batch: &Batch, q: &mut Vec<f32>, policy: &mut Vec<f32>,
+        batch: &Batch, q: &mut Vec<f32>, taus: &mut Vec<f64>, policy: &mut Vec<f32>,
     ) {
+        let scratch = (q, taus);
         match self {
             TargetRule::Max => policy.clear(),
-            TargetRule::Double => q_values(head, online, batch, &batch.next_states, q, policy),
-            TargetRule::Munchausen(_) => q_values(head, target, batch, &batch.states, q, policy),
+            TargetRule::Double => {
+                q_values(head, online, batch, &batch.next_states, scratch, policy)
+            }
+            TargetRule::Munchausen(_) => {
+                q_values(head, target, batch, &batch.states, scratch, policy)
+            }
         }
     }
 
@@ -596,7 +607,7 @@ impl Munchausen {
 /// by the head's [`ValueHead::q_values`] as in the update (the first action on ties).
 pub fn greedy(head: &Head, net: &mut Sequential<f32>, x: &Tensor<f32>, n_actions: usize) -> usize {
     let values = value_head(head, n_actions);
-    values.policy_fractions(net, 1);
+    values.policy_fractions(net, 1, &mut Vec::new());
     let mut q = Vec::with_capacity(n_actions);
     values.q_values(net.infer(x).data(), &mut q);
     argmax(&q)

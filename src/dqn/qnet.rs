@@ -198,10 +198,14 @@ impl Head {
 
 /// The `k` midpoint fractions `(2i + 1)/(2k)`, `i = 0..k`, repeated for each of `batch` states.
 pub fn midpoints(k: usize, batch: usize) -> Vec<f64> {
-    let one: Vec<f64> = (0..k)
-        .map(|i| (2 * i + 1) as f64 / (2 * k) as f64)
-        .collect();
-    (0..batch).flat_map(|_| one.iter().copied()).collect()
+    (0..batch)
+        .flat_map(|_| (0..k).map(move |i| midpoint(i, k)))
+        .collect()
+}
+
+/// The `i`-th of `k` midpoints, `(2i + 1)/2k`.
+pub fn midpoint(i: usize, k: usize) -> f64 {
+    (2 * i + 1) as f64 / (2 * k) as f64
 }
 
 /// The article's Q-network ([`article_qnet`]) with `head.hidden` units in dense1 (the article:

@@ -17,7 +17,7 @@ pub struct Dense<T> {
     n_in: usize,
     n_out: usize,
     /// `[weight [In, Out], bias [Out]]` with their gradients. Private: the weights change only
-    /// through [`Layer::params_mut`], which tells the kernels ([`DenseOps::weights_changed`]).
+    /// through [`Layer::visit_params_mut`] (and so [`Layer::params_mut`]), which tells the kernels ([`DenseOps::weights_changed`]).
     params: [Param<T>; 2],
     /// Whether acting may take the sum over the input's nonzeros ([`Dense::with_sparse_inference`]).
     sparse: bool,
@@ -166,15 +166,15 @@ impl<T: Float> Layer<T> for Dense<T> {
         }
     }
 
-    fn params(&self) -> Vec<&Param<T>> {
-        self.params.iter().collect()
+    fn visit_params<'a>(&'a self, f: &mut dyn FnMut(&'a Param<T>)) {
+        self.params.iter().for_each(f);
     }
 
     /// The parameters to change: the bf16 kernels' packed copy of the weights is dropped
     /// ([`DenseOps::weights_changed`]), since the caller may change them.
-    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
+    fn visit_params_mut<'a>(&'a mut self, f: &mut dyn FnMut(&'a mut Param<T>)) {
         self.ops.weights_changed();
-        self.params.iter_mut().collect()
+        self.params.iter_mut().for_each(f);
     }
 
     fn macs(&self) -> usize {

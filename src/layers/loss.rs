@@ -86,15 +86,13 @@ pub fn quantile_huber<T: Float>(
         n > 0 && pred.len() == target.len() && pred.len() == grad.len(),
         "quantile_huber: lengths differ"
     );
-    let b = pred.len() / n;
-    let taus: Vec<T> = (0..b)
-        .flat_map(|_| (0..n).map(|i| T::of((2 * i + 1) as f64 / (2 * n) as f64)))
-        .collect();
-    quantile_huber_at(pred, &taus, target, n, grad, per_sample)
+    let mid = |_: usize, i: usize| T::of((2 * i + 1) as f64 / (2 * n) as f64);
+    quantile_huber_by(pred, mid, target, n, grad, per_sample)
 }
 
 /// The quantile Huber loss at given fractions: `B` samples of `N` predictions `θ_i` at the
-/// fractions `τ_i` (`pred` and `taus` both `[B, N]`) against `N'` target samples each (`target`,
+/// fractions `τ_i` (`pred` and `taus` both `[B, N]`; the fractions in f64, as they are drawn,
+/// each rounded to `T` where it is used) against `N'` target samples each (`target`,
 /// `[B, N']`); `n` is `N`. The same sums as [`quantile_huber`], whose midpoints it generalises:
 /// an implicit quantile network (IQN) draws its `τ_i` at random, `N` for the online network and
 /// `N'` for the target's samples, and Dopamine's IQN reduces as here (a sum over `i`, a mean over
@@ -104,10 +102,20 @@ pub fn quantile_huber<T: Float>(
 /// L = (1/B) Σ_b Σ_i (1/N') Σ_j |τ_i − 1{u_ij < 0}| · h(u_ij),   u_ij = T_j − θ_i
 /// ```
 pub fn quantile_huber_at<T: Float>(
-    pred: &[T], taus: &[T], target: &[T], n: usize, grad: &mut [T], per_sample: &mut [T],
+    pred: &[T], taus: &[f64], target: &[T], n: usize, grad: &mut [T], per_sample: &mut [T],
+) -> T {
+    assert_eq!(pred.len(), taus.len(), "quantile_huber: lengths differ");
+    let tau = |b: usize, i: usize| T::of(taus[b * n + i]);
+    quantile_huber_by(pred, tau, target, n, grad, per_sample)
+}
+
+/// The sums of [`quantile_huber_at`] with sample `b`'s fraction `i` given by `tau(b, i)`.
+fn quantile_huber_by<T: Float>(
+    pred: &[T], tau: impl Fn(usize, usize) -> T, target: &[T], n: usize, grad: &mut [T],
+    per_sample: &mut [T],
 ) -> T {
     assert!(
-        n > 0 && pred.len() == taus.len() && pred.len() == grad.len(),
+        n > 0 && pred.len() == grad.len(),
         "quantile_huber: lengths differ"
     );
     let b = pred.len() / n;
@@ -122,16 +130,16 @@ pub fn quantile_huber_at<T: Float>(
     let scale = T::one() / (T::of(b as f64) * T::of(n_target as f64));
     let inv_n = T::one() / T::of(n_target as f64);
     let mut total = T::zero();
-    for ((((theta, tau), t), g), ps) in pred
+    for (s, (((theta, t), g), ps)) in pred
         .chunks_exact(n)
-        .zip(taus.chunks_exact(n))
         .zip(target.chunks_exact(n_target))
         .zip(grad.chunks_exact_mut(n))
         .zip(per_sample.iter_mut())
+        .enumerate()
     {
         let mut sample = T::zero();
         for i in 0..n {
-            let (mut gi, tau_i) = (T::zero(), tau[i]);
+            let (mut gi, tau_i) = (T::zero(), tau(s, i));
             for &tj in t {
                 let u = tj - theta[i];
                 let w = if u < T::zero() { one - tau_i } else { tau_i };

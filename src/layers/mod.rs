@@ -128,18 +128,31 @@ pub trait Layer<T: Float>: Send {
         &self.core().dx
     }
 
-    /// The parameters, in a fixed order (none by default): weight before bias, and a layer made
-    /// of layers lists its children's in order. The order is part of the checkpoint format.
+    /// Calls `f` on each parameter, in a fixed order (none by default): weight before bias, and
+    /// a layer made of layers ([`Residual`]) visits its children's in order. The order is part
+    /// of the checkpoint format.
     ///
-    /// A `Vec` of references rather than a slice, so that a composite layer
-    /// ([`Residual`]) can hand out parameters its children own.
+    /// A visit rather than a list, so that the walks of a train step over the parameters (the
+    /// gradients zeroed, their norm, Adam's update) allocate nothing, while a composite layer
+    /// still reaches parameters its children own.
+    fn visit_params<'a>(&'a self, _f: &mut dyn FnMut(&'a Param<T>)) {}
+
+    /// [`Layer::visit_params`], mutably: `f` may change the values (a layer that keeps a
+    /// derived copy of its weights drops it).
+    fn visit_params_mut<'a>(&'a mut self, _f: &mut dyn FnMut(&'a mut Param<T>)) {}
+
+    /// The parameters in [`Layer::visit_params`]'s order, as a list.
     fn params(&self) -> Vec<&Param<T>> {
-        Vec::new()
+        let mut list = Vec::new();
+        self.visit_params(&mut |p| list.push(p));
+        list
     }
 
-    /// The parameters, mutably, in the order of [`Layer::params`].
+    /// The parameters, mutably, in [`Layer::visit_params`]'s order.
     fn params_mut(&mut self) -> Vec<&mut Param<T>> {
-        Vec::new()
+        let mut list = Vec::new();
+        self.visit_params_mut(&mut |p| list.push(p));
+        list
     }
 
     /// Multiply-adds of one sample's forward pass (for FLOP counts).

@@ -337,12 +337,12 @@ impl<T: Float> Layer<T> for QuantileEmbedding<T> {
         }
     }
 
-    fn params(&self) -> Vec<&Param<T>> {
-        self.params.iter().collect()
+    fn visit_params<'a>(&'a self, f: &mut dyn FnMut(&'a Param<T>)) {
+        self.params.iter().for_each(f);
     }
 
-    fn params_mut(&mut self) -> Vec<&mut Param<T>> {
-        self.params.iter_mut().collect()
+    fn visit_params_mut<'a>(&'a mut self, f: &mut dyn FnMut(&'a mut Param<T>)) {
+        self.params.iter_mut().for_each(f);
     }
 
     /// Per sample, for each of its fractions: the embedding's dense layer and the product.

@@ -107,7 +107,8 @@ impl<T: Float> Sequential<T> {
         }
     }
 
-    /// Every parameter, layer by layer, weight before bias.
+    /// Every parameter, layer by layer, weight before bias (each layer's as a list: for a walk
+    /// that must not allocate, [`Sequential::visit_params`]).
     pub fn params(&self) -> impl Iterator<Item = &Param<T>> {
         self.layers.iter().flat_map(|l| l.params())
     }
@@ -117,11 +118,24 @@ impl<T: Float> Sequential<T> {
         self.layers.iter_mut().flat_map(|l| l.params_mut())
     }
 
+    /// Calls `f` on every parameter in [`Sequential::params`]'s order, allocating nothing
+    /// ([`Layer::visit_params`]).
+    pub fn visit_params<'a>(&'a self, mut f: impl FnMut(&'a Param<T>)) {
+        for layer in &self.layers {
+            layer.visit_params(&mut f);
+        }
+    }
+
+    /// [`Sequential::visit_params`], mutably.
+    pub fn visit_params_mut<'a>(&'a mut self, mut f: impl FnMut(&'a mut Param<T>)) {
+        for layer in &mut self.layers {
+            layer.visit_params_mut(&mut f);
+        }
+    }
+
     /// Sets every parameter gradient to zero (gradients accumulate across `backward` calls).
     pub fn zero_grad(&mut self) {
-        for p in self.params_mut() {
-            p.grad.fill_zero();
-        }
+        self.visit_params_mut(|p| p.grad.fill_zero());
     }
 
     /// Copies every parameter's values from a network of the same architecture (the DQN's

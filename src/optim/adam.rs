@@ -1,6 +1,6 @@
 //! Adam (Kingma & Ba, 2015) in TensorFlow's formulation.
 
-use crate::layers::Param;
+use crate::layers::{Param, Sequential};
 use crate::tensor::{vectorized, Float, Tensor};
 use rayon::prelude::*;
 
@@ -73,55 +73,77 @@ impl<T: Float> Adam<T> {
     /// call, shaped like the parameters. Returns whether every updated value is finite: the
     /// divergence guard's question, answered while each value is in a register rather than by a
     /// second pass over the weights (for `hidden = 512`, 14 MB a step).
-    pub fn step<'a>(&mut self, params: impl Iterator<Item = &'a mut Param<T>>) -> bool {
-        self.t += 1;
-        let one = T::one();
-        // The step is `alpha · m / (sqrt(v) + eps)`, or `alpha · m` (`adaptive` false: RAdam's
-        // early steps).
-        let (alpha, adaptive) = self.step_size();
-        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+    pub fn step<'a>(&mut self, params: impl IntoIterator<Item = &'a mut Param<T>>) -> bool {
+        let rate = self.start_step();
         let mut finite = true;
-        for (i, p) in params.enumerate() {
-            if i == self.m.len() {
-                self.m.push(Tensor::zeros(p.value.shape()));
-                self.v.push(Tensor::zeros(p.value.shape()));
-            }
-            assert_eq!(
-                self.m[i].shape(),
-                p.value.shape(),
-                "Adam: parameter {} changed shape",
-                p.name
-            );
-            // Element by element, so any split over threads gives the same bits. `reduce`, not
-            // `all`: every chunk is updated, whatever another one found.
-            const CHUNK: usize = 1 << 14;
-            let m = self.m[i].data_mut().par_chunks_mut(CHUNK);
-            let v = self.v[i].data_mut().par_chunks_mut(CHUNK);
-            let (w, g) = (p.value.data_mut(), p.grad.data());
-            finite &= w
-                .par_chunks_mut(CHUNK)
-                .zip(g.par_chunks(CHUNK))
-                .zip(m.zip(v))
-                .map(|((w, g), (m, v))| {
-                    vectorized(|| {
-                        let mut ok = true;
-                        let it = w.iter_mut().zip(g).zip(m.iter_mut().zip(v.iter_mut()));
-                        for ((w, &g), (m, v)) in it {
-                            *m = b1 * *m + (one - b1) * g;
-                            *v = b2 * *v + (one - b2) * g * g;
-                            *w -= if adaptive {
-                                alpha * *m / (v.sqrt() + eps)
-                            } else {
-                                alpha * *m
-                            };
-                            ok &= w.is_finite();
-                        }
-                        ok
-                    })
-                })
-                .reduce(|| true, |a, b| a & b);
+        for (i, p) in params.into_iter().enumerate() {
+            finite &= self.update(i, p, rate);
         }
         finite
+    }
+
+    /// [`Adam::step`] over a network's parameters in their order, allocating nothing (after the
+    /// first call, which allocates the moments).
+    pub fn step_net(&mut self, net: &mut Sequential<T>) -> bool {
+        let rate = self.start_step();
+        let (mut i, mut finite) = (0, true);
+        net.visit_params_mut(|p| {
+            finite &= self.update(i, p, rate);
+            i += 1;
+        });
+        finite
+    }
+
+    /// Counts the update and returns its step size and whether it divides by `sqrt(v) + ε`
+    /// ([`Adam::step_size`]).
+    fn start_step(&mut self) -> (T, bool) {
+        self.t += 1;
+        self.step_size()
+    }
+
+    /// Parameter `i`'s update: `m ← β₁m + (1 − β₁)g`, `v ← β₂v + (1 − β₂)g²`, then `w ← w − α·m /
+    /// (sqrt(v) + ε)`, or `w ← w − α·m` where `adaptive` is false (RAdam's early steps). Returns
+    /// whether every updated value is finite.
+    fn update(&mut self, i: usize, p: &mut Param<T>, (alpha, adaptive): (T, bool)) -> bool {
+        let one = T::one();
+        let (b1, b2, eps) = (self.beta1, self.beta2, self.eps);
+        if i == self.m.len() {
+            self.m.push(Tensor::zeros(p.value.shape()));
+            self.v.push(Tensor::zeros(p.value.shape()));
+        }
+        assert_eq!(
+            self.m[i].shape(),
+            p.value.shape(),
+            "Adam: parameter {} changed shape",
+            p.name
+        );
+        // Element by element, so any split over threads gives the same bits. `reduce`, not
+        // `all`: every chunk is updated, whatever another one found.
+        const CHUNK: usize = 1 << 14;
+        let m = self.m[i].data_mut().par_chunks_mut(CHUNK);
+        let v = self.v[i].data_mut().par_chunks_mut(CHUNK);
+        let (w, g) = (p.value.data_mut(), p.grad.data());
+        w.par_chunks_mut(CHUNK)
+            .zip(g.par_chunks(CHUNK))
+            .zip(m.zip(v))
+            .map(|((w, g), (m, v))| {
+                vectorized(|| {
+                    let mut ok = true;
+                    let it = w.iter_mut().zip(g).zip(m.iter_mut().zip(v.iter_mut()));
+                    for ((w, &g), (m, v)) in it {
+                        *m = b1 * *m + (one - b1) * g;
+                        *v = b2 * *v + (one - b2) * g * g;
+                        *w -= if adaptive {
+                            alpha * *m / (v.sqrt() + eps)
+                        } else {
+                            alpha * *m
+                        };
+                        ok &= w.is_finite();
+                    }
+                    ok
+                })
+            })
+            .reduce(|| true, |a, b| a & b)
     }
 
     /// The step size of update `self.t` and whether it divides by `sqrt(v) + ε`: Adam's

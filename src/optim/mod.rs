@@ -9,7 +9,7 @@ mod sgd;
 pub use adam::Adam;
 pub use sgd::Sgd;
 
-use crate::layers::{Param, Sequential};
+use crate::layers::Sequential;
 use crate::ops::lanes::Lanes;
 use crate::tensor::{vectorized, Float};
 
@@ -18,12 +18,12 @@ use crate::tensor::{vectorized, Float};
 /// Summed in [`crate::ops::lanes`] (lane `l` takes each gradient's elements `l, l + 16, …`, then the lanes
 /// are added pairwise): one fixed order on every machine, and vectorisable, where one running sum
 /// would be a chain of a million dependent additions (about 2 ms per train step).
-pub fn global_grad_norm<'a, T: Float>(params: impl Iterator<Item = &'a Param<T>>) -> T {
+pub fn global_grad_norm<T: Float>(net: &Sequential<T>) -> T {
     let mut lanes = Lanes::default();
-    for p in params {
+    net.visit_params(|p| {
         let g = p.grad.data();
         vectorized(|| lanes.add_products(g, g));
-    }
+    });
     lanes.total().sqrt()
 }
 
@@ -31,14 +31,14 @@ pub fn global_grad_norm<'a, T: Float>(params: impl Iterator<Item = &'a Param<T>>
 /// gradients exceeds `max_norm`, every gradient is multiplied by `max_norm / ‖g‖`, which shortens
 /// the whole update without changing its direction. Returns the norm before clipping.
 pub fn clip_grad_norm<T: Float>(net: &mut Sequential<T>, max_norm: T) -> T {
-    let norm = global_grad_norm(net.params());
+    let norm = global_grad_norm(net);
     if norm > max_norm {
         let s = max_norm / norm;
-        for p in net.params_mut() {
+        net.visit_params_mut(|p| {
             for g in p.grad.data_mut() {
                 *g *= s;
             }
-        }
+        });
     }
     norm
 }
