@@ -5,8 +5,9 @@
 mod common;
 
 use common::{
-    abs64, avx512_expected, conv_and_dense_passes, f64s, on_exactly, on_path, padded_input,
-    reference_forward, reference_grads, rng, same_on_1_2_3_threads, set_params, uniform, Square,
+    abs64, avx512_expected, conv_and_dense_passes, dense_pass, f64s, on_exactly, on_path,
+    padded_input, reference_forward, reference_grads, rng, same_on_1_2_3_threads, set_params,
+    uniform, Square,
 };
 use invaders::layers::{Conv2d, Dense, Layer};
 use invaders::ops::plan::{self, Kernel, Precision, Product};
@@ -505,20 +506,8 @@ proptest! {
         ni in 1usize..200, no in 1usize..80, n in 1usize..40, relu in any::<bool>(),
         seed in any::<u64>()
     ) {
-        let mut r = rng(seed);
-        let mut layer = Dense::<f32>::new("d", ni, no);
-        if relu {
-            layer = layer.with_relu();
-        }
-        layer.set_precision(Precision::Bf16);
-        let wt = uniform::<f32>(&[ni, no], &mut r);
-        let bt = uniform::<f32>(&[no], &mut r);
-        set_params(&mut layer, &[&wt, &bt]);
-        let x = uniform::<f32>(&[n, ni], &mut r);
-        let dy = uniform::<f32>(&[n, no], &mut r);
-        layer.forward(&x);
+        let (layer, [wt, bt, x, dy]) = dense_pass(ni, no, n, relu, Precision::Bf16, &mut rng(seed));
         let y_layer = layer.output().data().to_vec();
-        layer.backward(&x, &dy, true);
         // With a ReLU, `dY` where the layer's output is positive (the mask it applied).
         let dy = if relu {
             let masked = dy.data().iter().zip(&y_layer).map(|(&g, &y)| if y > 0.0 { g } else { 0.0 });

@@ -14,12 +14,13 @@ use proptest::prelude::*;
 use rand::Rng;
 
 fn toy_config() -> Config {
-    let mut c = common::small_config(1_000, 16, 64, 25, 3);
-    c.gamma = 0.9;
-    c.train_every = 1;
-    c.epsilon_decay_steps = 600;
-    c.epsilon_end = 0.1;
-    c
+    Config {
+        gamma: 0.9,
+        train_every: 1,
+        epsilon_decay_steps: 600,
+        epsilon_end: 0.1,
+        ..common::small_config(1_000, 16, 64, 25, 3)
+    }
 }
 
 /// Replay, target network, loss and optimizer together: the agent learns the optimal policy of

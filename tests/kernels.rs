@@ -8,11 +8,11 @@
 mod common;
 
 use common::{
-    assert_close, avx2_expected, avx512_expected, conv_and_dense_passes, forward_backward_into,
-    gamma, on_path, padded_input, reference_dz, reference_forward, reference_grads,
-    reference_output, rng, same_on_1_2_3_threads, set_params, uniform, Square,
+    assert_close, avx2_expected, avx512_expected, conv_and_dense_passes, dense_pass,
+    forward_backward_into, gamma, on_path, padded_input, reference_dz, reference_forward,
+    reference_grads, reference_output, rng, same_on_1_2_3_threads, set_params, uniform, Square,
 };
-use invaders::layers::{Conv2d, Dense, Layer};
+use invaders::layers::{Conv2d, Layer};
 use invaders::ops::plan::{self, Kernel, Precision, Product};
 use invaders::tensor::cpu::Family;
 use invaders::tensor::{
@@ -169,18 +169,8 @@ proptest! {
         ni in 1usize..150, no in 1usize..40, n in 1usize..70, relu in any::<bool>(),
         seed in any::<u64>(),
     ) {
-        let mut r = rng(seed);
-        let mut layer = Dense::<f32>::new("d", ni, no);
-        if relu {
-            layer = layer.with_relu();
-        }
-        let (w, b) = (uniform::<f32>(&[ni, no], &mut r), uniform::<f32>(&[no], &mut r));
-        set_params(&mut layer, &[&w, &b]);
-        let x = uniform::<f32>(&[n, ni], &mut r);
-        let dy = uniform::<f32>(&[n, no], &mut r);
-        layer.forward(&x);
+        let (layer, [w, b, x, dy]) = dense_pass(ni, no, n, relu, Precision::F32, &mut rng(seed));
         let y = layer.output().data().to_vec();
-        layer.backward(&x, &dy, true);
         let f = |v: f32| f64::from(v);
         let (mut y_ref, mut dz) = (vec![0.0f64; n * no], vec![0.0f64; n * no]);
         for s in 0..n {

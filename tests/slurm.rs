@@ -45,6 +45,20 @@ fn preprocessing(cfg: &Path, out: &Path, seeds: u32, episodes: u32, extra: &[&st
     a
 }
 
+/// `experiment preprocessing --slurm` for one seed of `episodes` episodes: the experiment goes to
+/// `root/NAME`, the script to `root/NAME-slurm`; returns those two folders.
+fn one_seed_script(root: &Path, cfg: &Path, name: &str, episodes: u32) -> (PathBuf, PathBuf) {
+    let (out, dir) = (root.join(name), root.join(format!("{name}-slurm")));
+    ok(&run(&preprocessing(
+        cfg,
+        &out,
+        1,
+        episodes,
+        &["--slurm", s(&dir)],
+    )));
+    (out, dir)
+}
+
 fn run(args: &[String]) -> Output {
     bin().args(args).output().expect("the binary runs")
 }
@@ -347,14 +361,7 @@ fn every_experiment_writes_its_array_and_bad_folders_are_refused() {
 #[test]
 fn a_warned_task_requeues_itself() {
     let (root, cfg) = setup("warned");
-    let (out, dir) = (root.join("exp"), root.join("slurm"));
-    ok(&run(&preprocessing(
-        &cfg,
-        &out,
-        1,
-        12,
-        &["--slurm", s(&dir)],
-    )));
+    let (out, dir) = one_seed_script(&root, &cfg, "exp", 12);
     let bin_dir = root.join("bin");
     std::fs::create_dir_all(&bin_dir).unwrap();
     let noted = root.join("scontrol.args");
@@ -527,14 +534,7 @@ fn a_sweep_runs_on_a_live_slurm() {
     println!("sweep gathered in {:.0} s", started.elapsed().as_secs_f64());
 
     // A task stopped mid-run and requeued.
-    let (out, dir) = (root.join("stopped"), root.join("stopped-slurm"));
-    ok(&run(&preprocessing(
-        &cfg,
-        &out,
-        1,
-        30,
-        &["--slurm", s(&dir)],
-    )));
+    let (out, dir) = one_seed_script(&root, &cfg, "stopped", 30);
     let script = dir.join("preprocessing.sbatch");
     let array = slurm("sbatch", &["--parsable", "--array=0", s(&script)]);
     let task = format!("{array}_0");

@@ -248,6 +248,27 @@ pub fn set_params<T: Float>(layer: &mut dyn Layer<T>, values: &[&Tensor<T>]) {
     }
 }
 
+/// One forward and backward pass of a fresh `ni → no` dense layer (with its fused ReLU if `relu`)
+/// in `precision`, on uniform draws from `r` in this order: `W` `[ni, no]`, `b` `[no]`, `x`
+/// `[n, ni]`, `dY` `[n, no]`. Returns the layer (its output, `dW`, `db` and `dX` kept) and
+/// `[W, b, x, dY]`.
+pub fn dense_pass(
+    ni: usize, no: usize, n: usize, relu: bool, precision: Precision, r: &mut impl Rng,
+) -> (Dense<f32>, [Tensor<f32>; 4]) {
+    let mut layer = Dense::<f32>::new("d", ni, no);
+    if relu {
+        layer = layer.with_relu();
+    }
+    layer.set_precision(precision);
+    let (w, b) = (uniform::<f32>(&[ni, no], r), uniform::<f32>(&[no], r));
+    set_params(&mut layer, &[&w, &b]);
+    let x = uniform::<f32>(&[n, ni], r);
+    let dy = uniform::<f32>(&[n, no], r);
+    layer.forward(&x);
+    layer.backward(&x, &dy, true);
+    (layer, [w, b, x, dy])
+}
+
 /// Whether this host must run the f32 kernels' AVX-512 loops, judged without the library's own
 /// check: x86-64 with AVX-512F and FMA, and neither `INVADERS_NO_SIMD` nor `INVADERS_NO_AVX512`
 /// set. Where not, says once on stderr which feature is missing: the tests then prove that the
