@@ -466,6 +466,26 @@ fn grid(h: usize, w: usize, hits: &[((usize, usize), f64)]) -> Vec<f64> {
     g
 }
 
+/// A NaN: first in its window it is the output and the winner (no later value is larger than
+/// it); later in a window it never wins, as with a strict `>` from the first pixel.
+#[test]
+fn max_pool_nan_follows_the_first_pixel_rule() {
+    let nan = f64::NAN;
+    // 2x2 stride-2 VALID over 2x4: window 0 reads [NaN, 1; 2, 3], window 1 [1, NaN; 5, 4].
+    #[rustfmt::skip]
+    let x = Tensor::<f64>::from_vec(&[1, 2, 4, 1], vec![
+        nan, 1.0, 1.0, nan,
+        2.0, 3.0, 5.0, 4.0,
+    ]);
+    let mut pool = MaxPool2d::<f64>::square("pool", [2, 4, 1], 2, 2, Padding::Valid);
+    pool.forward(&x);
+    let y = pool.output().data();
+    assert!(y[0].is_nan() && y[1] == 5.0, "{y:?}");
+    pool.backward(&x, &Tensor::from_vec(&[1, 1, 2, 1], vec![1.0, 10.0]), true);
+    let want = grid(2, 4, &[((0, 0), 1.0), ((1, 2), 10.0)]);
+    assert_eq!(pool.input_grad().data(), want);
+}
+
 /// A max pool inside a `Sequential` (conv 3x3 SAME, pool 3x3 stride 2 SAME, dense), against
 /// finite differences of the whole network for the input and every parameter. The values the
 /// pool sees are continuous draws, so a tie within the step `H` is improbable, and seed 3 has

@@ -14,6 +14,59 @@ use proptest::prelude::*;
 proptest! {
     #![proptest_config(ProptestConfig { cases: common::cases(96), ..ProptestConfig::default() })]
 
+    /// `MaxPool2d` (its forward pass a vectorised select, its winners found in the backward
+    /// pass) against the plain definition, one loop per output value: windows 1..4 square,
+    /// strides 1..3, SAME and VALID, channels 1..19 (runs of 8 and what is left), and values
+    /// drawn from 4 levels, so most windows hold ties, which go to the first maximum in
+    /// row-major order; `y` and `dX` equal to the bit.
+    #[test]
+    fn max_pool_matches_its_definition(
+        h in 1usize..9, w in 1usize..9, c in 1usize..20, k in 1usize..=4, s in 1usize..=3,
+        same in any::<bool>(), n in 1usize..3, seed in any::<u64>(),
+    ) {
+        use invaders::layers::MaxPool2d;
+        use invaders::tensor::{ConvGeom, Padding};
+        use rand::Rng;
+        let pad = if same { Padding::Same } else { Padding::Valid };
+        let Some(g) = ConvGeom::new(h, w, c, c, k, k, (s, s), pad) else {
+            return Ok(()); // VALID with a window larger than the image
+        };
+        let mut r = rng(seed);
+        let x = Tensor::<f32>::from_vec(&[n, h, w, c], (0..n * h * w * c).map(|_| r.random_range(0..4) as f32).collect());
+        let dy = uniform::<f32>(&[n, g.oh, g.ow, c], &mut r);
+        let mut pool = MaxPool2d::<f32>::new("pool", g);
+        pool.forward(&x);
+        pool.backward(&x, &dy, true);
+        let (mut y, mut dx) = (vec![0.0f32; dy.len()], vec![0.0f32; x.len()]);
+        for i in 0..n {
+            for oy in 0..g.oh {
+                for ox in 0..g.ow {
+                    for ch in 0..c {
+                        let o = ((i * g.oh + oy) * g.ow + ox) * c + ch;
+                        let mut best: Option<(f32, usize)> = None;
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let (iy, ix) = ((oy * s + ky) as isize - g.pad_top as isize, (ox * s + kx) as isize - g.pad_left as isize);
+                                if iy < 0 || ix < 0 || iy >= h as isize || ix >= w as isize {
+                                    continue;
+                                }
+                                let at = ((i * h + iy as usize) * w + ix as usize) * c + ch;
+                                if best.is_none_or(|(b, _)| x.data()[at] > b) {
+                                    best = Some((x.data()[at], at));
+                                }
+                            }
+                        }
+                        let (v, at) = best.expect("every window holds a pixel of the image");
+                        y[o] = v;
+                        dx[at] += dy.data()[o];
+                    }
+                }
+            }
+        }
+        prop_assert_eq!(pool.output().data(), &y[..]);
+        prop_assert_eq!(pool.input_grad().data(), &dx[..]);
+    }
+
     /// The residual block `y = x + conv2(relu(conv1(relu(x))))`: images 1..5 x 1..5, 1..3
     /// channels, batch 1..2, every input and parameter entry. Its two ReLUs have kinks: the
     /// input is drawn at least 1e-3 from zero (relu0), and cases with a pre-activation of conv1

@@ -1,7 +1,7 @@
 //! 2-D max pooling (NHWC, TensorFlow's SAME/VALID geometry), channel by channel.
 
 use super::{Core, Layer};
-use crate::tensor::{ConvGeom, Float, Padding, Tensor};
+use crate::tensor::{vectorized, ConvGeom, Float, Padding, Tensor};
 use rayon::prelude::*;
 
 /// `y[n, oy, ox, c] = max_{ky, kx} x[n, oy·SH + ky − PT, ox·SW + kx − PL, c]`: the largest value
@@ -13,9 +13,10 @@ use rayon::prelude::*;
 /// half on top and left), and a padded place counts as `−∞`: it never wins, so every window
 /// takes the maximum of its pixels inside the image (each window holds at least one).
 ///
-/// The forward pass keeps, for each output value, the index of its *winner* (the input value
-/// that is the maximum; `[N, OH, OW, C]`, an offset inside its image). Where several values tie,
-/// the first in the window's row-major order (`ky`, then `kx`) wins, as in TensorFlow.
+/// The forward pass keeps only `y`. The backward pass finds each output value's *winner*, the
+/// input value that is its maximum: the first pixel of the window, in row-major order (`ky`, then
+/// `kx`), whose value equals it, which is where TensorFlow's first maximum of a tie is too (a
+/// window whose first pixel is NaN has a NaN output, and that pixel wins).
 ///
 /// Derivative: away from ties, `y_o = x_{w(o)}` for the winner `w(o)`, so `∂y_o/∂x_i = [i = w(o)]`
 /// and `dX_i = Σ_o dY_o·[i = w(o)]`: each output's gradient goes to its winner, and an input
@@ -28,7 +29,7 @@ pub struct MaxPool2d<T> {
     /// The geometry (input and output sizes, window, strides, padding); `cout == cin`.
     pub geom: ConvGeom,
     /// `[N, OH, OW, C]`: for each output value, its winner's offset `(h·W + w)·C + c` inside its
-    /// input image, from the last forward pass.
+    /// input image, found by the last backward pass.
     winner: Vec<u32>,
 }
 
@@ -83,9 +84,10 @@ impl<T: Float> Layer<T> for MaxPool2d<T> {
         vec![self.geom.oh, self.geom.ow, self.geom.cin]
     }
 
-    /// Each output value is the first maximum of its window, read in row-major order over the
-    /// window's pixels inside the image; its offset goes to the winner buffer. One output row
-    /// (`OW·C` values) per rayon task.
+    /// Each output value is the maximum of its window's pixels inside the image, each channel
+    /// starting from the first pixel and taking a later value only where it is larger (so a NaN
+    /// first pixel stays); a select, not a branch, so that the loop over the channels runs in
+    /// vectors. One output row (`OW·C` values) per rayon task.
     fn forward(&mut self, x: &Tensor<T>) {
         let g = self.geom;
         let c = g.cin;
@@ -97,49 +99,40 @@ impl<T: Float> Layer<T> for MaxPool2d<T> {
         );
         let n = x.batch();
         self.core.y.set_shape(&[n, g.oh, g.ow, c]);
-        self.winner.resize(n * g.oh * g.ow * c, 0);
         let row = g.ow * c;
         self.core
             .y
             .data_mut()
             .par_chunks_mut(row)
-            .zip(self.winner.par_chunks_mut(row))
             .enumerate()
-            .for_each(|(r, (y, win))| {
+            .for_each(|(r, y)| {
                 let (i, oy) = (r / g.oh, r % g.oh);
                 let img = &x.data()[i * g.in_len()..(i + 1) * g.in_len()];
                 let (y0, y1) = window(oy, g.sh, g.pad_top, g.kh, g.h);
-                for (ox, (yp, wp)) in y
-                    .chunks_exact_mut(c)
-                    .zip(win.chunks_exact_mut(c))
-                    .enumerate()
-                {
-                    let (x0, x1) = window(ox, g.sw, g.pad_left, g.kw, g.w);
-                    // Start from the window's first pixel; a later one wins only if larger.
-                    let first = (y0 * g.w + x0) * c;
-                    yp.copy_from_slice(&img[first..first + c]);
-                    for (ch, w) in wp.iter_mut().enumerate() {
-                        *w = (first + ch) as u32;
-                    }
-                    for iy in y0..y1 {
-                        for ix in x0..x1 {
-                            let at = (iy * g.w + ix) * c;
-                            for (ch, (best, w)) in yp.iter_mut().zip(wp.iter_mut()).enumerate() {
-                                let v = img[at + ch];
-                                if v > *best {
-                                    *best = v;
-                                    *w = (at + ch) as u32;
+                vectorized(|| {
+                    for (ox, yp) in y.chunks_exact_mut(c).enumerate() {
+                        let (x0, x1) = window(ox, g.sw, g.pad_left, g.kw, g.w);
+                        let first = (y0 * g.w + x0) * c;
+                        yp.copy_from_slice(&img[first..first + c]);
+                        for iy in y0..y1 {
+                            for ix in x0..x1 {
+                                let at = (iy * g.w + ix) * c;
+                                for (best, &v) in yp.iter_mut().zip(&img[at..at + c]) {
+                                    *best = if v > *best { v } else { *best };
                                 }
                             }
                         }
                     }
-                }
+                })
             });
     }
 
-    /// `dX = 0`, then `dX[winner(o)] += dY[o]` for every output value `o` (a sum where an input
-    /// wins several overlapping windows); one image per rayon task. Uses the winners of the last
-    /// [`Layer::forward`], which must have seen this `x`.
+    /// The winners first: for each output value, the window's pixels are read from the last to
+    /// the first, and a pixel equal to `y` replaces the winner so far, so the first equal pixel
+    /// is the one left (the first pixel where none is equal: a NaN). Then `dX = 0` and
+    /// `dX[winner(o)] += dY[o]` for every output value `o` (a sum where an input wins several
+    /// overlapping windows). One image per rayon task. Uses `y` of the last [`Layer::forward`],
+    /// which must have seen this `x`.
     fn backward(&mut self, x: &Tensor<T>, dy: &Tensor<T>, need_dx: bool) {
         if !need_dx {
             return;
@@ -155,23 +148,71 @@ impl<T: Float> Layer<T> for MaxPool2d<T> {
         );
         assert_eq!(x.batch(), n, "{}: input batch", self.core.name);
         assert_eq!(
-            self.winner.len(),
-            n * out_len,
+            self.core.y.shape(),
+            dy.shape(),
             "{}: backward needs the forward pass of the same batch",
             self.core.name
         );
+        self.winner.resize(n * out_len, 0);
         self.core.dx.set_shape(x.shape());
+        let c = g.cin;
         self.core
             .dx
             .data_mut()
             .par_chunks_mut(g.in_len())
+            .zip(x.data().par_chunks(g.in_len()))
+            .zip(self.core.y.data().par_chunks(out_len))
             .zip(dy.data().par_chunks(out_len))
-            .zip(self.winner.par_chunks(out_len))
-            .for_each(|((dx, dy), win)| {
+            .zip(self.winner.par_chunks_mut(out_len))
+            .for_each(|((((dx, img), y), dy), win)| {
+                vectorized(|| {
+                    let outputs = y.chunks_exact(c).zip(win.chunks_exact_mut(c));
+                    for (o, (yp, wp)) in outputs.enumerate() {
+                        let (oy, ox) = (o / g.ow, o % g.ow);
+                        let (y0, y1) = window(oy, g.sh, g.pad_top, g.kh, g.h);
+                        let (x0, x1) = window(ox, g.sw, g.pad_left, g.kw, g.w);
+                        let first = ((y0 * g.w + x0) * c) as u32;
+                        for (ch, w) in wp.iter_mut().enumerate() {
+                            *w = first + ch as u32;
+                        }
+                        for iy in (y0..y1).rev() {
+                            for ix in (x0..x1).rev() {
+                                let at = (iy * g.w + ix) * c;
+                                winners_at(wp, &img[at..at + c], yp, at as u32);
+                            }
+                        }
+                    }
+                });
                 dx.fill(T::zero());
-                for (&d, &w) in dy.iter().zip(win) {
+                for (&d, &w) in dy.iter().zip(win.iter()) {
                     dx[w as usize] += d;
                 }
             });
+    }
+}
+
+/// `w[ch] = at + ch` where `x[ch] == y[ch]`, for one pixel `x` of a window (its offset `at`):
+/// in runs of 8 channels, a length the compiler sees, so that each run is a few vector
+/// instructions (a compare and a blend), then the channels left over.
+#[inline(always)]
+fn winners_at<T: Float>(w: &mut [u32], x: &[T], y: &[T], at: u32) {
+    const RUN: usize = 8;
+    let done = w.len() / RUN * RUN;
+    let runs = x.chunks_exact(RUN).zip(y.chunks_exact(RUN));
+    for (k, (w, (x, y))) in w.chunks_exact_mut(RUN).zip(runs).enumerate() {
+        let base = at + (k * RUN) as u32;
+        // Arithmetic rather than a select, which the compiler would turn into a branch per
+        // channel: `hit` is 0 or 1.
+        for j in 0..RUN {
+            let hit = u32::from(x[j] == y[j]);
+            w[j] = hit * (base + j as u32) + (1 - hit) * w[j];
+        }
+    }
+    for ch in done..w.len() {
+        w[ch] = if x[ch] == y[ch] {
+            at + ch as u32
+        } else {
+            w[ch]
+        };
     }
 }
