@@ -65,6 +65,7 @@ impl<T: Float> MaxPool2d<T> {
 
 /// The input rows (or columns) `lo..hi` of output row `o`'s window: `o·s − pad .. o·s − pad + k`
 /// clipped to the image `0..len` (the padding, `−∞`, never wins).
+#[inline]
 fn window(o: usize, s: usize, pad: usize, k: usize, len: usize) -> (usize, usize) {
     let start = o * s;
     let (lo, hi) = (
@@ -117,9 +118,7 @@ impl<T: Float> Layer<T> for MaxPool2d<T> {
                         for iy in y0..y1 {
                             for ix in x0..x1 {
                                 let at = (iy * g.w + ix) * c;
-                                for (best, &v) in yp.iter_mut().zip(&img[at..at + c]) {
-                                    *best = if v > *best { v } else { *best };
-                                }
+                                max_into(yp, &img[at..at + c]);
                             }
                         }
                     }
@@ -201,12 +200,17 @@ fn winners_at<T: Float>(w: &mut [u32], x: &[T], y: &[T], at: u32) {
     let runs = x.chunks_exact(RUN).zip(y.chunks_exact(RUN));
     for (k, (w, (x, y))) in w.chunks_exact_mut(RUN).zip(runs).enumerate() {
         let base = at + (k * RUN) as u32;
-        // Arithmetic rather than a select, which the compiler would turn into a branch per
-        // channel: `hit` is 0 or 1.
+        // Local arrays: the compiler then keeps the run in registers, a compare and a blend.
+        let (x, y): ([T; RUN], [T; RUN]) = (x.try_into().unwrap(), y.try_into().unwrap());
+        let mut won: [u32; RUN] = w.try_into().unwrap();
         for j in 0..RUN {
-            let hit = u32::from(x[j] == y[j]);
-            w[j] = hit * (base + j as u32) + (1 - hit) * w[j];
+            won[j] = if x[j] == y[j] {
+                base + j as u32
+            } else {
+                won[j]
+            };
         }
+        w.copy_from_slice(&won);
     }
     for ch in done..w.len() {
         w[ch] = if x[ch] == y[ch] {
@@ -214,5 +218,24 @@ fn winners_at<T: Float>(w: &mut [u32], x: &[T], y: &[T], at: u32) {
         } else {
             w[ch]
         };
+    }
+}
+
+/// `y[ch] = x[ch]` where `x[ch] > y[ch]`, for one pixel `x` of a window: in runs of 8
+/// channels, as [`winners_at`], each a vector compare-and-select (`vmaxps` for f32).
+#[inline(always)]
+fn max_into<T: Float>(y: &mut [T], x: &[T]) {
+    const RUN: usize = 8;
+    let done = y.len() / RUN * RUN;
+    for (y, x) in y.chunks_exact_mut(RUN).zip(x.chunks_exact(RUN)) {
+        // Local arrays: the compiler then keeps the run in a register.
+        let (mut best, v): ([T; RUN], [T; RUN]) = (y.try_into().unwrap(), x.try_into().unwrap());
+        for j in 0..RUN {
+            best[j] = if v[j] > best[j] { v[j] } else { best[j] };
+        }
+        y.copy_from_slice(&best);
+    }
+    for (y, &x) in y[done..].iter_mut().zip(&x[done..]) {
+        *y = if x > *y { x } else { *y };
     }
 }
