@@ -63,6 +63,16 @@ fn iqn_with_munchausen_learns_a_toy_corridor() {
     });
 }
 
+/// Acting beside learning (`act_while_learning`, one update every 2 steps, so that the step
+/// after each update acts with the parameters from before it) the agent learns the corridor too.
+#[test]
+fn acting_while_learning_learns_a_toy_corridor() {
+    learns(|c| {
+        c.act_while_learning = true;
+        c.train_every = 2;
+    });
+}
+
 /// With layer normalisation before each ReLU (`layer_norm`) the agent learns the corridor too.
 #[test]
 fn layer_norm_learns_a_toy_corridor() {

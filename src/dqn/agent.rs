@@ -17,16 +17,23 @@
 //!
 //! The code marks these lines `ALGO 1` … `ALGO 8`. One switch beyond the algorithm, off in
 //! every preset, sits beside ALGO 7: at the agent steps `reset_dense_at` lists, the layers after
-//! the convolutions are drawn afresh ([`Learner::reset_dense`]).
+//! the convolutions are drawn afresh ([`Learner::reset_dense`]). Another changes when ALGO 6
+//! runs, not what it computes: with [`Config::act_while_learning`] each update runs on the
+//! pool's other threads while this one plays the steps up to the next update (ALGO 2–5) with
+//! the parameters from before it, and ALGO 7 catches up on those steps once the update has
+//! landed.
 
 use super::{Batch, Config, Head, Learner, Replay, StepStats};
 use crate::env::{Game, Observer, StepResult, FRAME_LEN};
+use crate::layers::init::VarianceScaling;
 use crate::layers::Sequential;
 use crate::tensor::Tensor;
 use anyhow::{bail, Context};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
+
+const HE: VarianceScaling = VarianceScaling::HE;
 
 /// Progress counters of a run.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -204,6 +211,101 @@ pub(super) fn stream(seed: u64, id: u64) -> ChaCha8Rng {
     r
 }
 
+/// The [`Player`] of an agent's fields: a macro, so that each field is borrowed on its own and
+/// the learner, the batch and the acting network stay free for the update.
+macro_rules! player {
+    ($agent:expr, $metrics:expr) => {
+        Player {
+            config: &$agent.config,
+            game: &mut $agent.game,
+            observer: &mut $agent.observer,
+            replay: &mut $agent.replay,
+            counters: &mut $agent.counters,
+            explore_rng: &mut $agent.explore_rng,
+            table: &$agent.table,
+            input: &mut $agent.input,
+            metrics: $metrics,
+        }
+    };
+}
+
+/// What one agent step touches besides the networks, borrowed from an [`Agent`].
+struct Player<'a, G> {
+    config: &'a Config,
+    game: &'a mut G,
+    observer: &'a mut Observer,
+    replay: &'a mut Replay,
+    counters: &'a mut Counters,
+    explore_rng: &'a mut ChaCha8Rng,
+    table: &'a [f32; 256],
+    input: &'a mut Tensor<f32>,
+    metrics: &'a mut EpisodeMetrics,
+}
+
+/// An agent step played: its action, and whether the episode ended with it.
+#[derive(Clone, Copy, Debug)]
+struct Played {
+    action: usize,
+    ended: bool,
+}
+
+impl<G: Game> Player<'_, G> {
+    /// ALGO 2–5: one agent step, acting with `net`; `lives` are the lives after the last step
+    /// (none before the episode's first). Counts the step.
+    fn step(&mut self, net: &mut Sequential<f32>, lives: &mut Option<i32>) -> Played {
+        // ALGO 2: ε from the linear schedule of the agent step.
+        let eps = self.config.epsilon(self.counters.agent_steps);
+        // ALGO 3: a random action with probability ε, else argmax_a Q(stack, a).
+        let n_actions = self.game.n_actions();
+        let action = if self.explore_rng.random::<f32>() < eps {
+            self.explore_rng.random_range(0..n_actions)
+        } else {
+            let head = Head::of(self.config);
+            greedy(net, &head, self.observer, self.table, self.input, n_actions)
+        };
+        // ALGO 4: play it; compose the step's frame; push it on the stack.
+        let r = self.game.step(action);
+        let frame = self.observer.step(&*self.game);
+        // ALGO 5: store (a, r, done, new frame). Rewards scaled and clipped (to [-1, 1] in
+        // the Nature DQN) if so configured, less `life_penalty` per life lost; done ends the
+        // bootstrapping: the game is over, or (if so configured) a life was lost.
+        let lives_lost = lives.map_or(0, |l| l - r.lives);
+        let reward = self.config.learner_reward(r.reward, lives_lost);
+        *lives = Some(r.lives);
+        let done = r.terminal || (self.config.life_loss_terminal && lives_lost > 0);
+        self.replay.push_step(action, reward, done, frame);
+        self.count(&r);
+        Played {
+            action,
+            ended: r.terminal || r.truncated,
+        }
+    }
+
+    /// ALGO 2–5 for each agent step before agent step `next` (the next update's), acting with
+    /// `net`, stopping early if the episode ends; returns the last step played, if any.
+    fn play_until(
+        &mut self, next: u64, net: &mut Sequential<f32>, lives: &mut Option<i32>,
+    ) -> Option<Played> {
+        let mut last = None;
+        while self.counters.agent_steps + 1 < next {
+            let step = self.step(net, lives);
+            last = Some(step);
+            if step.ended {
+                break;
+            }
+        }
+        last
+    }
+
+    /// Counts one agent step: its reward, length and emulator frames.
+    fn count(&mut self, r: &StepResult) {
+        self.metrics.score += r.reward as f64;
+        self.metrics.length += 1;
+        self.counters.agent_steps += 1;
+        self.counters.frames += r.frames as u64;
+    }
+}
+
 /// A DQN agent playing and learning one game.
 pub struct Agent<G: Game> {
     /// The run's configuration.
@@ -228,6 +330,9 @@ pub struct Agent<G: Game> {
     input: Tensor<f32>,
     /// The minibatch buffers.
     batch: Batch,
+    /// With [`Config::act_while_learning`]: the network the agent acts with while an update
+    /// runs, a copy of the online network from before it.
+    acting: Option<Sequential<f32>>,
 }
 
 impl<G: Game> Agent<G> {
@@ -253,6 +358,13 @@ impl<G: Game> Agent<G> {
                     Head::of(&config).input_border(input),
                 )
             },
+            acting: config.act_while_learning.then(|| {
+                // Its values are overwritten before each use; the draw touches no run stream.
+                let rng = &mut ChaCha8Rng::seed_from_u64(0);
+                let mut net = super::qnet(input, game.n_actions(), Head::of(&config), &HE, rng);
+                net.set_precision(config.precision);
+                net
+            }),
             explore_rng: stream(config.seed, 2 + 2 * counters.episodes),
             sample_rng: stream(config.seed, 3 + 2 * counters.episodes),
             learner,
@@ -351,6 +463,10 @@ impl<G: Game> Agent<G> {
     /// `ALGO n` are the algorithm, numbered as in the module documentation; everything else is
     /// bookkeeping (counters, metrics, the divergence guard), in functions of its own.
     ///
+    /// With [`Config::act_while_learning`], ALGO 6's update runs beside the agent steps that
+    /// follow it up to the next one ([`Agent::learn_while_acting`]), and ALGO 7 then catches up
+    /// on each of them.
+    ///
     /// # Errors
     /// If training diverges: a gradient step gives a non-finite loss, gradient norm or weight.
     /// The error names the agent step and the train step; the agent is then unusable (its
@@ -364,64 +480,86 @@ impl<G: Game> Agent<G> {
         self.replay.push_start(first);
         let mut lives: Option<i32> = None;
         let last_action = loop {
-            // ALGO 2: ε from the linear schedule of the agent step.
-            let eps = self.epsilon();
-            // ALGO 3: a random action with probability ε, else argmax_a Q(stack, a).
-            let action = if self.explore_rng.random::<f32>() < eps {
-                self.explore_rng.random_range(0..self.game.n_actions())
+            // ALGO 2-5: ε, an action, play it, store it ([`Player::step`]).
+            let net = if self.config.act_with_target_network {
+                self.learner.target_mut()
             } else {
-                self.greedy_action()
+                &mut self.learner.online
             };
-            // ALGO 4: play it; compose the step's frame; push it on the stack.
-            let r = self.game.step(action);
-            let frame = self.observer.step(&self.game);
-            // ALGO 5: store (a, r, done, new frame). Rewards scaled and clipped (to [-1, 1] in
-            // the Nature DQN) if so configured, less `life_penalty` per life lost; done ends the
-            // bootstrapping: the game is over, or (if so configured) a life was lost.
-            let lives_lost = lives.map_or(0, |l| l - r.lives);
-            let reward = self.config.learner_reward(r.reward, lives_lost);
-            let life_lost = lives_lost > 0;
-            lives = Some(r.lives);
-            let done = r.terminal || (self.config.life_loss_terminal && life_lost);
-            self.replay.push_step(action, reward, done, frame);
-            let t = self.count_step(&r, &mut metrics);
+            let t = self.counters.agent_steps + 1;
+            let mut last = player!(self, &mut metrics).step(net, &mut lives);
             // ALGO 6: every `train_every` steps after `learning_starts`, one gradient step on a
             // sampled batch.
             if self.train_due(t) {
-                self.replay
-                    .sample(&mut self.sample_rng, &self.table, &mut self.batch);
-                if let Some(iqn) = self.config.iqn() {
-                    self.batch.draw_fractions(
-                        &mut self.sample_rng,
-                        iqn.samples,
-                        iqn.target_samples,
-                    );
-                }
-                self.learner.adam.lr = self.config.learning_rate(t) as f32;
-                let stats = self.learner.train_step(&self.batch);
+                self.sample_batch(t);
+                let stats = if self.config.act_while_learning && !last.ended {
+                    let (stats, played) = self.learn_while_acting(&mut lives, &mut metrics);
+                    last = played.unwrap_or(last);
+                    stats
+                } else {
+                    self.learner.train_step(&self.batch)
+                };
                 self.replay
                     .update_priorities(&self.batch.entries, self.learner.td_errors());
                 self.counters.train_steps += 1;
                 self.check_finite(&stats, t)?;
                 metrics.add_train_step(&stats);
             }
-            // ALGO 7: every `target_update` steps, copy the online network into the target.
-            if t.is_multiple_of(self.config.target_update) {
-                self.learner.update_target();
-            }
-            // Not the algorithm: a reset of the dense layers, if `reset_dense_at` lists `t`.
-            if self.config.reset_dense_at.binary_search(&t).is_ok() {
-                self.reset_dense(t);
+            for t in t..=self.counters.agent_steps {
+                // ALGO 7: every `target_update` steps, copy the online network into the target.
+                if t.is_multiple_of(self.config.target_update) {
+                    self.learner.update_target();
+                }
+                // Not the algorithm: a reset of the dense layers, if `reset_dense_at` lists `t`.
+                if self.config.reset_dense_at.binary_search(&t).is_ok() {
+                    self.reset_dense(t);
+                }
             }
             // ALGO 8: until the game is over or the step limit is hit.
-            if r.terminal || r.truncated {
-                break action;
+            if last.ended {
+                break last.action;
             }
         };
         if self.config.fake_terminal_transition {
             self.push_fake_terminal(last_action);
         }
         Ok(self.finish_episode(start, &metrics))
+    }
+
+    /// ALGO 6's batch for the update at agent step `t`: sampled from the replay memory (with an
+    /// implicit quantile head, its fractions drawn too), the learning rate set for `t`.
+    fn sample_batch(&mut self, t: u64) {
+        self.replay
+            .sample(&mut self.sample_rng, &self.table, &mut self.batch);
+        if let Some(iqn) = self.config.iqn() {
+            self.batch
+                .draw_fractions(&mut self.sample_rng, iqn.samples, iqn.target_samples);
+        }
+        self.learner.adam.lr = self.config.learning_rate(t) as f32;
+    }
+
+    /// The update on the sampled batch, spawned into the pool ([`rayon::in_place_scope`]) while
+    /// this thread plays the agent steps before the next update (`train_every − 1`, fewer if the
+    /// episode ends) with a copy of the online network made before the update: the pool's other
+    /// threads learn while this one emulates and acts, then joins them. Returns the update's
+    /// statistics and the last step played, if any. The schedule depends on `train_every`
+    /// alone, and every kernel's result on its inputs alone, so a run's results do not depend
+    /// on the thread count; with one thread the block is played first, then the update.
+    fn learn_while_acting(
+        &mut self, lives: &mut Option<i32>, metrics: &mut EpisodeMetrics,
+    ) -> (StepStats, Option<Played>) {
+        let acting = self.acting.as_mut().expect("built for act_while_learning");
+        acting.copy_params_from(&self.learner.online);
+        let next_update = self.counters.agent_steps + self.config.train_every;
+        let (learner, batch) = (&mut self.learner, &self.batch);
+        let mut player = player!(self, metrics);
+        let mut stats = None;
+        let mut update = || stats = Some(learner.train_step(batch));
+        let played = rayon::in_place_scope(|scope| {
+            scope.spawn(move |_| update());
+            player.play_until(next_update, acting, lives)
+        });
+        (stats.expect("the update ran in the scope"), played)
     }
 
     /// Draws the layers after the convolutions afresh at agent step `t`
@@ -436,15 +574,6 @@ impl<G: Game> Agent<G> {
             &mut stream(self.config.seed, RESET_STREAMS | t),
         );
         self.learner.reset_dense(&fresh);
-    }
-
-    /// Counts one agent step (its reward, length, emulator frames); returns the agent step.
-    fn count_step(&mut self, r: &StepResult, metrics: &mut EpisodeMetrics) -> u64 {
-        metrics.score += r.reward as f64;
-        metrics.length += 1;
-        self.counters.agent_steps += 1;
-        self.counters.frames += r.frames as u64;
-        self.counters.agent_steps
     }
 
     /// Whether agent step `t` takes a gradient step: past `learning_starts`, every

@@ -52,6 +52,10 @@ impl Game for Corridor {
         self.draw();
     }
     fn step(&mut self, action: usize) -> StepResult {
+        assert!(
+            self.pos != LEN - 1 && self.steps < LIMIT,
+            "a step after the episode's end"
+        );
         self.pos = if action == 1 {
             self.pos + 1
         } else {

@@ -437,6 +437,13 @@ pub struct Config {
     pub reward_clip: f64,
     /// The notebook's swap: pick actions with the lagged (target) network.
     pub act_with_target_network: bool,
+    /// Acting beside learning (issue #101): each update runs on the pool's other threads while
+    /// this thread plays the agent steps up to the next update (`train_every − 1` of them), which
+    /// act with a copy of the parameters from before the update (one update old). Results
+    /// depend on the seed alone, not on the thread count; with one thread the block is played
+    /// first, then the update. Default off: each update lands before the next action.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub act_while_learning: bool,
     /// The notebook's extra transition at each episode end: the final state, the last action,
     /// reward 0, marked terminal, leading to itself.
     pub fake_terminal_transition: bool,
@@ -511,6 +518,7 @@ impl Config {
             reward_scale: 1.0,
             reward_clip: 1.0,
             act_with_target_network: false,
+            act_while_learning: false,
             fake_terminal_transition: false,
             checkpoint_every: 25,
             checkpoint_replay: true,

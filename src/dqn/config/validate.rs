@@ -138,6 +138,9 @@ impl Config {
         if c.iqn_samples > 0 && c.quantiles > 0 {
             bail!("iqn_samples and quantiles are two heads: ask for one of them");
         }
+        if c.act_while_learning && c.act_with_target_network {
+            bail!("act_while_learning acts with a copy of the online network: it cannot be combined with act_with_target_network");
+        }
         if !(0.0..=1.0).contains(&c.munchausen_alpha) {
             bail!(
                 "munchausen_alpha must be in [0, 1], got {}",
@@ -258,6 +261,7 @@ impl Config {
             ("random_shift", self.random_shift > 0),
             ("reset_dense_at", !self.reset_dense_at.is_empty()),
             ("act_with_target_network", self.act_with_target_network),
+            ("act_while_learning", self.act_while_learning),
             ("fake_terminal_transition", self.fake_terminal_transition),
         ];
         if let Some((name, _)) = unfit.iter().find(|(_, on)| *on) {

@@ -1,0 +1,105 @@
+//! Acting beside learning (`act_while_learning`, issue #101): each update runs on the pool's
+//! other threads while the agent plays the steps up to the next update with the parameters from
+//! before it. The schedule is fixed by `train_every`, so a run's results depend on its seed, not
+//! on the thread count; it resumes exactly; with nothing to overlap (`train_every = 1`) it is the
+//! turn-taking loop bit for bit. (It learns the toy corridor: `tests/dqn.rs`,
+//! `acting_while_learning_learns_a_toy_corridor`.)
+
+mod common;
+
+use common::cli::resumed_like_straight;
+use common::corridor::Corridor;
+use invaders::dqn::{Agent, Config};
+
+/// The toy corridor's configuration (as `tests/dqn.rs`'s), one update every `train_every` steps.
+fn corridor_config(train_every: u64, act_while_learning: bool) -> Config {
+    Config {
+        gamma: 0.9,
+        train_every,
+        act_while_learning,
+        epsilon_decay_steps: 600,
+        epsilon_end: 0.1,
+        ..common::small_config(1_000, 16, 64, 25, 3)
+    }
+}
+
+/// What a run leaves: each episode's metrics row (without its wall time), the train steps, and
+/// both networks' weights, after `episodes` episodes on a pool of `threads` threads.
+fn run(config: Config, episodes: usize, threads: usize) -> (Vec<String>, u64, Vec<Vec<f32>>) {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let mut agent = Agent::new(config, Corridor::new());
+        let rows = (0..episodes)
+            .map(|_| {
+                let row = agent.play_episode().unwrap().csv();
+                row.rsplit_once(',').unwrap().0.to_string()
+            })
+            .collect();
+        let nets = [&agent.learner.online, agent.learner.target()];
+        let weights = nets
+            .iter()
+            .flat_map(|n| {
+                n.params()
+                    .map(|p| p.value.data().to_vec())
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        (rows, agent.counters.train_steps, weights)
+    })
+}
+
+/// The same run on 1, 2 and 4 threads ends with the same rows and weights; it is not the
+/// turn-taking run of the same seed (its blocks act with parameters one update old), unless
+/// there is no block (`train_every = 1`), where the two are the same bit for bit.
+#[test]
+fn results_depend_on_the_seed_not_the_thread_count() {
+    let pipelined = run(corridor_config(4, true), 30, 1);
+    assert!(pipelined.1 > 50, "learning ran: {} updates", pipelined.1);
+    for threads in [2, 4] {
+        assert!(
+            run(corridor_config(4, true), 30, threads) == pipelined,
+            "{threads} threads differ from 1"
+        );
+    }
+    let serial = run(corridor_config(4, false), 30, 2);
+    assert_eq!(serial.1, pipelined.1, "the same updates, at the same steps");
+    assert!(
+        serial.0 != pipelined.0,
+        "acting one update late changes the play"
+    );
+    assert!(
+        run(corridor_config(1, true), 15, 2) == run(corridor_config(1, false), 15, 2),
+        "with train_every = 1 nothing overlaps"
+    );
+}
+
+/// Stopped after 2 episodes and resumed to 4, a run acting beside learning ends as one that ran
+/// 4 straight: replay memory, weights and metrics rows (`resumed_like_straight`). Each episode
+/// ends with its last update landed, so a checkpoint holds nothing in flight.
+#[test]
+fn a_run_acting_while_learning_resumes_exactly() {
+    let (root, _, _) = resumed_like_straight(
+        "invaders-act-while-learning",
+        "preset = \"strong\"\nact_while_learning = true\nhidden = 16\nlearning_starts = 40\nreplay_capacity = 150\nbatch_size = 8\ntrain_every = 4\ntarget_update = 50\nepsilon_decay_steps = 600\ncheckpoint_every = 1\nplot_every = 1000\nmax_frames = 0\nepisodes = 4\n[env]\nmax_episode_steps = 60\n",
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// The switch is refused where it has no meaning: with PQN's own loop, and with the notebook's
+/// acting by the target network.
+#[test]
+fn act_while_learning_is_refused_where_it_cannot_apply() {
+    use invaders::dqn::Preset;
+    let err = |preset, text| {
+        Config::resolve(Some(preset), Some(text))
+            .unwrap_err()
+            .to_string()
+    };
+    let e = err(Preset::ArticleAsWritten, "act_while_learning = true");
+    assert!(e.contains("act_with_target_network"), "{e}");
+    let e = err(Preset::Strong, "act_while_learning = true\n[pqn]");
+    assert!(e.contains("act_while_learning"), "{e}");
+}
