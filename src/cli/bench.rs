@@ -206,6 +206,11 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     };
     let agent_steps_per_s = end_to_end(Config::preset(Preset::Article))?;
     let strong_steps_per_s = end_to_end(Config::preset(Preset::Strong))?;
+    // The same, each update beside the agent steps up to the next (issue #101).
+    let strong_beside_steps_per_s = end_to_end(Config {
+        act_while_learning: true,
+        ..Config::preset(Preset::Strong)
+    })?;
     // The first `strong`: issue #43's compute cap is counted in its agent steps.
     let strong_v1_steps_per_s = end_to_end(Config::preset(Preset::StrongV1))?;
     // The user's configuration: its train step on a random batch, then end to end.
@@ -258,6 +263,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "env_frames_per_s": env_fps,
                 "agent_steps_per_s": agent_steps_per_s,
                 "strong_agent_steps_per_s": strong_steps_per_s,
+                "strong_acting_while_learning_agent_steps_per_s": strong_beside_steps_per_s,
                 "strong_v1_agent_steps_per_s": strong_v1_steps_per_s,
                 "config": args.config,
                 "config_preset": own.as_ref().map(|c| c.preset.name()),
@@ -282,6 +288,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         out!("emulator                {env_fps:.0} frames/s ({env_steps_per_s:.0} agent steps/s with the pipeline)");
         out!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
         out!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
+        out!("  acting while learning {strong_beside_steps_per_s:.1} agent steps/s (strong with act_while_learning)");
         out!("  strong-v1             {strong_v1_steps_per_s:.1} agent steps/s");
         if let (Some((ms, sps)), Some(p), Some(c)) = (own_figures, &args.config, &own) {
             out!(
