@@ -464,7 +464,7 @@ impl<G: Game> Agent<G> {
     /// bookkeeping (counters, metrics, the divergence guard), in functions of its own.
     ///
     /// With [`Config::act_while_learning`], ALGO 6's update runs beside the agent steps that
-    /// follow it up to the next one ([`Agent::learn_while_acting`]), and ALGO 7 then catches up
+    /// follow it up to the next one (`Agent::learn_while_acting`), and ALGO 7 then catches up
     /// on each of them.
     ///
     /// # Errors
