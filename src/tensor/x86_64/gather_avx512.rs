@@ -4,7 +4,8 @@
 //! per `MR·NV` FMAs. Shapes: up to 32 columns (conv1's 32 channels) run 10 × 2 (12 × 2
 //! spilled), 48 run 8 × 3, 64 (conv2, conv3) 6 × 4; wider `C` goes in panels of 64 columns
 //! with the column tail under a mask, except a lone row (a GEMV) which takes 128-column
-//! panels. Leftover rows get one tile of their height.
+//! panels. Leftover rows get one tile of their height. A `C` of at most 8 columns (the IMPALA
+//! encoder's first stage) runs 16 × 8 tiles in 256-bit registers instead ([`tile8`]).
 
 use crate::tensor::gather::{row_start, rows_per_task, GatherGemm};
 use rayon::prelude::*;
@@ -231,6 +232,94 @@ unsafe fn tile_any(
     by_height!(tile_nv(h; nv, a, p, q, b, ldb, c, crow, m, start, end))
 }
 
+/// Columns of the widest `C` that runs [`tile8`]'s 8-lane tiles.
+const NARROW: usize = 8;
+
+/// Rows of a full [`tile8`]: 16 accumulators of the 32 ymm registers AVX-512 gives.
+const MR8: usize = 16;
+
+/// Whether [`tile8`] may run: AVX-512VL and AVX2 beside AVX-512F, as on every AVX-512 core
+/// but Xeon Phi's (which keep the 512-bit tiles). The standard library caches the answer.
+fn narrow_tiles() -> bool {
+    is_x86_feature_detected!("avx512vl") && is_x86_feature_detected!("avx2")
+}
+
+/// One `MR × 8` tile of a `C` at most [`NARROW`] columns wide, in 256-bit registers: the
+/// IMPALA encoder's first stage (8 channels). A 512-bit tile would leave half of each vector
+/// masked off, and on AMD Zen 4 a masked 512-bit FMA costs two 256-bit ones; on cores with
+/// two 512-bit FMA units a 256-bit FMA issues as often, so no host loses. Every element of `C`
+/// is summed in the same order as [`tile`] sums it (one fused multiply-add per step), so the
+/// two give the same bits.
+///
+/// # Safety
+/// As [`tile`], AVX-512VL besides; `mask` the lanes of `C`'s columns (all 8 if `FULL`).
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile8<const MR: usize, const FULL: bool>(
+    a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize, c: *mut f32,
+    crow: &[usize], mask: __m256i, start: Start, end: End,
+) {
+    let mut acc = sums::start::<__m256, MR, 1>(c, crow, [mask], start);
+    let rows = sums::rows::<_, MR>(a, p);
+    let mut brow = b;
+    // One step: the `b` row, then each row's gathered value `a_r` times it.
+    macro_rules! step {
+        ($a_r:expr) => {{
+            let bv = if FULL {
+                _mm256_loadu_ps(brow)
+            } else {
+                _mm256_maskload_ps(brow, mask)
+            };
+            for r in 0..MR {
+                let av = _mm256_broadcast_ss(&*$a_r(r));
+                acc[r][0] = _mm256_fmadd_ps(av, bv, acc[r][0]);
+            }
+            brow = brow.add(ldb);
+        }};
+    }
+    if let Some(runs) = q.runs {
+        for &(first, len) in runs {
+            let mut ar = [a; MR];
+            for r in 0..MR {
+                ar[r] = rows[r].add(first);
+            }
+            for i in 0..len {
+                step!(|r: usize| ar[r].add(i));
+            }
+        }
+    } else {
+        for &qt in q.table {
+            step!(|r: usize| rows[r].add(qt));
+        }
+    }
+    sums::end(&acc, c, crow, [mask], end);
+}
+
+/// A [`tile8`] of any height `h` up to [`MR8`] over `n ≤ 8` columns.
+///
+/// # Safety
+/// As [`tile8`] for `h` rows.
+#[target_feature(enable = "avx512f,avx512vl,avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile8_any(
+    h: usize, n: usize, a: *const f32, p: &[usize], q: Steps<'_>, b: *const f32, ldb: usize,
+    c: *mut f32, crow: &[usize], start: Start, end: End,
+) {
+    let lanes: [i32; 8] = std::array::from_fn(|i| if i < n { -1 } else { 0 });
+    let mask = _mm256_loadu_si256(lanes.as_ptr().cast());
+    macro_rules! go {
+        ($($h:literal)*) => {
+            match (h, n == NARROW) {
+                $(($h, true) => tile8::<$h, true>(a, p, q, b, ldb, c, crow, mask, start, end),
+                ($h, false) => tile8::<$h, false>(a, p, q, b, ldb, c, crow, mask, start, end),)*
+                _ => unreachable!("a narrow tile has 1 to {MR8} rows"),
+            }
+        };
+    }
+    go!(1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16)
+}
+
 /// Lane masks of the 64-column panel starting at `j0` of an `n`-column product, and its
 /// width in vectors.
 pub(crate) fn panel_masks(n: usize, j0: usize) -> ([u16; 4], usize) {
@@ -320,6 +409,7 @@ unsafe fn task(
     let steps = q.len();
     let tb = block_len(n, steps);
     let nblocks = steps.div_ceil(tb).max(1);
+    let narrow = narrow_tiles();
     for blk in 0..nblocks {
         let t0 = blk * tb;
         let qb = &q[t0.min(steps)..(t0 + tb).min(steps)];
@@ -346,6 +436,15 @@ unsafe fn task(
         // Panels outer, row tiles inner: one panel's block of `b` (128 steps × 64 columns,
         // 32 KiB) stays in L1 across all the task's row tiles. (Both of dense1's panels,
         // 64 KiB, would not: each tile would read them again from L2.)
+        if n <= NARROW && narrow {
+            // A `C` of 8 columns or fewer: 8-lane tiles of 16 rows (`tile8`).
+            for (r, h) in row_tiles(nr, MR8) {
+                let (d0, crow) = dest.tile::<MR8>(r, h);
+                let (cp, pr) = (c.add(d0), &p[r..r + h]);
+                tile8_any(h, n, a.as_ptr(), pr, qr, bb, ldb, cp, &crow, start, end);
+            }
+            continue;
+        }
         for j0 in (0..n).step_by(64) {
             let (m, nv) = panel_masks(n, j0);
             for (r, h) in row_tiles(nr, mr) {
