@@ -157,6 +157,47 @@ fn train_by_frames() {
         let v = json[key].as_f64().unwrap_or(-1.0);
         assert!(v > 0.0 && v.is_finite(), "{key} in {text}");
     }
+    // Both of `strong`'s loops at ε's floor, with each core's shares: on one thread the
+    // player's shares are the whole wall time (the update among them when it takes turns;
+    // beside the play, the update's time is the block's wait for it).
+    for (key, beside) in [
+        ("strong_final_epsilon", false),
+        ("strong_acting_while_learning_final_epsilon", true),
+    ] {
+        let v = json[key]["agent_steps_per_s"].as_f64().unwrap_or(-1.0);
+        assert!(v > 0.0 && v.is_finite(), "{key} in {text}");
+        let p = &json[key]["core_shares"]["player"];
+        let share = |k: &str| p[k].as_f64().unwrap_or(-1.0);
+        let parts = [
+            "acting", "emulator", "storing", "sampling", "update", "joining", "other",
+        ];
+        assert!(
+            parts.iter().all(|&k| (0.0..=1.0).contains(&share(k))),
+            "{key} in {text}"
+        );
+        let sum: f64 = parts.iter().map(|&k| share(k)).sum();
+        assert!(
+            (0.98..=1.02).contains(&sum),
+            "{key}'s shares add to {sum}: {text}"
+        );
+        assert!(
+            share("emulator") > 0.0 && share("acting") > 0.0,
+            "{key} in {text}"
+        );
+        let (update, joining) = (share("update"), share("joining"));
+        assert!(
+            if beside {
+                update == 0.0 && joining > 0.0
+            } else {
+                update > 0.0 && joining == 0.0
+            },
+            "{key} in {text}"
+        );
+        let others = json[key]["core_shares"]["others_update"]
+            .as_f64()
+            .unwrap_or(-1.0);
+        assert!(others > 0.0 && others <= 1.0, "{key} in {text}");
+    }
     assert_eq!(json["threads"], 1, "{text}");
     assert_eq!(json["precision"], "f32", "{text}");
     assert_eq!(json["kernel_family"], f32_family(), "{text}");

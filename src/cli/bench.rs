@@ -15,7 +15,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use invaders::dqn::{
-    checkpoint, game_seed, random_play_inputs, Agent, Batch, Config, Learner, PqnAgent, Preset,
+    checkpoint, game_seed, random_play_inputs, Agent, Batch, Config, Learner, LoopTimes, PqnAgent,
+    Preset,
 };
 use invaders::env::{Observer, SpaceInvaders};
 use invaders::layers::Sequential;
@@ -54,6 +55,68 @@ pub struct BenchArgs {
     /// else `article`.
     #[arg(long, value_enum, requires = "config")]
     preset: Option<Preset>,
+}
+
+/// Where each core's wall time went in an end-to-end loop ([`LoopTimes`] over the wall time):
+/// the thread that plays, and each other thread of the pool, which works only on updates.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+struct CoreShares {
+    /// The playing thread.
+    player: PlayerShares,
+    /// Each other thread: the share of the wall time an update ran (it works at most then).
+    others_update: f64,
+}
+
+/// The playing thread's shares of the wall time.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+struct PlayerShares {
+    acting: f64,
+    emulator: f64,
+    storing: f64,
+    sampling: f64,
+    /// The updates it took its turn in (none when it plays beside them).
+    update: f64,
+    /// Beside the updates: from the end of its block to the update's end.
+    joining: f64,
+    /// The rest: target copies, priorities, episode resets and metrics.
+    other: f64,
+}
+
+impl CoreShares {
+    /// The shares of `t` over `wall` seconds; `beside`: the updates ran beside the play.
+    fn of(t: &LoopTimes, wall: f64, beside: bool) -> Self {
+        let update = if beside { 0.0 } else { t.update };
+        let played = t.acting + t.emulator + t.storing + t.sampling + update + t.joining;
+        CoreShares {
+            player: PlayerShares {
+                acting: t.acting / wall,
+                emulator: t.emulator / wall,
+                storing: t.storing / wall,
+                sampling: t.sampling / wall,
+                update: update / wall,
+                joining: t.joining / wall,
+                other: (wall - played).max(0.0) / wall,
+            },
+            others_update: t.update / wall,
+        }
+    }
+
+    /// One line: the playing thread's shares, then the other threads'.
+    fn words(&self) -> String {
+        let p = &self.player;
+        let pc = |x: f64| format!("{:.0}%", 100.0 * x);
+        format!(
+            "player: acting {}, emulator {}, storing {}, sampling {}, update {}, joining {}, other {}; each other thread: update {}",
+            pc(p.acting),
+            pc(p.emulator),
+            pc(p.storing),
+            pc(p.sampling),
+            pc(p.update),
+            pc(p.joining),
+            pc(p.other),
+            pc(self.others_update)
+        )
+    }
 }
 
 fn median(mut xs: Vec<f64>) -> f64 {
@@ -175,7 +238,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let env_steps_per_s = steps as f64 / env_secs;
 
     // End to end: the article and strong presets with learning on from step 500.
-    let end_to_end = |mut e2e: Config| -> anyhow::Result<f64> {
+    let timed_end_to_end = |mut e2e: Config| -> anyhow::Result<(f64, Option<CoreShares>)> {
         e2e.precision = precision;
         e2e.learning_starts = 500;
         e2e.replay_capacity = 5_000;
@@ -191,26 +254,47 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             while agent.counters.agent_steps < s0 + 2_000 {
                 agent.play_rollout()?;
             }
-            return Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64());
+            return Ok((
+                (agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64(),
+                None,
+            ));
         }
         let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
         let mut agent = Agent::new(e2e, env);
         while agent.counters.agent_steps < 600 {
             agent.play_episode()?;
         }
-        let (s0, t0) = (agent.counters.agent_steps, Instant::now());
+        let (s0, times0, t0) = (agent.counters.agent_steps, agent.times, Instant::now());
         while agent.counters.agent_steps < s0 + 2_000 {
             agent.play_episode()?;
         }
-        Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64())
+        let wall = t0.elapsed().as_secs_f64();
+        let beside = agent.config.act_while_learning;
+        let shares = CoreShares::of(&agent.times.since(&times0), wall, beside);
+        Ok((
+            (agent.counters.agent_steps - s0) as f64 / wall,
+            Some(shares),
+        ))
     };
+    let end_to_end = |e2e: Config| timed_end_to_end(e2e).map(|(sps, _)| sps);
     let agent_steps_per_s = end_to_end(Config::preset(Preset::Article))?;
     let strong_steps_per_s = end_to_end(Config::preset(Preset::Strong))?;
     // The same, each update beside the agent steps up to the next (issue #101).
-    let strong_beside_steps_per_s = end_to_end(Config {
+    let beside = Config {
         act_while_learning: true,
         ..Config::preset(Preset::Strong)
-    })?;
+    };
+    let strong_beside_steps_per_s = end_to_end(beside.clone())?;
+    // Both loops as most of a run plays them, ε at its floor (nearly every action a forward
+    // pass; the figures above play from ε = 1, nearly every action random), with where each
+    // core's time goes.
+    let floor = |c: Config| Config {
+        epsilon_start: c.epsilon_end,
+        ..c
+    };
+    let strong_floor = timed_end_to_end(floor(Config::preset(Preset::Strong)))?;
+    let beside_floor = timed_end_to_end(floor(beside))?;
+    let loop_json = |(sps, shares): (f64, Option<CoreShares>)| serde_json::json!({"agent_steps_per_s": sps, "core_shares": shares});
     // The first `strong`: issue #43's compute cap is counted in its agent steps.
     let strong_v1_steps_per_s = end_to_end(Config::preset(Preset::StrongV1))?;
     // The user's configuration: its train step on a random batch, then end to end.
@@ -265,6 +349,8 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "strong_agent_steps_per_s": strong_steps_per_s,
                 "strong_acting_while_learning_agent_steps_per_s": strong_beside_steps_per_s,
                 "strong_v1_agent_steps_per_s": strong_v1_steps_per_s,
+                "strong_final_epsilon": loop_json(strong_floor),
+                "strong_acting_while_learning_final_epsilon": loop_json(beside_floor),
                 "config": args.config,
                 "config_preset": own.as_ref().map(|c| c.preset.name()),
                 "config_batch_size": own.as_ref().map(|c| c.batch_size),
@@ -289,6 +375,15 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         out!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
         out!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
         out!("  acting while learning {strong_beside_steps_per_s:.1} agent steps/s (strong with act_while_learning)");
+        for (words, (sps, shares)) in [
+            ("strong", strong_floor),
+            ("acting while learning", beside_floor),
+        ] {
+            out!("  {words}, final ε: {sps:.1} agent steps/s");
+            if let Some(s) = shares {
+                out!("    {}", s.words());
+            }
+        }
         out!("  strong-v1             {strong_v1_steps_per_s:.1} agent steps/s");
         if let (Some((ms, sps)), Some(p), Some(c)) = (own_figures, &args.config, &own) {
             out!(

@@ -51,6 +51,45 @@ pub struct Counters {
     pub wall_seconds: f64,
 }
 
+/// Where an agent's wall time went, in seconds, summed over its agent steps since it was built:
+/// what `invaders bench` reports as each core's shares. Timing only; not saved in a checkpoint.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LoopTimes {
+    /// ε and the action (ALGO 2–3): the acting network's forward pass, on the playing thread.
+    pub acting: f64,
+    /// The emulator and the frame pipeline (ALGO 4), on the playing thread.
+    pub emulator: f64,
+    /// Storing the transition (ALGO 5), on the playing thread.
+    pub storing: f64,
+    /// Sampling each update's minibatch (ALGO 6's batch), on the playing thread.
+    pub sampling: f64,
+    /// The updates (ALGO 6's gradient step), start to end: on every thread of the pool when
+    /// they take turns with play; beside the play with [`Config::act_while_learning`].
+    pub update: f64,
+    /// With [`Config::act_while_learning`]: the playing thread's time from the end of its block
+    /// to the update's end (waiting for it, or working on it with the pool).
+    pub joining: f64,
+}
+
+impl LoopTimes {
+    /// The time spent since `before` (an earlier reading of the same agent's).
+    pub fn since(&self, before: &LoopTimes) -> LoopTimes {
+        LoopTimes {
+            acting: self.acting - before.acting,
+            emulator: self.emulator - before.emulator,
+            storing: self.storing - before.storing,
+            sampling: self.sampling - before.sampling,
+            update: self.update - before.update,
+            joining: self.joining - before.joining,
+        }
+    }
+}
+
+/// Seconds from `t` to now.
+fn secs(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64()
+}
+
 /// What an agent needs, besides its learner, counters and replay memory, to continue exactly.
 #[derive(Clone, Debug, PartialEq)]
 pub struct AgentState {
@@ -225,6 +264,7 @@ macro_rules! player {
             table: &$agent.table,
             input: &mut $agent.input,
             metrics: $metrics,
+            times: &mut $agent.times,
         }
     };
 }
@@ -240,6 +280,7 @@ struct Player<'a, G> {
     table: &'a [f32; 256],
     input: &'a mut Tensor<f32>,
     metrics: &'a mut EpisodeMetrics,
+    times: &'a mut LoopTimes,
 }
 
 /// An agent step played: its action, and whether the episode ended with it.
@@ -253,6 +294,7 @@ impl<G: Game> Player<'_, G> {
     /// ALGO 2–5: one agent step, acting with `net`; `lives` are the lives after the last step
     /// (none before the episode's first). Counts the step.
     fn step(&mut self, net: &mut Sequential<f32>, lives: &mut Option<i32>) -> Played {
+        let t0 = Instant::now();
         // ALGO 2: ε from the linear schedule of the agent step.
         let eps = self.config.epsilon(self.counters.agent_steps);
         // ALGO 3: a random action with probability ε, else argmax_a Q(stack, a).
@@ -263,9 +305,11 @@ impl<G: Game> Player<'_, G> {
             let head = Head::of(self.config);
             greedy(net, &head, self.observer, self.table, self.input, n_actions)
         };
+        let t1 = Instant::now();
         // ALGO 4: play it; compose the step's frame; push it on the stack.
         let r = self.game.step(action);
         let frame = self.observer.step(&*self.game);
+        let t2 = Instant::now();
         // ALGO 5: store (a, r, done, new frame). Rewards scaled and clipped (to [-1, 1] in
         // the Nature DQN) if so configured, less `life_penalty` per life lost; done ends the
         // bootstrapping: the game is over, or (if so configured) a life was lost.
@@ -275,6 +319,9 @@ impl<G: Game> Player<'_, G> {
         let done = r.terminal || (self.config.life_loss_terminal && lives_lost > 0);
         self.replay.push_step(action, reward, done, frame);
         self.count(&r);
+        self.times.acting += (t1 - t0).as_secs_f64();
+        self.times.emulator += (t2 - t1).as_secs_f64();
+        self.times.storing += secs(t2);
         Played {
             action,
             ended: r.terminal || r.truncated,
@@ -333,6 +380,8 @@ pub struct Agent<G: Game> {
     /// With [`Config::act_while_learning`]: the network the agent acts with while an update
     /// runs, a copy of the online network from before it.
     acting: Option<Sequential<f32>>,
+    /// Where the wall time went.
+    pub times: LoopTimes,
 }
 
 impl<G: Game> Agent<G> {
@@ -371,6 +420,7 @@ impl<G: Game> Agent<G> {
             counters,
             game,
             config,
+            times: LoopTimes::default(),
         }
     }
 
@@ -497,7 +547,10 @@ impl<G: Game> Agent<G> {
                     last = played.unwrap_or(last);
                     stats
                 } else {
-                    self.learner.train_step(&self.batch)
+                    let start = Instant::now();
+                    let stats = self.learner.train_step(&self.batch);
+                    self.times.update += secs(start);
+                    stats
                 };
                 self.replay
                     .update_priorities(&self.batch.entries, self.learner.td_errors());
@@ -529,6 +582,7 @@ impl<G: Game> Agent<G> {
     /// ALGO 6's batch for the update at agent step `t`: sampled from the replay memory (with an
     /// implicit quantile head, its fractions drawn too), the learning rate set for `t`.
     fn sample_batch(&mut self, t: u64) {
+        let start = Instant::now();
         self.replay
             .sample(&mut self.sample_rng, &self.table, &mut self.batch);
         if let Some(iqn) = self.config.iqn() {
@@ -536,6 +590,7 @@ impl<G: Game> Agent<G> {
                 .draw_fractions(&mut self.sample_rng, iqn.samples, iqn.target_samples);
         }
         self.learner.adam.lr = self.config.learning_rate(t) as f32;
+        self.times.sampling += secs(start);
     }
 
     /// The update on the sampled batch, spawned into the pool ([`rayon::in_place_scope`]) while
@@ -553,12 +608,21 @@ impl<G: Game> Agent<G> {
         let next_update = self.counters.agent_steps + self.config.train_every;
         let (learner, batch) = (&mut self.learner, &self.batch);
         let mut player = player!(self, metrics);
-        let mut stats = None;
-        let mut update = || stats = Some(learner.train_step(batch));
+        let (mut stats, mut update_secs, mut play_secs) = (None, 0.0, 0.0);
+        let mut update = || {
+            let start = Instant::now();
+            stats = Some(learner.train_step(batch));
+            update_secs = secs(start);
+        };
+        let start = Instant::now();
         let played = rayon::in_place_scope(|scope| {
             scope.spawn(move |_| update());
-            player.play_until(next_update, acting, lives)
+            let played = player.play_until(next_update, acting, lives);
+            play_secs = secs(start);
+            played
         });
+        self.times.update += update_secs;
+        self.times.joining += secs(start) - play_secs;
         (stats.expect("the update ran in the scope"), played)
     }
 

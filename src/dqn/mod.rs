@@ -15,6 +15,7 @@ mod trainer;
 
 pub use agent::{
     greedy, play_evaluation_episode, random_play_inputs, Agent, AgentState, EpisodeRow, GameSlot,
+    LoopTimes,
 };
 pub use config::{
     merge_toml, Config, Pqn, Preset, ARTICLE_HIDDEN, IMPORTANCE_EXPONENT, MAX_PQN_GAMES,
