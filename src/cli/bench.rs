@@ -57,6 +57,62 @@ pub struct BenchArgs {
     preset: Option<Preset>,
 }
 
+/// A configuration as the end-to-end figures run it: in `precision`, learning from agent step
+/// 500, a replay memory of 5 000.
+fn bench_config(c: Config, precision: Precision) -> Config {
+    Config {
+        precision,
+        learning_starts: 500,
+        replay_capacity: 5_000,
+        ..c
+    }
+}
+
+/// Agent steps per second and each core's shares ([`CoreShares`]) of two DQN configurations
+/// played as most of a run plays them, ε at its floor (nearly every action a forward pass; from
+/// ε = 1 nearly every action is random): after 600 steps each to warm up, their episodes take
+/// turns until each has played 6 000 more agent steps, each timed over its own episodes, so
+/// that a neighbour who slows the host for a while slows both.
+fn paired_at_floor(
+    configs: [Config; 2], precision: Precision,
+) -> anyhow::Result<[(f64, CoreShares); 2]> {
+    let mut agents = Vec::new();
+    for c in configs {
+        let c = Config {
+            epsilon_start: c.epsilon_end,
+            ..bench_config(c, precision)
+        };
+        let env = SpaceInvaders::new(&c.env, 0).context("cannot start Space Invaders")?;
+        let mut agent = Agent::new(c, env);
+        while agent.counters.agent_steps < 600 {
+            agent.play_episode()?;
+        }
+        agents.push(agent);
+    }
+    let starts: Vec<_> = agents
+        .iter()
+        .map(|a| (a.counters.agent_steps, a.times))
+        .collect();
+    let mut walls = [0.0; 2];
+    while agents
+        .iter()
+        .zip(&starts)
+        .any(|(a, (s0, _))| a.counters.agent_steps < s0 + 6_000)
+    {
+        for (agent, wall) in agents.iter_mut().zip(&mut walls) {
+            let t = Instant::now();
+            agent.play_episode()?;
+            *wall += t.elapsed().as_secs_f64();
+        }
+    }
+    Ok(std::array::from_fn(|i| {
+        let (a, (s0, times0)) = (&agents[i], &starts[i]);
+        let beside = a.config.act_while_learning;
+        let shares = CoreShares::of(&a.times.since(times0), walls[i], beside);
+        ((a.counters.agent_steps - s0) as f64 / walls[i], shares)
+    }))
+}
+
 /// Where each core's wall time went in an end-to-end loop ([`LoopTimes`] over the wall time):
 /// the thread that plays, and each other thread of the pool, which works only on updates.
 #[derive(Clone, Copy, Debug, serde::Serialize)]
@@ -238,10 +294,8 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
     let env_steps_per_s = steps as f64 / env_secs;
 
     // End to end: the article and strong presets with learning on from step 500.
-    let timed_end_to_end = |mut e2e: Config| -> anyhow::Result<(f64, Option<CoreShares>)> {
-        e2e.precision = precision;
-        e2e.learning_starts = 500;
-        e2e.replay_capacity = 5_000;
+    let end_to_end = |e2e: Config| -> anyhow::Result<f64> {
+        let e2e = bench_config(e2e, precision);
         if let Some(pqn) = e2e.pqn {
             // PQN: whole rollouts (one to warm up), at least 2 000 agent steps timed.
             let games = (0..pqn.games)
@@ -254,29 +308,19 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             while agent.counters.agent_steps < s0 + 2_000 {
                 agent.play_rollout()?;
             }
-            return Ok((
-                (agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64(),
-                None,
-            ));
+            return Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64());
         }
         let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
         let mut agent = Agent::new(e2e, env);
         while agent.counters.agent_steps < 600 {
             agent.play_episode()?;
         }
-        let (s0, times0, t0) = (agent.counters.agent_steps, agent.times, Instant::now());
+        let (s0, t0) = (agent.counters.agent_steps, Instant::now());
         while agent.counters.agent_steps < s0 + 2_000 {
             agent.play_episode()?;
         }
-        let wall = t0.elapsed().as_secs_f64();
-        let beside = agent.config.act_while_learning;
-        let shares = CoreShares::of(&agent.times.since(&times0), wall, beside);
-        Ok((
-            (agent.counters.agent_steps - s0) as f64 / wall,
-            Some(shares),
-        ))
+        Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64())
     };
-    let end_to_end = |e2e: Config| timed_end_to_end(e2e).map(|(sps, _)| sps);
     let agent_steps_per_s = end_to_end(Config::preset(Preset::Article))?;
     let strong_steps_per_s = end_to_end(Config::preset(Preset::Strong))?;
     // The same, each update beside the agent steps up to the next (issue #101).
@@ -285,16 +329,11 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         ..Config::preset(Preset::Strong)
     };
     let strong_beside_steps_per_s = end_to_end(beside.clone())?;
-    // Both loops as most of a run plays them, ε at its floor (nearly every action a forward
-    // pass; the figures above play from ε = 1, nearly every action random), with where each
-    // core's time goes.
-    let floor = |c: Config| Config {
-        epsilon_start: c.epsilon_end,
-        ..c
-    };
-    let strong_floor = timed_end_to_end(floor(Config::preset(Preset::Strong)))?;
-    let beside_floor = timed_end_to_end(floor(beside))?;
-    let loop_json = |(sps, shares): (f64, Option<CoreShares>)| serde_json::json!({"agent_steps_per_s": sps, "core_shares": shares});
+    // Both loops as most of a run plays them, ε at its floor, episodes taking turns, with where
+    // each core's time goes.
+    let [strong_floor, beside_floor] =
+        paired_at_floor([Config::preset(Preset::Strong), beside], precision)?;
+    let loop_json = |(sps, shares): (f64, CoreShares)| serde_json::json!({"agent_steps_per_s": sps, "core_shares": shares});
     // The first `strong`: issue #43's compute cap is counted in its agent steps.
     let strong_v1_steps_per_s = end_to_end(Config::preset(Preset::StrongV1))?;
     // The user's configuration: its train step on a random batch, then end to end.
@@ -380,9 +419,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             ("acting while learning", beside_floor),
         ] {
             out!("  {words}, final ε: {sps:.1} agent steps/s");
-            if let Some(s) = shares {
-                out!("    {}", s.words());
-            }
+            out!("    {}", shares.words());
         }
         out!("  strong-v1             {strong_v1_steps_per_s:.1} agent steps/s");
         if let (Some((ms, sps)), Some(p), Some(c)) = (own_figures, &args.config, &own) {

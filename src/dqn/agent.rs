@@ -19,9 +19,9 @@
 //! every preset, sits beside ALGO 7: at the agent steps `reset_dense_at` lists, the layers after
 //! the convolutions are drawn afresh ([`Learner::reset_dense`]). Another changes when ALGO 6
 //! runs, not what it computes: with [`Config::act_while_learning`] each update runs on the
-//! pool's other threads while this one plays the steps up to the next update (ALGO 2–5) with
-//! the parameters from before it, and ALGO 7 catches up on those steps once the update has
-//! landed.
+//! pool's other threads while this one plays the steps through the next update's (ALGO 2–5)
+//! with the parameters from before it and samples the next update's batch, and ALGO 7 catches
+//! up on those steps once the update has landed.
 
 use super::{Batch, Config, Head, Learner, Replay, StepStats};
 use crate::env::{Game, Observer, StepResult, FRAME_LEN};
@@ -328,13 +328,13 @@ impl<G: Game> Player<'_, G> {
         }
     }
 
-    /// ALGO 2–5 for each agent step before agent step `next` (the next update's), acting with
-    /// `net`, stopping early if the episode ends; returns the last step played, if any.
-    fn play_until(
-        &mut self, next: u64, net: &mut Sequential<f32>, lives: &mut Option<i32>,
+    /// ALGO 2–5 for each agent step up to agent step `through`, acting with `net`, stopping
+    /// early if the episode ends; returns the last step played, if any.
+    fn play_through(
+        &mut self, through: u64, net: &mut Sequential<f32>, lives: &mut Option<i32>,
     ) -> Option<Played> {
         let mut last = None;
-        while self.counters.agent_steps + 1 < next {
+        while self.counters.agent_steps < through {
             let step = self.step(net, lives);
             last = Some(step);
             if step.ended {
@@ -380,6 +380,9 @@ pub struct Agent<G: Game> {
     /// With [`Config::act_while_learning`]: the network the agent acts with while an update
     /// runs, a copy of the online network from before it.
     acting: Option<Sequential<f32>>,
+    /// With [`Config::act_while_learning`]: the next update's minibatch, sampled while the
+    /// update before it runs.
+    ahead: Option<Batch>,
     /// Where the wall time went.
     pub times: LoopTimes,
 }
@@ -394,19 +397,21 @@ impl<G: Game> Agent<G> {
     /// An agent that continues from a learner and counters (a checkpoint).
     pub fn with_learner(config: Config, game: G, learner: Learner, counters: Counters) -> Self {
         let input = config.input_shape();
+        let batch = || Batch {
+            keep_bf16: crate::ops::plan::bf16_runs(config.precision),
+            ..Batch::with_border(
+                config.batch_size,
+                input,
+                Head::of(&config).input_border(input),
+            )
+        };
         Agent {
             observer: Observer::new(config.pipeline),
             replay: config.new_replay(),
             table: config.normalization.table(),
             input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
-            batch: Batch {
-                keep_bf16: crate::ops::plan::bf16_runs(config.precision),
-                ..Batch::with_border(
-                    config.batch_size,
-                    input,
-                    Head::of(&config).input_border(input),
-                )
-            },
+            batch: batch(),
+            ahead: config.act_while_learning.then(batch),
             acting: config.act_while_learning.then(|| {
                 // Its values are overwritten before each use; the draw touches no run stream.
                 let rng = &mut ChaCha8Rng::seed_from_u64(0);
@@ -514,8 +519,8 @@ impl<G: Game> Agent<G> {
     /// bookkeeping (counters, metrics, the divergence guard), in functions of its own.
     ///
     /// With [`Config::act_while_learning`], ALGO 6's update runs beside the agent steps that
-    /// follow it up to the next one (`Agent::learn_while_acting`), and ALGO 7 then catches up
-    /// on each of them.
+    /// follow it through the next update's (`Agent::learn_while_acting`), and ALGO 7 then
+    /// catches up on each of them.
     ///
     /// # Errors
     /// If training diverges: a gradient step gives a non-finite loss, gradient norm or weight.
@@ -539,35 +544,19 @@ impl<G: Game> Agent<G> {
             let t = self.counters.agent_steps + 1;
             let mut last = player!(self, &mut metrics).step(net, &mut lives);
             // ALGO 6: every `train_every` steps after `learning_starts`, one gradient step on a
-            // sampled batch.
-            if self.train_due(t) {
-                self.sample_batch(t);
-                let stats = if self.config.act_while_learning && !last.ended {
-                    let (stats, played) = self.learn_while_acting(&mut lives, &mut metrics);
-                    last = played.unwrap_or(last);
-                    stats
-                } else {
-                    let start = Instant::now();
-                    let stats = self.learner.train_step(&self.batch);
-                    self.times.update += secs(start);
-                    stats
-                };
-                self.replay
-                    .update_priorities(&self.batch.entries, self.learner.td_errors());
-                self.counters.train_steps += 1;
-                self.check_finite(&stats, t)?;
-                metrics.add_train_step(&stats);
+            // sampled batch. (With `act_while_learning`, beside the agent steps that follow:
+            // `Agent::learn_while_acting`, which says where ALGO 7 has caught up to.)
+            let mut caught_up = t;
+            if self.train_due(t) && self.config.act_while_learning && !last.ended {
+                (last, caught_up) = self.learn_while_acting(t, &mut lives, &mut metrics)?;
+            } else if self.train_due(t) {
+                self.sample_batch();
+                let stats = self.train_step(t);
+                self.landed(&stats, t, &mut metrics)?;
             }
-            for t in t..=self.counters.agent_steps {
-                // ALGO 7: every `target_update` steps, copy the online network into the target.
-                if t.is_multiple_of(self.config.target_update) {
-                    self.learner.update_target();
-                }
-                // Not the algorithm: a reset of the dense layers, if `reset_dense_at` lists `t`.
-                if self.config.reset_dense_at.binary_search(&t).is_ok() {
-                    self.reset_dense(t);
-                }
-            }
+            // ALGO 7: every `target_update` steps, copy the online network into the target
+            // ([`Agent::refresh_target`], for each step played since).
+            self.refresh_target(caught_up..=self.counters.agent_steps);
             // ALGO 8: until the game is over or the step limit is hit.
             if last.ended {
                 break last.action;
@@ -579,51 +568,121 @@ impl<G: Game> Agent<G> {
         Ok(self.finish_episode(start, &metrics))
     }
 
-    /// ALGO 6's batch for the update at agent step `t`: sampled from the replay memory (with an
-    /// implicit quantile head, its fractions drawn too), the learning rate set for `t`.
-    fn sample_batch(&mut self, t: u64) {
+    /// ALGO 6's batch: sampled from the replay memory (with an implicit quantile head, its
+    /// fractions drawn too).
+    fn sample_batch(&mut self) {
         let start = Instant::now();
-        self.replay
-            .sample(&mut self.sample_rng, &self.table, &mut self.batch);
-        if let Some(iqn) = self.config.iqn() {
-            self.batch
-                .draw_fractions(&mut self.sample_rng, iqn.samples, iqn.target_samples);
-        }
-        self.learner.adam.lr = self.config.learning_rate(t) as f32;
+        let (config, table) = (&self.config, &self.table);
+        sample(
+            config,
+            &mut self.replay,
+            &mut self.sample_rng,
+            table,
+            &mut self.batch,
+        );
         self.times.sampling += secs(start);
     }
 
-    /// The update on the sampled batch, spawned into the pool ([`rayon::in_place_scope`]) while
-    /// this thread plays the agent steps before the next update (`train_every − 1`, fewer if the
-    /// episode ends) with a copy of the online network made before the update: the pool's other
-    /// threads learn while this one emulates and acts, then joins them. Returns the update's
-    /// statistics and the last step played, if any. The schedule depends on `train_every`
-    /// alone, and every kernel's result on its inputs alone, so a run's results do not depend
-    /// on the thread count; with one thread the block is played first, then the update.
-    fn learn_while_acting(
-        &mut self, lives: &mut Option<i32>, metrics: &mut EpisodeMetrics,
-    ) -> (StepStats, Option<Played>) {
-        let acting = self.acting.as_mut().expect("built for act_while_learning");
-        acting.copy_params_from(&self.learner.online);
-        let next_update = self.counters.agent_steps + self.config.train_every;
-        let (learner, batch) = (&mut self.learner, &self.batch);
-        let mut player = player!(self, metrics);
-        let (mut stats, mut update_secs, mut play_secs) = (None, 0.0, 0.0);
-        let mut update = || {
-            let start = Instant::now();
-            stats = Some(learner.train_step(batch));
-            update_secs = secs(start);
-        };
+    /// ALGO 6's gradient step on the sampled batch, at the learning rate of agent step `t`.
+    fn train_step(&mut self, t: u64) -> StepStats {
         let start = Instant::now();
-        let played = rayon::in_place_scope(|scope| {
-            scope.spawn(move |_| update());
-            let played = player.play_until(next_update, acting, lives);
-            play_secs = secs(start);
-            played
-        });
-        self.times.update += update_secs;
-        self.times.joining += secs(start) - play_secs;
-        (stats.expect("the update ran in the scope"), played)
+        self.learner.adam.lr = self.config.learning_rate(t) as f32;
+        let stats = self.learner.train_step(&self.batch);
+        self.times.update += secs(start);
+        stats
+    }
+
+    /// After an update at agent step `t` has landed: the sampled transitions' new priorities,
+    /// the count, the divergence guard and the episode's loss statistics.
+    fn landed(
+        &mut self, stats: &StepStats, t: u64, metrics: &mut EpisodeMetrics,
+    ) -> anyhow::Result<()> {
+        self.replay
+            .update_priorities(&self.batch.entries, self.learner.td_errors());
+        self.counters.train_steps += 1;
+        self.check_finite(stats, t)?;
+        metrics.add_train_step(stats);
+        Ok(())
+    }
+
+    /// ALGO 7 (and beside it the resets of `reset_dense_at`) for each agent step in `steps`.
+    fn refresh_target(&mut self, steps: std::ops::RangeInclusive<u64>) {
+        for t in steps {
+            // ALGO 7: every `target_update` steps, copy the online network into the target.
+            if t.is_multiple_of(self.config.target_update) {
+                self.learner.update_target();
+            }
+            // Not the algorithm: a reset of the dense layers, if `reset_dense_at` lists `t`.
+            if self.config.reset_dense_at.binary_search(&t).is_ok() {
+                self.reset_dense(t);
+            }
+        }
+    }
+
+    /// ALGO 6 beside ALGO 2–5, from the update at agent step `t` on. Each update is spawned
+    /// into the pool ([`rayon::in_place_scope`]) while this thread plays the block of agent steps
+    /// through the next update's (`train_every` of them, fewer if the episode ends), acting with
+    /// a copy of the online network made before the update, and samples the next update's
+    /// batch; then it joins the update. ALGO 7 catches up on the steps before the next update,
+    /// which then starts the same way, until a block ends the episode (an update due at its
+    /// last step then runs alone). Returns the last step played and the first step ALGO 7 has
+    /// not reached.
+    ///
+    /// The schedule depends on `train_every` alone, and every kernel's result on its inputs
+    /// alone, so a run's results do not depend on the thread count; with one thread each
+    /// block is played first, then its update.
+    fn learn_while_acting(
+        &mut self, mut t: u64, lives: &mut Option<i32>, metrics: &mut EpisodeMetrics,
+    ) -> anyhow::Result<(Played, u64)> {
+        self.sample_batch();
+        loop {
+            self.learner.adam.lr = self.config.learning_rate(t) as f32;
+            let acting = self.acting.as_mut().expect("built for act_while_learning");
+            acting.copy_params_from(&self.learner.online);
+            let through = t + self.config.train_every;
+            let (learner, batch) = (&mut self.learner, &self.batch);
+            let ahead = self.ahead.as_mut().expect("built for act_while_learning");
+            let sample_rng = &mut self.sample_rng;
+            let mut player = player!(self, metrics);
+            let (mut stats, mut update_secs, mut play_secs) = (None, 0.0, 0.0);
+            let mut update = || {
+                let start = Instant::now();
+                stats = Some(learner.train_step(batch));
+                update_secs = secs(start);
+            };
+            let start = Instant::now();
+            let (played, next) = rayon::in_place_scope(|scope| {
+                scope.spawn(move |_| update());
+                let played = player.play_through(through, acting, lives);
+                let p = &mut player;
+                let next = played
+                    .filter(|_| p.counters.agent_steps == through)
+                    .filter(|_| train_due(p.config, p.replay, ahead.len(), through))
+                    .map(|_| {
+                        let start = Instant::now();
+                        sample(p.config, p.replay, sample_rng, p.table, ahead);
+                        p.times.sampling += secs(start);
+                        through
+                    });
+                play_secs = secs(start);
+                (played.expect("a block plays at least one step"), next)
+            });
+            self.times.update += update_secs;
+            self.times.joining += secs(start) - play_secs;
+            self.landed(&stats.expect("the update ran in the scope"), t, metrics)?;
+            let Some(next) = next else {
+                return Ok((played, t));
+            };
+            self.refresh_target(t..=next - 1);
+            std::mem::swap(&mut self.batch, self.ahead.as_mut().expect("built"));
+            t = next;
+            if played.ended {
+                // The episode's last update, with nothing left to play beside it.
+                let stats = self.train_step(t);
+                self.landed(&stats, t, metrics)?;
+                return Ok((played, t));
+            }
+        }
     }
 
     /// Draws the layers after the convolutions afresh at agent step `t`
@@ -640,18 +699,9 @@ impl<G: Game> Agent<G> {
         self.learner.reset_dense(&fresh);
     }
 
-    /// Whether agent step `t` takes a gradient step: past `learning_starts`, every
-    /// `train_every` steps, once the replay memory holds `learning_starts` entries (always so in
-    /// a run that kept its memory; a run resumed without it refills it first) and a batch.
+    /// Whether agent step `t` takes a gradient step (the function `train_due`).
     fn train_due(&self, t: u64) -> bool {
-        let refilled = self
-            .config
-            .learning_starts
-            .min(self.replay.capacity() as u64);
-        t > self.config.learning_starts
-            && t.is_multiple_of(self.config.train_every)
-            && self.replay.len() as u64 >= refilled
-            && self.replay.can_sample(self.batch.len())
+        train_due(&self.config, &self.replay, self.batch.len(), t)
     }
 
     /// The divergence guard: an error naming the agent step `t` and the train step if the last
@@ -692,6 +742,29 @@ impl<G: Game> Agent<G> {
             mean_max_q: m.mean(m.q_sum),
             wall_seconds: self.counters.wall_seconds,
         }
+    }
+}
+
+/// Whether agent step `t` takes a gradient step: past `learning_starts`, every `train_every`
+/// steps, once the replay memory holds `learning_starts` entries (always so in a run that kept
+/// its memory; a run resumed without it refills it first) and a batch of `batch_len`.
+fn train_due(config: &Config, replay: &Replay, batch_len: usize, t: u64) -> bool {
+    let refilled = config.learning_starts.min(replay.capacity() as u64);
+    t > config.learning_starts
+        && t.is_multiple_of(config.train_every)
+        && replay.len() as u64 >= refilled
+        && replay.can_sample(batch_len)
+}
+
+/// ALGO 6's batch: `batch` sampled from the replay memory (with an implicit quantile head, its
+/// fractions drawn too).
+fn sample(
+    config: &Config, replay: &mut Replay, rng: &mut ChaCha8Rng, table: &[f32; 256],
+    batch: &mut Batch,
+) {
+    replay.sample(rng, table, batch);
+    if let Some(iqn) = config.iqn() {
+        batch.draw_fractions(rng, iqn.samples, iqn.target_samples);
     }
 }
 
