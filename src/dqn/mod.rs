@@ -1,5 +1,6 @@
 //! The Deep Q-Network: the Q-network, replay memory, configuration and training loop.
 
+mod acting;
 mod agent;
 pub mod checkpoint;
 mod config;
@@ -13,10 +14,8 @@ mod sumtree;
 pub mod tensorboard;
 mod trainer;
 
-pub use agent::{
-    greedy, play_evaluation_episode, random_play_inputs, Agent, AgentState, EpisodeRow, GameSlot,
-    LoopTimes,
-};
+pub use acting::{greedy, play_evaluation_episode, random_play_inputs};
+pub use agent::{Agent, AgentState, EpisodeRow, GameSlot, LoopTimes};
 pub use config::{
     merge_toml, Config, Pqn, Preset, ARTICLE_HIDDEN, IMPORTANCE_EXPONENT, MAX_PQN_GAMES,
     NO_EPISODE_LIMIT, PRIORITY_EXPONENT, STRONG_FRAMES, STRONG_V1_FRAMES,
