@@ -4,7 +4,8 @@
 //! forward pass (acting, on game frames: [`Sequential::infer`], whose sparse products depend on
 //! how many activations are zero, so `--checkpoint` also times a trained network's), the emulator's
 //! frames per second with the `article` preset's pipeline, and end-to-end agent steps per second
-//! of the `article` preset with learning on.
+//! of the `article` preset with learning on, and of the `strong` presets; `strong`'s loop, taking
+//! turns and acting beside learning, also at ε's floor with where each core's time goes.
 
 use std::path::PathBuf;
 use std::time::Instant;
