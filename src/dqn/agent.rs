@@ -584,16 +584,17 @@ impl<G: Game> Agent<G> {
             let (played, next) = rayon::in_place_scope(|scope| {
                 scope.spawn(move |_| update());
                 let played = player.play_through(through, acting, lives);
+                // The next update's batch, if the block reached its step and it is due.
                 let p = &mut player;
-                let next = played
-                    .filter(|_| p.counters.agent_steps == through)
-                    .filter(|_| train_due(p.config, p.replay, ahead.len(), through))
-                    .map(|_| {
-                        let start = Instant::now();
-                        sample(p.config, p.replay, sample_rng, p.table, ahead);
-                        p.times.sampling += secs(start);
-                        through
-                    });
+                let reached = p.counters.agent_steps == through;
+                let next = if reached && train_due(p.config, p.replay, ahead.len(), through) {
+                    let start = Instant::now();
+                    sample(p.config, p.replay, sample_rng, p.table, ahead);
+                    p.times.sampling += secs(start);
+                    Some(through)
+                } else {
+                    None
+                };
                 play_secs = secs(start);
                 (played.expect("a block plays at least one step"), next)
             });
