@@ -228,7 +228,8 @@ fn sgd_and_clipping() {
 /// `Adam::step_net` (the train step's, by [`Sequential::visit_params_mut`]) is `Adam::step`
 /// over `params_mut()` bit for bit, three steps of a network with a residual block (whose
 /// parameters are its convolutions'), a layer normalisation and a dense layer; and the visits
-/// see the parameters in `params()`'s order.
+/// see the parameters in `params()`'s order. `Sequential::copy_params_from`, which pairs them by
+/// the same visits, copies every one and refuses another architecture.
 #[test]
 fn adam_on_a_network_is_adam_over_its_parameter_list() {
     let net = || {
@@ -265,6 +266,21 @@ fn adam_on_a_network_is_adam_over_its_parameter_list() {
         assert_eq!(pa.value.data(), pb.value.data(), "{}", pa.name);
     }
     assert_eq!((adam_a.t, adam_a.m.len()), (adam_b.t, 8));
+    // Copying parameters (the target network's update) takes every one, in place, across a
+    // layer made of layers; another architecture is refused.
+    let mut c = net();
+    c.copy_params_from(&a);
+    for (pa, pc) in a.params().zip(c.params()) {
+        assert_eq!(pa.value.data(), pc.value.data(), "{}", pa.name);
+    }
+    let mut other = Sequential::<f64>::new();
+    other.push(invaders::layers::Residual::new("block", [5, 4, 3]));
+    other.push(invaders::layers::LayerNorm::new("ln", &[5, 4, 3]));
+    other.push(Flatten::new("flat"));
+    other.push(Dense::new("e", 60, 2));
+    let refused =
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| other.copy_params_from(&a)));
+    assert!(refused.is_err(), "a differently named layer is refused");
 }
 
 /// A dense layer and a convolution start from the article's He initialiser without being told:

@@ -140,12 +140,34 @@ impl<T: Float> Sequential<T> {
 
     /// Copies every parameter's values from a network of the same architecture (the DQN's
     /// target-network update).
+    ///
+    /// Layer by layer, each of the other's parameters to the one in the same place, found by a
+    /// visit that counts (a layer holds a few): it allocates nothing, as it runs once per block
+    /// of agent steps with `act_while_learning`.
     pub fn copy_params_from(&mut self, other: &Sequential<T>) {
-        let mut theirs = other.params();
-        for mine in self.params_mut() {
-            let p = theirs.next().expect("same architecture");
-            assert_eq!(mine.name, p.name, "copy_params_from: architectures differ");
-            mine.value.data_mut().copy_from_slice(p.value.data());
+        assert_eq!(
+            self.layers.len(),
+            other.layers.len(),
+            "copy_params_from: architectures differ"
+        );
+        for (mine, theirs) in self.layers.iter_mut().zip(&other.layers) {
+            let mut i = 0;
+            theirs.visit_params(&mut |p| {
+                let (mut j, mut found) = (0, false);
+                mine.visit_params_mut(&mut |q| {
+                    if j == i {
+                        assert_eq!(q.name, p.name, "copy_params_from: architectures differ");
+                        q.value.data_mut().copy_from_slice(p.value.data());
+                        found = true;
+                    }
+                    j += 1;
+                });
+                assert!(found, "copy_params_from: architectures differ");
+                i += 1;
+            });
+            let mut n = 0;
+            mine.visit_params(&mut |_| n += 1);
+            assert_eq!(n, i, "copy_params_from: architectures differ");
         }
     }
 
