@@ -5,7 +5,7 @@
 mod common;
 
 use common::{
-    abs64, avx512_expected, conv_and_dense_passes, dense_pass, f64s, on_exactly, on_path,
+    abs64, bf16_expected, conv_and_dense_passes, dense_pass, f64s, on_exactly, on_path,
     padded_input, reference_forward, reference_grads, rng, same_on_1_2_3_threads, set_params,
     uniform, Square,
 };
@@ -19,30 +19,6 @@ use invaders::tensor::{gather_gemm_bf16, gather_gemm_bf16_portable, GatherGemmBf
 use invaders::tensor::{ConvGeom, Padding, Tensor};
 use proptest::prelude::*;
 use rand::Rng;
-
-/// Whether this host should run the AVX512-BF16 loop: AVX-512 as the other kernels,
-/// AVX512-BF16, and `INVADERS_NO_BF16` unset; says once why not.
-fn bf16_expected() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    let has = is_x86_feature_detected!("avx512bf16");
-    #[cfg(not(target_arch = "x86_64"))]
-    let has = false;
-    let off = std::env::var_os("INVADERS_NO_BF16").is_some();
-    let on = avx512_expected() && has && !off;
-    if !on && (!has || off) {
-        static NOTE: std::sync::Once = std::sync::Once::new();
-        NOTE.call_once(|| {
-            let why = if off {
-                "INVADERS_NO_BF16 is set"
-            } else {
-                "this CPU lacks avx512bf16"
-            };
-            eprintln!("note: {why}: the bf16 tests check the reference loop")
-        });
-    }
-    assert_eq!(invaders::tensor::cpu::avx512_bf16(), on);
-    on
-}
 
 /// Whether this host runs the bf16 gather GEMM on AMX tiles: only where the AVX512-BF16 loops
 /// run ([`bf16_expected`]), the CPU has AMX-TILE and AMX-BF16 (CPUID leaf 7, EDX bits 24 and

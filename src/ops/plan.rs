@@ -26,8 +26,9 @@
 //!
 //! With [`Precision::Bf16`] on a CPU with AVX512-BF16 ([`bf16_runs`]), the training products
 //! take the bf16 gather GEMM ([`crate::tensor::GatherGemmBf16`]: operands rounded to bf16, sums
-//! in f32) wherever its pairs of reduction steps exist, [`Kernel::GatherBf16`] and
-//! [`Kernel::PhasesBf16`] (see [`conv`] and [`dense`]); acting keeps the sparse and background
+//! in f32) wherever its pairs of reduction steps exist, [`Kernel::GatherBf16`],
+//! [`Kernel::PhasesBf16`] and Winograd's products in bf16, [`Kernel::WinogradBf16`] (see
+//! [`conv`] and [`dense`]); acting keeps the sparse and background
 //! products, which are faster at batch 1 than any dense product. Without AVX512-BF16 everything
 //! runs as in f32.
 //!
@@ -135,6 +136,10 @@ pub enum Kernel {
     Scatter,
     /// Winograd's minimal filtering ([`crate::tensor::winograd_conv`]).
     Winograd(WinogradKind),
+    /// Winograd's minimal filtering with its products in bf16
+    /// ([`crate::tensor::winograd_conv_bf16`]): transforms in f32, the transformed operands
+    /// rounded to bf16, sums in f32.
+    WinogradBf16(WinogradKind),
     /// The bf16 gather GEMM ([`crate::tensor::GatherGemmBf16`]): a convolution's forward pass
     /// (pairs of patch values, next to each other in a pixel's channels) and weight gradient
     /// (pairs of horizontally adjacent output pixels), a dense layer's three products.
@@ -174,6 +179,22 @@ pub const WINOGRAD_MIN_BATCH: usize = 8;
 /// hide the memory behind arithmetic) measured the train step 2% slower by F(2×2, 2×2) over
 /// 4×4 blocks, and its weight gradient alone level. Between 4 and 32 nothing was measured.
 pub const WINOGRAD_MIN_INPUT_CHANNELS: usize = 32;
+
+/// Whether Winograd's `kind` pays in bf16 ([`Kernel::WinogradBf16`]) for a forward pass or
+/// (`input_grad`) an input gradient, against the direct bf16 product: that one does twice an
+/// f32 FMA's multiply-adds per instruction, so Winograd's saving must beat its transforms at
+/// that rate. Measured on AMD Zen 4, one thread, batch 48 (`kbench conv3w fwd 300 48 bf16`,
+/// `kbench net x 100 bf16`, 2026-12-07): conv3's forward pass 1.44–1.50 ms against the
+/// direct 1.88–1.90 (F(2×2, 3×3)), its input gradient 1.9 against 2.3; conv2's forward 1.47
+/// against 1.64–1.87 (F(2×2, 2×2) over 2×2 blocks), but its input gradient (the adjoint over
+/// blocks of one pixel, whose 64 transformed channels give short reductions) 2.4 against 1.8
+/// by phases ([`Kernel::PhasesBf16`]).
+pub fn winograd_bf16_pays(kind: WinogradKind, input_grad: bool) -> bool {
+    match kind {
+        WinogradKind::F2x3 => true,
+        WinogradKind::S2d(_) => !input_grad,
+    }
+}
 
 /// Whether Winograd pays for a layer of geometry `g` ([`WINOGRAD_MIN_INPUT_CHANNELS`]):
 /// the network builder's default for [`crate::layers::Conv2d::with_winograd`].
@@ -248,34 +269,51 @@ impl ConvPlan {
 ///   phases (each `dX` value written once); for a padded copy, scattered onto the padded
 ///   gradient.
 ///
-/// In bf16 ([`bf16_runs`]; f32 layers only, as [`Float::simd`]) the same products take
-/// [`Kernel::GatherBf16`] instead, without Winograd (the bf16 product does twice the
-/// multiply-adds per instruction, more than Winograd saves on these reductions), wherever its
-/// pairs exist: the forward pass where a patch row (`KW·Cin` values) has an even length, the
-/// weight gradient where an output row (`OW` pixels) has, the input gradient
-/// ([`Kernel::PhasesBf16`]) for an input read in place with an even `Cout`.
+/// In bf16 ([`bf16_runs`]; f32 layers only, as [`Float::simd`]) the products take bf16
+/// kernels wherever their pairs exist:
+/// - [`Kernel::WinogradBf16`] where f32 would take Winograd, [`winograd_bf16_pays`] for the
+///   kind and product, and the transformed channels come in pairs (forward: `s²·Cin` even;
+///   input gradient: `Cout` even): conv3's forward pass and input gradient, conv2's forward;
+/// - else [`Kernel::GatherBf16`]: the forward pass where a patch row (`KW·Cin` values) has an
+///   even length, the weight gradient (always direct: Winograd's adjoint is not written in
+///   bf16) where an output row (`OW` pixels) has;
+/// - else, for the input gradient of an input read in place with an even `Cout`,
+///   [`Kernel::PhasesBf16`];
+/// - else the f32 kernel.
 pub fn conv<T: Float>(
     g: &ConvGeom, n: usize, winograd: bool, in_border: Border, precision: Precision,
 ) -> ConvPlan {
     if T::simd() && bf16_runs(precision) {
         let f32_plan = conv::<T>(g, n, false, in_border, Precision::F32);
         let pick = |ok: bool, bf16: Kernel, other: Kernel| if ok { bf16 } else { other };
+        // Winograd in bf16 where f32 would take it, the kind pays in bf16 and the transformed
+        // channels pair up (forward: `s²·Cin` of them; input gradient: `Cout`).
+        let wino = conv::<T>(g, n, winograd, in_border, Precision::F32);
+        let wino_bf16 = |k: Kernel, channels: usize, input_grad: bool| match k {
+            Kernel::Winograd(kind)
+                if winograd_bf16_pays(kind, input_grad) && channels.is_multiple_of(2) =>
+            {
+                Some(Kernel::WinogradBf16(kind))
+            }
+            _ => None,
+        };
+        let s2 = winograd_kind(g).map_or(1, |k| k.block() * k.block());
         return ConvPlan {
-            forward: pick(
+            forward: wino_bf16(wino.forward, s2 * g.cin, false).unwrap_or(pick(
                 (g.kw * g.cin).is_multiple_of(2),
                 Kernel::GatherBf16,
                 f32_plan.forward,
-            ),
+            )),
             weight_grad: pick(
                 g.ow.is_multiple_of(2),
                 Kernel::GatherBf16,
                 f32_plan.weight_grad,
             ),
-            input_grad: pick(
+            input_grad: wino_bf16(wino.input_grad, g.cout, true).unwrap_or(pick(
                 f32_plan.input_grad == Kernel::Phases && g.cout.is_multiple_of(2),
                 Kernel::PhasesBf16,
                 f32_plan.input_grad,
-            ),
+            )),
         };
     }
     if !T::gather_simd() {

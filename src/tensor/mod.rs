@@ -42,8 +42,9 @@ pub use gemm::{gemm, gemm_faer, gemm_matrixmultiply, gemm_reference, Op};
 pub use sparse::{Nonzeros, SparseConv};
 pub use transpose::transpose;
 pub use winograd::{
-    winograd_conv, winograd_filters, winograd_filters_s2d, winograd_filters_s2d_adjoint,
-    winograd_wgrad, WinogradKind, WinogradScratch, WinogradShape, MAX_PIECES, SKIP_OUTPUT,
+    winograd_conv, winograd_conv_bf16, winograd_filters, winograd_filters_bf16,
+    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, WinogradKind,
+    WinogradScratch, WinogradShape, MAX_PIECES, SKIP_OUTPUT,
 };
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};

@@ -613,3 +613,27 @@ pub fn reference_dz<T: Float>(dy: &[T], y: &[T], at: &[usize], c: usize, relu: b
     }
     dz
 }
+
+/// Whether this host should run the AVX512-BF16 loop: AVX-512 as the other kernels,
+/// AVX512-BF16, and `INVADERS_NO_BF16` unset; says once why not.
+pub fn bf16_expected() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    let has = is_x86_feature_detected!("avx512bf16");
+    #[cfg(not(target_arch = "x86_64"))]
+    let has = false;
+    let off = std::env::var_os("INVADERS_NO_BF16").is_some();
+    let on = avx512_expected() && has && !off;
+    if !on && (!has || off) {
+        static NOTE: std::sync::Once = std::sync::Once::new();
+        NOTE.call_once(|| {
+            let why = if off {
+                "INVADERS_NO_BF16 is set"
+            } else {
+                "this CPU lacks avx512bf16"
+            };
+            eprintln!("note: {why}: the bf16 tests check the reference loop")
+        });
+    }
+    assert_eq!(invaders::tensor::cpu::avx512_bf16(), on);
+    on
+}

@@ -15,10 +15,10 @@ use crate::tensor::gather_bf16::{
     f32s, f32s_mut, pack_pairs, pack_shifted, pair_shifted, pair_steps, round_into, to_bf16_vec,
 };
 use crate::tensor::{
-    fill_iota, gather_gemm_bf16, pad_input, unpad_input, winograd_conv, winograd_filters,
-    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, Background, ConvGeom,
-    Float, GatherGemm, GatherGemmBf16, Init, Nonzeros, ScatterGemm, SparseConv, Tensor,
-    WinogradKind, WinogradScratch, WinogradShape, SKIP_OUTPUT,
+    fill_iota, gather_gemm_bf16, pad_input, unpad_input, winograd_conv, winograd_conv_bf16,
+    winograd_filters, winograd_filters_bf16, winograd_filters_s2d, winograd_filters_s2d_adjoint,
+    winograd_wgrad, Background, ConvGeom, Float, GatherGemm, GatherGemmBf16, Init, Nonzeros,
+    ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch, WinogradShape, SKIP_OUTPUT,
 };
 use rayon::prelude::*;
 
@@ -209,12 +209,13 @@ impl<T: Float> ConvOps<T> {
         });
     }
 
-    /// `Z = b + x·W` by Winograd's minimal filtering ([`Kernel::Winograd`]): VALID over the
-    /// (padded) input, every input tile (4×4 pixels, or 3×3 blocks of s×s) of a 2×2 output
-    /// tile.
+    /// `Z = b + x·W` by Winograd's minimal filtering ([`Kernel::Winograd`], or
+    /// [`Kernel::WinogradBf16`] with `bf16`): VALID over the (padded) input, every input tile
+    /// (4×4 pixels, or 3×3 blocks of s×s) of a 2×2 output tile.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn forward_winograd(
         &mut self, s: &ConvSpec, x: &Tensor<T>, kind: WinogradKind, w: &[T], b: &[T],
-        y: &mut Tensor<T>,
+        y: &mut Tensor<T>, bf16: bool,
     ) {
         let g = s.geom;
         self.read_input(&g, x);
@@ -227,8 +228,14 @@ impl<T: Float> ConvOps<T> {
             .interior_offsets(1, g.oh, g.ow, g.cout, &mut f.wino_pix);
         let shape = Self::winograd_shape(s, x.batch(), kind);
         let a = input(&g, x, &f.xpad);
-        let (u, pix) = (&f.wino_u, &f.wino_pix);
-        winograd_conv(shape, a, u, Some(b), s.relu, y.data_mut(), pix, &mut f.wino);
+        let (u, pix, y) = (&f.wino_u, &f.wino_pix, y.data_mut());
+        if bf16 {
+            winograd_filters_bf16(f32s(u), shape.channels(), g.cout, &mut f.bf_w);
+            let ub = &f.bf_w;
+            winograd_conv_bf16(shape, a, ub, Some(b), s.relu, y, pix, &mut f.wino);
+        } else {
+            winograd_conv(shape, a, u, Some(b), s.relu, y, pix, &mut f.wino);
+        }
     }
 
     /// `dW[k, co] += Σ_m xpad[pixels[m] + patch[k]]·dZ[m, co]` by the gather GEMM.
@@ -288,10 +295,12 @@ impl<T: Float> ConvOps<T> {
     }
 
     /// `dX` by Winograd, for an input read in place: the adjoint convolution of `dZ`, its
-    /// filters into `wino_u` and where each output goes into `wino_pix`.
+    /// filters into `wino_u` and where each output goes into `wino_pix`; its products in bf16
+    /// with `bf16` ([`Kernel::WinogradBf16`]).
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn dx_winograd(
         &mut self, s: &ConvSpec, n: usize, kind: WinogradKind, dz: &[T], w: &[T],
-        dx: &mut Tensor<T>,
+        dx: &mut Tensor<T>, bf16: bool,
     ) {
         let (g, b) = (s.geom, s.in_border);
         let f = &mut self.fast;
@@ -353,8 +362,13 @@ impl<T: Float> ConvOps<T> {
                 }
             }
         };
-        let (u, pix) = (&f.wino_u, &f.wino_pix);
-        winograd_conv(shape, dz, u, None, false, dx.data_mut(), pix, &mut f.wino);
+        let (u, pix, dx) = (&f.wino_u, &f.wino_pix, dx.data_mut());
+        if bf16 {
+            winograd_filters_bf16(f32s(u), shape.channels(), shape.co, &mut f.bf_w);
+            winograd_conv_bf16(shape, dz, &f.bf_w, None, false, dx, pix, &mut f.wino);
+        } else {
+            winograd_conv(shape, dz, u, None, false, dx, pix, &mut f.wino);
+        }
     }
 
     /// `dX` for an input read directly, by phases: a gather GEMM per `(iy mod SH, ix mod SW)`.

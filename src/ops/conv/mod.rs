@@ -129,7 +129,8 @@ impl<T: Float> ConvOps<T> {
             Kernel::Im2col => self.forward_im2col(&s, x, w, b, y),
             Kernel::Gather => self.forward_gather(&s, x, w, b, y),
             Kernel::GatherBf16 => self.forward_bf16(&s, x, w, b, y),
-            Kernel::Winograd(kind) => self.forward_winograd(&s, x, kind, w, b, y),
+            Kernel::Winograd(kind) => self.forward_winograd(&s, x, kind, w, b, y, false),
+            Kernel::WinogradBf16(kind) => self.forward_winograd(&s, x, kind, w, b, y, true),
             k => unreachable!("{k:?} computes no forward product"),
         }
         self.zero_border(&s, n, y);
@@ -204,7 +205,8 @@ impl<T: Float> ConvOps<T> {
         let kernel = s.plan::<T>(n).input_grad();
         match kernel {
             Kernel::Im2col => self.dx_im2col(&s, n, dz, w, dx),
-            Kernel::Winograd(kind) => self.dx_winograd(&s, n, kind, dz, w, dx),
+            Kernel::Winograd(kind) => self.dx_winograd(&s, n, kind, dz, w, dx, false),
+            Kernel::WinogradBf16(kind) => self.dx_winograd(&s, n, kind, dz, w, dx, true),
             Kernel::Phases => self.dx_by_phases(&s, n, dz, w, dx, false),
             Kernel::PhasesBf16 => self.dx_by_phases(&s, n, dz, w, dx, true),
             Kernel::Scatter => self.dx_by_scatter(&s, n, dz, w, dx),

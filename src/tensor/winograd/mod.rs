@@ -62,6 +62,7 @@ pub use filters::{winograd_filters, winograd_filters_s2d, winograd_filters_s2d_a
 pub use wgrad::winograd_wgrad;
 
 use super::cpu::{self, took_path, Family, Path};
+use super::gather_bf16::{f32s, f32s_mut, gather_gemm_bf16, round_into, GatherGemmBf16};
 use super::{fill_iota, Float, GatherGemm, Init};
 use filters::*;
 use transforms::*;
@@ -100,7 +101,7 @@ impl WinogradKind {
     }
 
     /// The side of a block in pixels (1 for F(2×2, 3×3)).
-    pub(super) fn block(self) -> usize {
+    pub fn block(self) -> usize {
         match self {
             WinogradKind::F2x3 => 1,
             WinogradKind::S2d(s) => s,
@@ -157,7 +158,7 @@ impl WinogradShape {
     }
 
     /// Channels of a transformed place: `s²·I`.
-    fn channels(&self) -> usize {
+    pub fn channels(&self) -> usize {
         self.kind.block() * self.seg()
     }
 
@@ -197,6 +198,17 @@ struct Part<T> {
     m: Vec<T>,
     p: Vec<usize>,
     q: Vec<usize>,
+    /// In bf16 ([`winograd_conv_bf16`]): `V` rounded, and the pair table `0, 2, 4, …`.
+    vb: Vec<u16>,
+    bq: Vec<usize>,
+}
+
+/// The transformed filters a Winograd convolution multiplies by: in the input's precision, or
+/// in bf16 pairs ([`winograd_conv_bf16`]).
+#[derive(Clone, Copy)]
+enum Filters<'a, T> {
+    Same(&'a [T]),
+    Bf16(&'a [u16]),
 }
 
 /// The convolution of [`WinogradShape`] by its [`WinogradKind`]: `u` from [`winograd_filters`]
@@ -209,9 +221,61 @@ pub fn winograd_conv<T: Float>(
     s: WinogradShape, x: &[T], u: &[T], bias: Option<&[T]>, relu: bool, out: &mut [T],
     out_pixels: &[usize], scratch: &mut WinogradScratch<T>,
 ) {
+    let u = Filters::Same(u);
+    conv_with(s, x, u, bias, relu, out, out_pixels, scratch);
+}
+
+/// [`winograd_conv`] with the 16 (or 9) products in bf16 ([`crate::tensor::GatherGemmBf16`]):
+/// each chunk's transformed input `V` is rounded to bf16, and `u` holds the transformed
+/// filters rounded to bf16, in pairs of transformed channels as the bf16 product reads them
+/// ([`winograd_filters_bf16`]); the products' sums, and both transforms, stay f32. For f32
+/// layers with an even `s²I`.
+///
+/// Error: with `V` and `U` rounded, each product `M_ξ[tile, o]` is within
+/// [`crate::tensor::bf16::dot_error_bound`] of `Σ_i |V_ξ[tile, i]·U_ξ[i, o]|` of the exact one;
+/// the output transform adds at most `Σ_ξ |A_ξ|` of those. Taking the transforms over absolute
+/// values (`|Bᵀ|·|d|·|B|`, `|G|·|g|·|Gᵀ|`) bounds it, the transforms' own f32 roundings
+/// included (tested in `tests/bf16.rs`). For conv3's shape that is about 1.5 times the direct
+/// bf16 product's error in norm (`tools/winograd_bf16_error.py`).
+#[allow(clippy::too_many_arguments)]
+pub fn winograd_conv_bf16<T: Float>(
+    s: WinogradShape, x: &[T], u: &[u16], bias: Option<&[T]>, relu: bool, out: &mut [T],
+    out_pixels: &[usize], scratch: &mut WinogradScratch<T>,
+) {
+    assert!(
+        s.channels().is_multiple_of(2),
+        "winograd_conv_bf16: an odd number of transformed channels ({})",
+        s.channels()
+    );
+    f32s(x);
+    let u = Filters::Bf16(u);
+    conv_with(s, x, u, bias, relu, out, out_pixels, scratch);
+}
+
+/// The transformed filters `u` of [`winograd_filters`] (or its kin) for
+/// [`winograd_conv_bf16`]: each place's `[s²I, O]` matrix rounded to bf16 with pairs of rows
+/// (transformed channels `2c`, `2c + 1`) interleaved. `channels` is `s²I` (even).
+pub fn winograd_filters_bf16(u: &[f32], channels: usize, co: usize, dst: &mut Vec<u16>) {
+    assert!(
+        channels.is_multiple_of(2) && u.len().is_multiple_of(channels * co.max(1)),
+        "winograd_filters_bf16: {channels} channels"
+    );
+    // The pairs never straddle two places: each place has an even number of rows.
+    super::gather_bf16::pack_pairs(u, u.len() / co.max(1), co, co, dst);
+}
+
+#[allow(clippy::too_many_arguments)]
+fn conv_with<T: Float>(
+    s: WinogradShape, x: &[T], u: Filters<'_, T>, bias: Option<&[T]>, relu: bool, out: &mut [T],
+    out_pixels: &[usize], scratch: &mut WinogradScratch<T>,
+) {
     assert_eq!(x.len(), s.n * s.h * s.w * s.ci, "winograd_conv: input");
+    let u_len = match u {
+        Filters::Same(u) => u.len(),
+        Filters::Bf16(u) => u.len(),
+    };
     assert_eq!(
-        u.len(),
+        u_len,
         s.places() * s.channels() * s.co,
         "winograd_conv: filters"
     );
@@ -319,7 +383,7 @@ struct Chunk<'a, T> {
     fast: Transforms,
     images: usize,
     x: &'a [T],
-    u: &'a [T],
+    u: Filters<'a, T>,
     bias: Option<&'a [T]>,
     relu: bool,
     /// The input offsets of [`WinogradScratch::pixels`].
@@ -346,25 +410,60 @@ impl<T: Float> Chunk<'_, T> {
             part.zeros.resize(seg, T::zero());
         }
         let (v, m) = (&mut part.v[..nv], &mut part.m[..nm]);
-        self.input(v, &part.zeros[..seg]);
+        if let Filters::Bf16(_) = self.u {
+            // Each tile transformed into the first tile's block of `v` (in L1), then rounded
+            // into `vb`: `V` in f32 is never written out whole.
+            if part.vb.len() < nv {
+                part.vb.resize(nv, 0);
+            }
+            self.input_bf16(v, &mut part.vb[..nv], &part.zeros[..seg]);
+        } else {
+            self.input(v, &part.zeros[..seg]);
+        }
         // M_ξ = V_ξ · U_ξ: rows are tiles (`v_stride` apart in V, `m_stride` in M), the
         // reduction runs over the transformed channels.
         fill_iota(&mut part.p, rows, vs);
-        fill_iota(&mut part.q, ch, 1);
-        for xi in 0..places {
-            T::gather_gemm(GatherGemm {
-                a: &v[xi * ch..],
-                p: &part.p,
-                q: &part.q,
-                b: &self.u[xi * ch * s.co..][..ch * s.co],
-                ldb: s.co,
-                n: s.co,
-                c: &mut m[xi * s.co..],
-                ldc: ms,
-                c_rows: None,
-                init: Init::Zero,
-                relu: false,
-            });
+        match self.u {
+            Filters::Same(u) => {
+                fill_iota(&mut part.q, ch, 1);
+                for xi in 0..places {
+                    T::gather_gemm(GatherGemm {
+                        a: &v[xi * ch..],
+                        p: &part.p,
+                        q: &part.q,
+                        b: &u[xi * ch * s.co..][..ch * s.co],
+                        ldb: s.co,
+                        n: s.co,
+                        c: &mut m[xi * s.co..],
+                        ldc: ms,
+                        c_rows: None,
+                        init: Init::Zero,
+                        relu: false,
+                    });
+                }
+            }
+            Filters::Bf16(u) => {
+                // The same products by pairs of transformed channels: pair `k` of a row is
+                // channels `2k`, `2k + 1` of `V` in bf16.
+                let vb = &part.vb[..nv];
+                fill_iota(&mut part.bq, ch / 2, 2);
+                let m = f32s_mut(m);
+                for xi in 0..places {
+                    gather_gemm_bf16(GatherGemmBf16 {
+                        a: &vb[xi * ch..],
+                        p: &part.p,
+                        q: &part.bq,
+                        b: &u[xi * ch * s.co..][..ch * s.co],
+                        ldb: s.co,
+                        n: s.co,
+                        c: &mut m[xi * s.co..],
+                        ldc: ms,
+                        c_rows: None,
+                        init: Init::Zero,
+                        relu: false,
+                    });
+                }
+            }
         }
         self.output(m, out);
     }
@@ -380,6 +479,22 @@ impl<T: Float> Chunk<'_, T> {
             for starts in self.pixels.chunks_exact(places * blk) {
                 let vt = tiles.next().expect("one V block per tile");
                 input_tile_any(&s, img, zeros, starts, vt, s.channels(), self.fast.input);
+            }
+        }
+    }
+
+    /// [`Chunk::input`] rounded to bf16 into `vb` (the same layout), each tile transformed in
+    /// f32 into `v`'s first block and rounded from there ([`round_into`]: to nearest even).
+    fn input_bf16(&self, v: &mut [T], vb: &mut [u16], zeros: &[T]) {
+        let s = self.s;
+        let (places, blk, ch) = (s.places(), s.kind.block(), s.channels());
+        let vt = &mut v[..s.v_stride()];
+        let mut tiles = vb.chunks_exact_mut(s.v_stride());
+        for img in self.x.chunks_exact(s.h * s.w * s.ci) {
+            for starts in self.pixels.chunks_exact(places * blk) {
+                let vbt = tiles.next().expect("one V block per tile");
+                input_tile_any(&s, img, zeros, starts, vt, ch, self.fast.input);
+                round_into(f32s(&vt[..places * ch]), &mut vbt[..places * ch]);
             }
         }
     }

@@ -85,7 +85,7 @@ pub fn winograd_wgrad<T: Float>(
                     fast,
                     images: 1,
                     x,
-                    u: &[],
+                    u: Filters::Same(&[]),
                     bias: None,
                     relu: false,
                     pixels,
