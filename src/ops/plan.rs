@@ -180,19 +180,22 @@ pub const WINOGRAD_MIN_BATCH: usize = 8;
 /// 4×4 blocks, and its weight gradient alone level. Between 4 and 32 nothing was measured.
 pub const WINOGRAD_MIN_INPUT_CHANNELS: usize = 32;
 
-/// Whether Winograd's `kind` pays in bf16 ([`Kernel::WinogradBf16`]) for a forward pass or
-/// (`input_grad`) an input gradient, against the direct bf16 product: that one does twice an
-/// f32 FMA's multiply-adds per instruction, so Winograd's saving must beat its transforms at
-/// that rate. Measured on AMD Zen 4, one thread, batch 48 (`kbench conv3w fwd 300 48 bf16`,
-/// `kbench net x 100 bf16`, 2026-12-07): conv3's forward pass 1.44–1.50 ms against the
-/// direct 1.88–1.90 (F(2×2, 3×3)), its input gradient 1.9 against 2.3; conv2's forward 1.47
-/// against 1.64–1.87 (F(2×2, 2×2) over 2×2 blocks), but its input gradient (the adjoint over
-/// blocks of one pixel, whose 64 transformed channels give short reductions) 2.4 against 1.8
-/// by phases ([`Kernel::PhasesBf16`]).
-pub fn winograd_bf16_pays(kind: WinogradKind, input_grad: bool) -> bool {
-    match kind {
-        WinogradKind::F2x3 => true,
-        WinogradKind::S2d(_) => !input_grad,
+/// Whether Winograd's `kind` pays in bf16 ([`Kernel::WinogradBf16`]) for a convolution's
+/// `product`, against the direct bf16 product: that one does twice an f32 FMA's multiply-adds
+/// per instruction, so Winograd's saving must beat its transforms at that rate. Measured on
+/// AMD Zen 4, one thread, batch 48 (`kbench conv3w fwd 300 48 bf16` and the like, `kbench net
+/// x 100 bf16`, 2026-12-07, alternating):
+/// - conv3 (F(2×2, 3×3)): forward 1.44–1.50 ms against the direct 1.88–1.90, input gradient
+///   1.9 against 2.3, weight gradient 1.65–1.81 against 1.94–2.04 (6 rounds);
+/// - conv2 (F(2×2, 2×2) over 2×2 blocks): forward 1.47 against 1.64–1.87, weight gradient
+///   1.80–2.24 against 2.04–2.26 (6 rounds); but its input gradient (the adjoint over blocks of
+///   one pixel, whose 64 transformed channels give short reductions) 2.4 against 1.8 by phases
+///   ([`Kernel::PhasesBf16`]).
+pub fn winograd_bf16_pays(kind: WinogradKind, product: Product) -> bool {
+    match (kind, product) {
+        (WinogradKind::F2x3, _) => true,
+        (WinogradKind::S2d(_), Product::ConvInputGrad) => false,
+        (WinogradKind::S2d(_), _) => true,
     }
 }
 
@@ -272,11 +275,11 @@ impl ConvPlan {
 /// In bf16 ([`bf16_runs`]; f32 layers only, as [`Float::simd`]) the products take bf16
 /// kernels wherever their pairs exist:
 /// - [`Kernel::WinogradBf16`] where f32 would take Winograd, [`winograd_bf16_pays`] for the
-///   kind and product, and the transformed channels come in pairs (forward: `s²·Cin` even;
-///   input gradient: `Cout` even): conv3's forward pass and input gradient, conv2's forward;
+///   kind and product, and the pairs exist (forward: `s²·Cin` even transformed channels; input
+///   gradient: `Cout` even; weight gradient: pairs of tiles, always): conv3's three products,
+///   conv2's forward pass and weight gradient;
 /// - else [`Kernel::GatherBf16`]: the forward pass where a patch row (`KW·Cin` values) has an
-///   even length, the weight gradient (always direct: Winograd's adjoint is not written in
-///   bf16) where an output row (`OW` pixels) has;
+///   even length, the weight gradient where an output row (`OW` pixels) has;
 /// - else, for the input gradient of an input read in place with an even `Cout`,
 ///   [`Kernel::PhasesBf16`];
 /// - else the f32 kernel.
@@ -289,9 +292,9 @@ pub fn conv<T: Float>(
         // Winograd in bf16 where f32 would take it, the kind pays in bf16 and the transformed
         // channels pair up (forward: `s²·Cin` of them; input gradient: `Cout`).
         let wino = conv::<T>(g, n, winograd, in_border, Precision::F32);
-        let wino_bf16 = |k: Kernel, channels: usize, input_grad: bool| match k {
+        let wino_bf16 = |k: Kernel, channels: usize, product: Product| match k {
             Kernel::Winograd(kind)
-                if winograd_bf16_pays(kind, input_grad) && channels.is_multiple_of(2) =>
+                if winograd_bf16_pays(kind, product) && channels.is_multiple_of(2) =>
             {
                 Some(Kernel::WinogradBf16(kind))
             }
@@ -299,17 +302,18 @@ pub fn conv<T: Float>(
         };
         let s2 = winograd_kind(g).map_or(1, |k| k.block() * k.block());
         return ConvPlan {
-            forward: wino_bf16(wino.forward, s2 * g.cin, false).unwrap_or(pick(
+            forward: wino_bf16(wino.forward, s2 * g.cin, Product::ConvForward).unwrap_or(pick(
                 (g.kw * g.cin).is_multiple_of(2),
                 Kernel::GatherBf16,
                 f32_plan.forward,
             )),
-            weight_grad: pick(
+            // The weight gradient's pairs are pairs of tiles (any count: an odd one is padded).
+            weight_grad: wino_bf16(wino.weight_grad, 2, Product::ConvWeightGrad).unwrap_or(pick(
                 g.ow.is_multiple_of(2),
                 Kernel::GatherBf16,
                 f32_plan.weight_grad,
-            ),
-            input_grad: wino_bf16(wino.input_grad, g.cout, true).unwrap_or(pick(
+            )),
+            input_grad: wino_bf16(wino.input_grad, g.cout, Product::ConvInputGrad).unwrap_or(pick(
                 f32_plan.input_grad == Kernel::Phases && g.cout.is_multiple_of(2),
                 Kernel::PhasesBf16,
                 f32_plan.input_grad,

@@ -155,15 +155,25 @@ avx512_twin! {
 /// matrix (row stride `ld`, `cols` columns): pairs of rows interleaved, as
 /// [`GatherGemmBf16::b`] reads them with `ldb = cols`. Returns the number of pairs.
 pub fn pack_pairs(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut Vec<u16>) -> usize {
+    let pairs = rows.div_ceil(2);
+    dst.resize(2 * pairs * cols, 0);
+    pack_pairs_into(src, rows, cols, ld, dst);
+    pairs
+}
+
+/// [`pack_pairs`] into a slice of exactly `2·⌈rows/2⌉·cols` values.
+pub fn pack_pairs_into(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut [u16]) {
     assert!(cols <= ld || rows <= 1, "pack_pairs: cols > ld");
     assert!(
         rows == 0 || src.len() >= (rows - 1) * ld + cols,
         "pack_pairs: source too short"
     );
-    let pairs = rows.div_ceil(2);
-    dst.resize(2 * pairs * cols, 0);
+    assert_eq!(
+        dst.len(),
+        2 * rows.div_ceil(2) * cols,
+        "pack_pairs: destination"
+    );
     pack_rows(src, rows, cols, ld, dst);
-    pairs
 }
 
 /// A value as the bf16 bits a pair holds: an f32 rounded to nearest even, a bf16 as it is.

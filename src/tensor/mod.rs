@@ -43,8 +43,8 @@ pub use sparse::{Nonzeros, SparseConv};
 pub use transpose::transpose;
 pub use winograd::{
     winograd_conv, winograd_conv_bf16, winograd_filters, winograd_filters_bf16,
-    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, WinogradKind,
-    WinogradScratch, WinogradShape, MAX_PIECES, SKIP_OUTPUT,
+    winograd_filters_s2d, winograd_filters_s2d_adjoint, winograd_wgrad, winograd_wgrad_bf16,
+    WinogradKind, WinogradScratch, WinogradShape, MAX_PIECES, SKIP_OUTPUT,
 };
 
 use ndarray::{ArrayViewD, ArrayViewMutD, IxDyn};

@@ -17,8 +17,9 @@ use crate::tensor::gather_bf16::{
 use crate::tensor::{
     fill_iota, gather_gemm_bf16, pad_input, unpad_input, winograd_conv, winograd_conv_bf16,
     winograd_filters, winograd_filters_bf16, winograd_filters_s2d, winograd_filters_s2d_adjoint,
-    winograd_wgrad, Background, ConvGeom, Float, GatherGemm, GatherGemmBf16, Init, Nonzeros,
-    ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch, WinogradShape, SKIP_OUTPUT,
+    winograd_wgrad, winograd_wgrad_bf16, Background, ConvGeom, Float, GatherGemm, GatherGemmBf16,
+    Init, Nonzeros, ScatterGemm, SparseConv, Tensor, WinogradKind, WinogradScratch, WinogradShape,
+    SKIP_OUTPUT,
 };
 use rayon::prelude::*;
 
@@ -284,14 +285,21 @@ impl<T: Float> ConvOps<T> {
         ));
     }
 
-    /// `dW` by Winograd: the products' adjoints over the (padded) input's tiles.
+    /// `dW` by Winograd: the products' adjoints over the (padded) input's tiles, in bf16 with
+    /// `bf16` ([`Kernel::WinogradBf16`]).
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn wgrad_winograd(
         &mut self, s: &ConvSpec, x: &Tensor<T>, kind: WinogradKind, dz: &[T], dw: &mut [T],
+        bf16: bool,
     ) {
         self.check_forward(s, x.batch());
         let shape = Self::winograd_shape(s, x.batch(), kind);
         let a = input(&s.geom, x, &self.fast.xpad);
-        winograd_wgrad(shape, a, dz, dw, &mut self.fast.wino);
+        if bf16 {
+            winograd_wgrad_bf16(shape, a, dz, dw, &mut self.fast.wino);
+        } else {
+            winograd_wgrad(shape, a, dz, dw, &mut self.fast.wino);
+        }
     }
 
     /// `dX` by Winograd, for an input read in place: the adjoint convolution of `dZ`, its

@@ -188,7 +188,8 @@ impl<T: Float> ConvOps<T> {
             Kernel::Im2col => self.wgrad_im2col(&s, x.batch(), dz, dw),
             Kernel::Gather => self.wgrad_gather(&s, x, dz, dw),
             Kernel::GatherBf16 => self.wgrad_bf16(&s, x, dz, dw, plan.planned_forward()),
-            Kernel::Winograd(kind) => self.wgrad_winograd(&s, x, kind, dz, dw),
+            Kernel::Winograd(kind) => self.wgrad_winograd(&s, x, kind, dz, dw, false),
+            Kernel::WinogradBf16(kind) => self.wgrad_winograd(&s, x, kind, dz, dw, true),
             k => unreachable!("{k:?} computes no weight gradient"),
         }
     }

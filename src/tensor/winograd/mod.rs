@@ -59,10 +59,12 @@ mod transforms;
 mod wgrad;
 
 pub use filters::{winograd_filters, winograd_filters_s2d, winograd_filters_s2d_adjoint};
-pub use wgrad::winograd_wgrad;
+pub use wgrad::{winograd_wgrad, winograd_wgrad_bf16};
 
 use super::cpu::{self, took_path, Family, Path};
-use super::gather_bf16::{f32s, f32s_mut, gather_gemm_bf16, round_into, GatherGemmBf16};
+use super::gather_bf16::{
+    f32s, f32s_mut, gather_gemm_bf16, pack_pairs_into, round_into, GatherGemmBf16,
+};
 use super::{fill_iota, Float, GatherGemm, Init};
 use filters::*;
 use transforms::*;
@@ -198,9 +200,11 @@ struct Part<T> {
     m: Vec<T>,
     p: Vec<usize>,
     q: Vec<usize>,
-    /// In bf16 ([`winograd_conv_bf16`]): `V` rounded, and the pair table `0, 2, 4, …`.
+    /// In bf16 ([`winograd_conv_bf16`]): `V` rounded, and the pair table `0, 2, 4, …`; the
+    /// weight gradient's `dM` in pairs of tiles ([`winograd_wgrad_bf16`]).
     vb: Vec<u16>,
     bq: Vec<usize>,
+    mb: Vec<u16>,
 }
 
 /// The transformed filters a Winograd convolution multiplies by: in the input's precision, or

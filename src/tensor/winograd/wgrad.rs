@@ -25,6 +25,23 @@ use super::*;
 pub fn winograd_wgrad<T: Float>(
     s: WinogradShape, x: &[T], dz: &[T], dw: &mut [T], scratch: &mut WinogradScratch<T>,
 ) {
+    wgrad_with(s, x, dz, dw, scratch, false);
+}
+
+/// [`winograd_wgrad`] with the products `dU_ξ = V_ξᵀ·dM_ξ` in bf16 (f32 layers): `V` and `dM`
+/// rounded to bf16 in pairs of consecutive tiles of an image (an odd count's last tile paired
+/// with zeros), the sums and both adjoint transforms in f32. The error is bounded as
+/// [`super::winograd_conv_bf16`]'s, over the absolute transforms (`tests/winograd_bf16.rs`).
+pub fn winograd_wgrad_bf16<T: Float>(
+    s: WinogradShape, x: &[T], dz: &[T], dw: &mut [T], scratch: &mut WinogradScratch<T>,
+) {
+    f32s(x);
+    wgrad_with(s, x, dz, dw, scratch, true);
+}
+
+fn wgrad_with<T: Float>(
+    s: WinogradShape, x: &[T], dz: &[T], dw: &mut [T], scratch: &mut WinogradScratch<T>, bf16: bool,
+) {
     let k = match s.kind {
         WinogradKind::F2x3 => 3,
         WinogradKind::S2d(blk) => 2 * blk,
@@ -59,6 +76,16 @@ pub fn winograd_wgrad<T: Float>(
     part.m
         .resize(part.m.len().max(places * rows * co), T::zero());
     part.zeros.resize(part.zeros.len().max(seg), T::zero());
+    // bf16: V `[image, ξ, pair of tiles, I, 2]`, dM `[ξ, image, pair of tiles, O, 2]`.
+    let pairs = (ty * tx).div_ceil(2);
+    if bf16 {
+        let (nv, nm) = (
+            places * per_chunk * pairs * 2 * ci,
+            places * per_chunk * pairs * 2 * co,
+        );
+        part.vb.resize(part.vb.len().max(nv), 0);
+        part.mb.resize(part.mb.len().max(nm), 0);
+    }
     scratch.du.clear();
     scratch.du.resize(places * ci * co, T::zero());
     let (image, dz_image) = (s.h * s.w * s.ci, s.oh * s.ow * co);
@@ -77,22 +104,38 @@ pub fn winograd_wgrad<T: Float>(
         // parallel; dM `[ξ, chunk tile, O]`.
         let xs = &x[first * image..][..images * image];
         let dzs = &dz[first * dz_image..][..images * dz_image];
-        v.par_chunks_mut(places * img_tiles * ci)
-            .zip(xs.par_chunks(image))
-            .for_each(|(v, x)| {
-                let job = Chunk {
-                    s,
-                    fast,
-                    images: 1,
-                    x,
-                    u: Filters::Same(&[]),
-                    bias: None,
-                    relu: false,
-                    pixels,
-                    out_pixels: &[],
-                };
-                job.input_by_place(v, zeros);
-            });
+        let transform = |v: &mut [T], x: &[T]| {
+            let job = Chunk {
+                s,
+                fast,
+                images: 1,
+                x,
+                u: Filters::Same(&[]),
+                bias: None,
+                relu: false,
+                pixels,
+                out_pixels: &[],
+            };
+            job.input_by_place(v, zeros);
+        };
+        let (v_image, vb_image) = (places * img_tiles * ci, places * pairs * 2 * ci);
+        if bf16 {
+            // Each image's places in pairs of tiles, rounded, as soon as it is transformed.
+            v.par_chunks_mut(v_image)
+                .zip(xs.par_chunks(image))
+                .zip(part.vb[..images * vb_image].par_chunks_mut(vb_image))
+                .for_each(|((v, x), vb)| {
+                    transform(v, x);
+                    for (xi, out) in vb.chunks_exact_mut(pairs * 2 * ci).enumerate() {
+                        let src = f32s(&v[xi * img_tiles * ci..][..img_tiles * ci]);
+                        pack_pairs_into(src, img_tiles, ci, ci, out);
+                    }
+                });
+        } else {
+            v.par_chunks_mut(v_image)
+                .zip(xs.par_chunks(image))
+                .for_each(|(v, x)| transform(v, x));
+        }
         output_adjoint(&s, dzs, m, fast.output);
         // dU_ξ += V_ξᵀ · dM_ξ: rows are input channels, the reduction runs over the chunk's
         // tiles (gathered from V image by image; dM's rows in order).
@@ -101,6 +144,33 @@ pub fn winograd_wgrad<T: Float>(
         for img in 0..images {
             part.q
                 .extend((0..img_tiles).map(|t| (img * places * img_tiles + t) * ci));
+        }
+        if bf16 {
+            // The same products by pairs of tiles: row i of V_ξᵀ is `2i` into a pair's block,
+            // pair u of image `img` is `(img·P + ξ)·pairs + u` blocks of `2I` into V.
+            fill_iota(&mut part.p, ci, 2);
+            part.q.clear();
+            for img in 0..images {
+                part.q
+                    .extend((0..pairs).map(|u| (img * places * pairs + u) * 2 * ci));
+            }
+            let (p, q, vb, m) = (&part.p[..], &part.q[..], &part.vb[..], &*m);
+            let mb = &mut part.mb[..places * images * pairs * 2 * co];
+            scratch
+                .du
+                .par_chunks_mut(ci * co)
+                .zip(mb.par_chunks_mut(images * pairs * 2 * co))
+                .enumerate()
+                .for_each(|(xi, (du, mb))| {
+                    for (img, out) in mb.chunks_exact_mut(pairs * 2 * co).enumerate() {
+                        let src = &m[(xi * tiles + img * img_tiles) * co..][..img_tiles * co];
+                        pack_pairs_into(f32s(src), img_tiles, co, co, out);
+                    }
+                    let (a, du) = (&vb[xi * pairs * 2 * ci..], f32s_mut(du));
+                    let g = GatherGemmBf16::new(a, p, q, mb, co, du, Init::Accumulate);
+                    gather_gemm_bf16(g);
+                });
+            continue;
         }
         let (p, q, v, m) = (&part.p[..], &part.q[..], &*v, &*m);
         scratch
