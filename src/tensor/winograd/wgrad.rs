@@ -76,7 +76,7 @@ fn wgrad_with<T: Float>(
     part.m
         .resize(part.m.len().max(places * rows * co), T::zero());
     part.zeros.resize(part.zeros.len().max(seg), T::zero());
-    // bf16: V `[image, ξ, pair of tiles, I, 2]`, dM `[ξ, image, pair of tiles, O, 2]`.
+    // bf16: V `[image, ξ, pair of tiles, I, 2]`, dM in pairs `[ξ, image, pair of tiles, O, 2]`.
     let pairs = (ty * tx).div_ceil(2);
     if bf16 {
         let (nv, nm) = (
@@ -120,23 +120,28 @@ fn wgrad_with<T: Float>(
         };
         let (v_image, vb_image) = (places * img_tiles * ci, places * pairs * 2 * ci);
         if bf16 {
-            // Each image's places in pairs of tiles, rounded, as soon as it is transformed.
+            // Image by image, in parallel: V's places in pairs of tiles, rounded as soon as
+            // they are transformed, and dM `[image, ξ, tile, O]` (each image's own block, so
+            // that the adjoint too runs on every thread).
             v.par_chunks_mut(v_image)
                 .zip(xs.par_chunks(image))
                 .zip(part.vb[..images * vb_image].par_chunks_mut(vb_image))
-                .for_each(|((v, x), vb)| {
+                .zip(m.par_chunks_mut(places * img_tiles * co))
+                .zip(dzs.par_chunks(dz_image))
+                .for_each(|((((v, x), vb), m), dz)| {
                     transform(v, x);
                     for (xi, out) in vb.chunks_exact_mut(pairs * 2 * ci).enumerate() {
                         let src = f32s(&v[xi * img_tiles * ci..][..img_tiles * ci]);
                         pack_pairs_into(src, img_tiles, ci, ci, out);
                     }
+                    output_adjoint(&s, dz, m, fast.output);
                 });
         } else {
             v.par_chunks_mut(v_image)
                 .zip(xs.par_chunks(image))
                 .for_each(|(v, x)| transform(v, x));
+            output_adjoint(&s, dzs, m, fast.output);
         }
-        output_adjoint(&s, dzs, m, fast.output);
         // dU_ξ += V_ξᵀ · dM_ξ: rows are input channels, the reduction runs over the chunk's
         // tiles (gathered from V image by image; dM's rows in order).
         fill_iota(&mut part.p, ci, 1);
@@ -163,7 +168,7 @@ fn wgrad_with<T: Float>(
                 .enumerate()
                 .for_each(|(xi, (du, mb))| {
                     for (img, out) in mb.chunks_exact_mut(pairs * 2 * co).enumerate() {
-                        let src = &m[(xi * tiles + img * img_tiles) * co..][..img_tiles * co];
+                        let src = &m[(img * places + xi) * img_tiles * co..][..img_tiles * co];
                         pack_pairs_into(f32s(src), img_tiles, co, co, out);
                     }
                     let (a, du) = (&vb[xi * pairs * 2 * ci..], f32s_mut(du));
