@@ -431,19 +431,10 @@ impl<T: Float> Chunk<'_, T> {
             Filters::Same(u) => {
                 fill_iota(&mut part.q, ch, 1);
                 for xi in 0..places {
-                    T::gather_gemm(GatherGemm {
-                        a: &v[xi * ch..],
-                        p: &part.p,
-                        q: &part.q,
-                        b: &u[xi * ch * s.co..][..ch * s.co],
-                        ldb: s.co,
-                        n: s.co,
-                        c: &mut m[xi * s.co..],
-                        ldc: ms,
-                        c_rows: None,
-                        init: Init::Zero,
-                        relu: false,
-                    });
+                    let (b, c) = (&u[xi * ch * s.co..][..ch * s.co], &mut m[xi * s.co..]);
+                    let g =
+                        GatherGemm::new(&v[xi * ch..], &part.p, &part.q, b, s.co, c, Init::Zero);
+                    T::gather_gemm(GatherGemm { ldc: ms, ..g });
                 }
             }
             Filters::Bf16(u) => {
@@ -453,19 +444,10 @@ impl<T: Float> Chunk<'_, T> {
                 fill_iota(&mut part.bq, ch / 2, 2);
                 let m = f32s_mut(m);
                 for xi in 0..places {
-                    gather_gemm_bf16(GatherGemmBf16 {
-                        a: &vb[xi * ch..],
-                        p: &part.p,
-                        q: &part.bq,
-                        b: &u[xi * ch * s.co..][..ch * s.co],
-                        ldb: s.co,
-                        n: s.co,
-                        c: &mut m[xi * s.co..],
-                        ldc: ms,
-                        c_rows: None,
-                        init: Init::Zero,
-                        relu: false,
-                    });
+                    let (b, c) = (&u[xi * ch * s.co..][..ch * s.co], &mut m[xi * s.co..]);
+                    let g =
+                        GatherGemm::new(&vb[xi * ch..], &part.p, &part.bq, b, s.co, c, Init::Zero);
+                    gather_gemm_bf16(GatherGemmBf16 { ldc: ms, ..g });
                 }
             }
         }
