@@ -440,7 +440,8 @@ fn case(c: Square, n: usize, seed: u64) {
 }
 
 /// conv3 (3×3, 64 → 64 over its padded 13 × 12 input) and conv2 (4×4 stride 2, 32 → 64 over
-/// its padded 24 × 22 input) at a batch of 8, the least that takes Winograd.
+/// its padded 24 × 22 input) at a batch of 8, the least that takes Winograd, and of 20: 5
+/// chunks of 4 images for the weight gradient, 2 of them summed in one group.
 #[test]
 fn the_article_convolutions_by_bf16_winograd_match_the_exact_products() {
     case(
@@ -455,6 +456,26 @@ fn the_article_convolutions_by_bf16_winograd_match_the_exact_products() {
         8,
         1,
     );
+    for k in [3, 4] {
+        let (s, h, w, cin) = if k == 3 {
+            (1, 13, 12, 64)
+        } else {
+            (2, 24, 22, 32)
+        };
+        let cout = 64;
+        case(
+            Square {
+                k,
+                s,
+                h,
+                w,
+                cin,
+                cout,
+            },
+            20,
+            3,
+        );
+    }
     case(
         Square {
             k: 4,
@@ -507,7 +528,8 @@ fn bf16_winograd_is_the_same_on_any_thread_count() {
             )
             .unwrap();
             let conv = Conv2d::<f32>::new("c", g).with_relu().with_winograd(true);
-            let out = common::conv_and_dense_passes(conv, 9, Precision::Bf16, &mut rng(7));
+            // 18 images: 5 weight-gradient chunks in 4 groups, split 1, 1, 2 on 3 threads.
+            let out = common::conv_and_dense_passes(conv, 18, Precision::Bf16, &mut rng(7));
             if bf16_expected() {
                 let kind = if k == 3 {
                     WinogradKind::F2x3

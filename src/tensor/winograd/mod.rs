@@ -190,6 +190,8 @@ pub struct WinogradScratch<T> {
     pixels: Vec<Option<usize>>,
     /// The weight gradient's `dU [16, I, O]` ([`winograd_wgrad`]).
     du: Vec<T>,
+    /// In bf16, each chunk of images' own `dU` ([`winograd_wgrad_bf16`]), summed in order.
+    partials: Vec<T>,
 }
 
 #[derive(Debug, Default)]

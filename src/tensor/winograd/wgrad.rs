@@ -58,13 +58,34 @@ fn wgrad_with<T: Float>(
     if s.n == 0 || s.oh == 0 || s.ow == 0 {
         return;
     }
+    input_offsets(&s, &mut scratch.pixels);
+    if bf16 {
+        du_bf16(s, x, dz, scratch);
+    } else {
+        du_f32(s, x, dz, scratch);
+    }
+    match s.kind {
+        WinogradKind::F2x3 => filter_adjoint(&scratch.du, s.channels(), s.co, dw),
+        WinogradKind::S2d(blk) => filter_adjoint_s2d(&scratch.du, blk, s.ci, s.co, dw),
+    }
+}
+
+/// Images per chunk of the weight gradient: 96 tiles or more (4 images of conv3: 120 tiles,
+/// `V` and `dM` 480 KiB each in f32, in L2).
+fn images_per_chunk(s: &WinogradShape) -> usize {
+    let (ty, tx) = s.tiles();
+    96usize.div_ceil(ty * tx).min(s.n)
+}
+
+/// `dU [P, I, O]` into `scratch.du` in f32: chunk after chunk of images, each transformed image
+/// by image in parallel and its `P` products run in parallel, every `dU` value summing its
+/// chunks in order.
+fn du_f32<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut WinogradScratch<T>) {
     let (ty, tx) = s.tiles();
     // `ci` here is a transformed place's channel count (s²·I over blocks).
     let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
-    // 4 images of conv3 per chunk: 120 tiles, V and dM 480 KiB each, in L2.
-    let per_chunk = 96usize.div_ceil(ty * tx).min(s.n);
+    let per_chunk = images_per_chunk(&s);
     let fast = Transforms::choose::<T>(&s, co);
-    input_offsets(&s, &mut scratch.pixels);
     if scratch.parts.is_empty() {
         scratch.parts.push(Part::default());
     }
@@ -76,16 +97,6 @@ fn wgrad_with<T: Float>(
     part.m
         .resize(part.m.len().max(places * rows * co), T::zero());
     part.zeros.resize(part.zeros.len().max(seg), T::zero());
-    // bf16: V `[image, ξ, pair of tiles, I, 2]`, dM in pairs `[ξ, image, pair of tiles, O, 2]`.
-    let pairs = (ty * tx).div_ceil(2);
-    if bf16 {
-        let (nv, nm) = (
-            places * per_chunk * pairs * 2 * ci,
-            places * per_chunk * pairs * 2 * co,
-        );
-        part.vb.resize(part.vb.len().max(nv), 0);
-        part.mb.resize(part.mb.len().max(nm), 0);
-    }
     scratch.du.clear();
     scratch.du.resize(places * ci * co, T::zero());
     let (image, dz_image) = (s.h * s.w * s.ci, s.oh * s.ow * co);
@@ -104,44 +115,10 @@ fn wgrad_with<T: Float>(
         // parallel; dM `[ξ, chunk tile, O]`.
         let xs = &x[first * image..][..images * image];
         let dzs = &dz[first * dz_image..][..images * dz_image];
-        let transform = |v: &mut [T], x: &[T]| {
-            let job = Chunk {
-                s,
-                fast,
-                images: 1,
-                x,
-                u: Filters::Same(&[]),
-                bias: None,
-                relu: false,
-                pixels,
-                out_pixels: &[],
-            };
-            job.input_by_place(v, zeros);
-        };
-        let (v_image, vb_image) = (places * img_tiles * ci, places * pairs * 2 * ci);
-        if bf16 {
-            // Image by image, in parallel: V's places in pairs of tiles, rounded as soon as
-            // they are transformed, and dM `[image, ξ, tile, O]` (each image's own block, so
-            // that the adjoint too runs on every thread).
-            v.par_chunks_mut(v_image)
-                .zip(xs.par_chunks(image))
-                .zip(part.vb[..images * vb_image].par_chunks_mut(vb_image))
-                .zip(m.par_chunks_mut(places * img_tiles * co))
-                .zip(dzs.par_chunks(dz_image))
-                .for_each(|((((v, x), vb), m), dz)| {
-                    transform(v, x);
-                    for (xi, out) in vb.chunks_exact_mut(pairs * 2 * ci).enumerate() {
-                        let src = f32s(&v[xi * img_tiles * ci..][..img_tiles * ci]);
-                        pack_pairs_into(src, img_tiles, ci, ci, out);
-                    }
-                    output_adjoint(&s, dz, m, fast.output);
-                });
-        } else {
-            v.par_chunks_mut(v_image)
-                .zip(xs.par_chunks(image))
-                .for_each(|(v, x)| transform(v, x));
-            output_adjoint(&s, dzs, m, fast.output);
-        }
+        v.par_chunks_mut(places * img_tiles * ci)
+            .zip(xs.par_chunks(image))
+            .for_each(|(v, x)| transform_image(&s, fast, pixels, zeros, x, v));
+        output_adjoint(&s, dzs, m, fast.output);
         // dU_ξ += V_ξᵀ · dM_ξ: rows are input channels, the reduction runs over the chunk's
         // tiles (gathered from V image by image; dM's rows in order).
         fill_iota(&mut part.p, ci, 1);
@@ -149,33 +126,6 @@ fn wgrad_with<T: Float>(
         for img in 0..images {
             part.q
                 .extend((0..img_tiles).map(|t| (img * places * img_tiles + t) * ci));
-        }
-        if bf16 {
-            // The same products by pairs of tiles: row i of V_ξᵀ is `2i` into a pair's block,
-            // pair u of image `img` is `(img·P + ξ)·pairs + u` blocks of `2I` into V.
-            fill_iota(&mut part.p, ci, 2);
-            part.q.clear();
-            for img in 0..images {
-                part.q
-                    .extend((0..pairs).map(|u| (img * places * pairs + u) * 2 * ci));
-            }
-            let (p, q, vb, m) = (&part.p[..], &part.q[..], &part.vb[..], &*m);
-            let mb = &mut part.mb[..places * images * pairs * 2 * co];
-            scratch
-                .du
-                .par_chunks_mut(ci * co)
-                .zip(mb.par_chunks_mut(images * pairs * 2 * co))
-                .enumerate()
-                .for_each(|(xi, (du, mb))| {
-                    for (img, out) in mb.chunks_exact_mut(pairs * 2 * co).enumerate() {
-                        let src = &m[(img * places + xi) * img_tiles * co..][..img_tiles * co];
-                        pack_pairs_into(f32s(src), img_tiles, co, co, out);
-                    }
-                    let (a, du) = (&vb[xi * pairs * 2 * ci..], f32s_mut(du));
-                    let g = GatherGemmBf16::new(a, p, q, mb, co, du, Init::Accumulate);
-                    gather_gemm_bf16(g);
-                });
-            continue;
         }
         let (p, q, v, m) = (&part.p[..], &part.q[..], &*v, &*m);
         scratch
@@ -190,9 +140,183 @@ fn wgrad_with<T: Float>(
                 T::gather_gemm(GatherGemm::new(a, p, q, b, co, du, Init::Accumulate))
             });
     }
-    match s.kind {
-        WinogradKind::F2x3 => filter_adjoint(&scratch.du, ci, co, dw),
-        WinogradKind::S2d(blk) => filter_adjoint_s2d(&scratch.du, blk, s.ci, co, dw),
+}
+
+/// One image's `V [ξ, tile, I]` (the forward pass's input transform) into `v`.
+fn transform_image<T: Float>(
+    s: &WinogradShape, fast: Transforms, pixels: &[Option<usize>], zeros: &[T], x: &[T],
+    v: &mut [T],
+) {
+    let job = Chunk {
+        s: *s,
+        fast,
+        images: 1,
+        x,
+        u: Filters::Same(&[]),
+        bias: None,
+        relu: false,
+        pixels,
+        out_pixels: &[],
+    };
+    job.input_by_place(v, zeros);
+}
+
+/// `dU [P, I, O]` into `scratch.du` with the products in bf16. The chunks of images are split
+/// among the threads in runs of consecutive chunks, and a thread takes each of its chunks from
+/// the images to its partial `dU_c` alone: it transforms the chunk's images (`V` and `dM`, in
+/// f32 one image at a time), rounds them into pairs of tiles (`V [image, ξ, pair, I, 2]`,
+/// `dM [ξ, image, pair, O, 2]`) and runs the `P` products `dU_c,ξ = V_ξᵀ·dM_ξ`. Nothing a
+/// thread writes is read by another until the sum `dU = dU_0 + dU_1 + …`, in chunk order, so
+/// the bits do not depend on the thread count, and on two cores no cache line moves between
+/// them mid-chunk. (Splitting the products by place instead, as [`du_f32`] does, has each
+/// thread read the transforms the other wrote: on a host whose cores share no cache, that
+/// cost more than the products.)
+fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut WinogradScratch<T>) {
+    let (ty, tx) = s.tiles();
+    let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
+    let per_chunk = images_per_chunk(&s);
+    let chunks = s.n.div_ceil(per_chunk);
+    let fast = Transforms::choose::<T>(&s, co);
+    let img_tiles = ty * tx;
+    let pairs = img_tiles.div_ceil(2);
+    let du_len = places * ci * co;
+    scratch.du.resize(du_len, T::zero());
+    // Group g: chunks `g·chunks/G` up to `(g + 1)·chunks/G`, summed in order into its own
+    // partial; thread t takes groups `t·G/threads` up to `(t + 1)·G/threads`.
+    let groups = chunks.min(GROUPS);
+    let group = |g: usize| g * chunks / groups..(g + 1) * chunks / groups;
+    let partials = &mut scratch.partials;
+    partials.resize(groups * du_len, T::zero());
+    let threads = rayon::current_num_threads().clamp(1, groups);
+    if scratch.parts.len() < threads {
+        scratch.parts.resize_with(threads, Part::default);
+    }
+    for part in &mut scratch.parts[..threads] {
+        let (nv, nm) = (places * img_tiles * ci, places * img_tiles * co);
+        part.v.resize(part.v.len().max(nv), T::zero());
+        part.m.resize(part.m.len().max(nm), T::zero());
+        part.zeros.resize(part.zeros.len().max(seg), T::zero());
+        let (nvb, nmb) = (
+            places * per_chunk * pairs * 2 * ci,
+            places * per_chunk * pairs * 2 * co,
+        );
+        part.vb.resize(part.vb.len().max(nvb), 0);
+        part.mb.resize(part.mb.len().max(nmb), 0);
+    }
+    let mut runs: Vec<(usize, &mut [T])> = Vec::with_capacity(threads);
+    let mut rest = &mut partials[..];
+    for t in 0..threads {
+        let (g0, g1) = (t * groups / threads, (t + 1) * groups / threads);
+        let (mine, more) = rest.split_at_mut((g1 - g0) * du_len);
+        runs.push((g0, mine));
+        rest = more;
+    }
+    let job = ChunkGrad {
+        s,
+        fast,
+        x,
+        dz,
+        pixels: &scratch.pixels,
+        per_chunk,
+    };
+    scratch.parts[..threads]
+        .par_iter_mut()
+        .zip(runs)
+        .for_each(|(part, (g0, out))| {
+            for (g, du) in (g0..).zip(out.chunks_exact_mut(du_len)) {
+                for c in group(g) {
+                    let init = if c == group(g).start {
+                        Init::Zero
+                    } else {
+                        Init::Accumulate
+                    };
+                    job.run(c, part, f32s_mut(du), init);
+                }
+            }
+        });
+    // dU = dU_0 + dU_1 + …, in group order, in blocks across the threads.
+    let partials = &scratch.partials[..];
+    const BLOCK: usize = 4096;
+    scratch
+        .du
+        .par_chunks_mut(BLOCK)
+        .enumerate()
+        .for_each(|(b, du)| {
+            for (c, part) in partials.chunks_exact(du_len).enumerate() {
+                let part = &part[b * BLOCK..][..du.len()];
+                if c == 0 {
+                    du.copy_from_slice(part);
+                } else {
+                    du.iter_mut().zip(part).for_each(|(d, &p)| *d += p);
+                }
+            }
+        });
+}
+
+/// Groups of chunks in [`du_bf16`]: as many threads as it can keep busy. More groups would
+/// split the batch finer and sum more partial `dU`s.
+const GROUPS: usize = 4;
+
+/// One chunk of [`du_bf16`]'s images, from the images to its products.
+struct ChunkGrad<'a, T> {
+    s: WinogradShape,
+    fast: Transforms,
+    x: &'a [T],
+    dz: &'a [T],
+    pixels: &'a [Option<usize>],
+    per_chunk: usize,
+}
+
+impl<T: Float> ChunkGrad<'_, T> {
+    /// Chunk `c`'s `dU_ξ = V_ξᵀ·dM_ξ` for every place, into `du [P, I, O]` as `init` says:
+    /// its images transformed one at a time (`V [ξ, tile, I]` and `dM [ξ, tile, O]` in f32),
+    /// then rounded into pairs of tiles (`V [image, ξ, pair, I, 2]`, `dM [ξ, image, pair, O,
+    /// 2]`), then the `P` products over the chunk's pairs.
+    fn run(&self, c: usize, part: &mut Part<T>, du: &mut [f32], init: Init<'_, f32>) {
+        let s = self.s;
+        let (ty, tx) = s.tiles();
+        let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
+        let (img_tiles, pairs) = (ty * tx, (ty * tx).div_ceil(2));
+        let (image, dz_image) = (s.h * s.w * s.ci, s.oh * s.ow * co);
+        let first = c * self.per_chunk;
+        let images = self.per_chunk.min(s.n - first);
+        let (vb_image, mb_image) = (pairs * 2 * ci, pairs * 2 * co);
+        let (v, m) = (
+            &mut part.v[..places * img_tiles * ci],
+            &mut part.m[..places * img_tiles * co],
+        );
+        let (vb, mb) = (
+            &mut part.vb[..places * images * vb_image],
+            &mut part.mb[..places * images * mb_image],
+        );
+        for img in 0..images {
+            let x = &self.x[(first + img) * image..][..image];
+            let dz = &self.dz[(first + img) * dz_image..][..dz_image];
+            transform_image(&s, self.fast, self.pixels, &part.zeros[..seg], x, v);
+            output_adjoint(&s, dz, m, self.fast.output);
+            for xi in 0..places {
+                let src = f32s(&v[xi * img_tiles * ci..][..img_tiles * ci]);
+                let out = &mut vb[(img * places + xi) * vb_image..][..vb_image];
+                pack_pairs_into(src, img_tiles, ci, ci, out);
+                let src = f32s(&m[xi * img_tiles * co..][..img_tiles * co]);
+                let out = &mut mb[(xi * images + img) * mb_image..][..mb_image];
+                pack_pairs_into(src, img_tiles, co, co, out);
+            }
+        }
+        // Row i of V_ξᵀ is `2i` into a pair's block; pair u of image `img` is
+        // `(img·P + ξ)·pairs + u` blocks of `2I` into V, dM's pairs in order.
+        fill_iota(&mut part.p, ci, 2);
+        part.q.clear();
+        for img in 0..images {
+            part.q
+                .extend((0..pairs).map(|u| (img * places * pairs + u) * 2 * ci));
+        }
+        let (p, q) = (&part.p[..], &part.q[..]);
+        for (xi, du) in du.chunks_exact_mut(ci * co).enumerate() {
+            let a = &vb[xi * vb_image..];
+            let b = &mb[xi * images * mb_image..][..images * mb_image];
+            gather_gemm_bf16(GatherGemmBf16::new(a, p, q, b, co, du, init));
+        }
     }
 }
 
