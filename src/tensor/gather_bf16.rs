@@ -30,6 +30,7 @@
 use super::bf16::{from_bf16, to_bf16};
 use super::cpu::{avx512_twin, took_path, Family, Path};
 use super::gather::{portable_rows, GatherGemm};
+use rayon::prelude::*;
 
 /// The operands of one bf16 gather GEMM (see the module documentation): [`GatherGemm`] with
 /// `A` and `B` in bf16 bits, in pairs of reduction steps, and `C` in f32.
@@ -154,10 +155,25 @@ avx512_twin! {
 /// The right operand of a product whose reduction runs over the `rows` rows of a row-major
 /// matrix (row stride `ld`, `cols` columns): pairs of rows interleaved, as
 /// [`GatherGemmBf16::b`] reads them with `ldb = cols`. Returns the number of pairs.
+///
+/// Large matrices (a weight gradient's `dZ`: conv1's is 21 120 rows of 32 at batch 48) are
+/// packed in blocks of pair rows across the threads.
 pub fn pack_pairs(src: &[f32], rows: usize, cols: usize, ld: usize, dst: &mut Vec<u16>) -> usize {
     let pairs = rows.div_ceil(2);
     dst.resize(2 * pairs * cols, 0);
-    pack_pairs_into(src, rows, cols, ld, dst);
+    // Pair rows per task: about `PAIRS` pairs of values.
+    let block = PAIRS.div_ceil(cols.max(1));
+    if pairs <= block {
+        pack_pairs_into(src, rows, cols, ld, dst);
+        return pairs;
+    }
+    dst.par_chunks_mut(2 * block * cols)
+        .enumerate()
+        .for_each(|(k, out)| {
+            let r0 = 2 * k * block;
+            let n = (rows - r0).min(2 * block);
+            pack_pairs_into(&src[r0 * ld..], n, cols, ld, out);
+        });
     pairs
 }
 
@@ -196,11 +212,13 @@ impl AsBf16 for u16 {
 }
 
 avx512_twin! {
-    /// `dst[2i] = bf16(src[i])`, `dst[2i + 1] = bf16(src[i + d])` (0 past the end).
+    /// `dst[2i] = bf16(src[i])`, `dst[2i + 1] = bf16(src[i + d])` (0 past the end of `src`)
+    /// for the `dst.len() / 2` pairs, `src` holding at least as many values.
     fn shift_pairs<T: AsBf16>(src: &[T], d: usize, dst: &mut [u16]) {
+        let n = dst.len() / 2;
         if let Some(words) = pair_words(dst) {
             // The pairs with a partner, then the last `d` values alone.
-            let (both, alone) = words.split_at_mut(src.len().saturating_sub(d));
+            let (both, alone) = words.split_at_mut(src.len().saturating_sub(d).min(n));
             for ((o, &lo), &hi) in both.iter_mut().zip(src).zip(&src[d.min(src.len())..]) {
                 *o = u32::from(lo.bf16()) | u32::from(hi.bf16()) << 16;
             }
@@ -216,13 +234,30 @@ avx512_twin! {
     }
 }
 
+/// Pairs per task of [`shift_pairs_par`].
+const PAIRS: usize = 1 << 15;
+
+/// [`shift_pairs`] of all of `src` into `dst` (`2·src.len()` values), in blocks of pairs
+/// across the threads (conv1's input at batch 48 makes 6 MB of pairs): block `k` reads
+/// `src` from its first value to its last value's partner.
+fn shift_pairs_par<T: AsBf16 + Sync>(src: &[T], d: usize, dst: &mut [u16]) {
+    assert_eq!(dst.len(), 2 * src.len(), "shift_pairs: destination");
+    dst.par_chunks_mut(2 * PAIRS)
+        .enumerate()
+        .for_each(|(k, out)| {
+            let i0 = k * PAIRS;
+            let end = (i0 + out.len() / 2 + d).min(src.len());
+            shift_pairs(&src[i0..end], d, out);
+        });
+}
+
 /// Each value paired with the one `d` places after it: `dst[2i..2i + 2] = bf16(src[i]),
 /// bf16(src[i + d])`, zero past the end. A gather over `dst` at `2·(p + q)` then reads the
 /// values at `p + q` and `p + q + d` as one pair: a convolution's weight gradient reads its
 /// input at two output pixels `d = SW·Cin` apart, as one pair of reduction steps.
 pub fn pack_shifted(src: &[f32], d: usize, dst: &mut Vec<u16>) {
     dst.resize(2 * src.len(), 0);
-    shift_pairs(src, d, dst);
+    shift_pairs_par(src, d, dst);
 }
 
 /// [`pack_shifted`] of values already rounded to bf16 (no rounding, only the pairing):
@@ -230,7 +265,7 @@ pub fn pack_shifted(src: &[f32], d: usize, dst: &mut Vec<u16>) {
 /// convolution's weight gradient pairs the input its forward pass already rounded.
 pub fn pair_shifted(src: &[u16], d: usize, dst: &mut Vec<u16>) {
     dst.resize(2 * src.len(), 0);
-    shift_pairs(src, d, dst);
+    shift_pairs_par(src, d, dst);
 }
 
 /// The f32 values of a slice of `T` that is f32 (what the bf16 kernels read and write: the
@@ -321,5 +356,31 @@ mod tests {
             shift_pairs(&bf, d, &mut paired[..2 * src.len()]);
             assert_eq!(words, paired[..2 * src.len()], "d = {d}, words");
         }
+    }
+
+    /// Pairing in blocks across threads gives what one pass gives: each block's values meet
+    /// their partners in the next block, or past the end, where `d` sends them.
+    #[test]
+    fn pairs_in_parallel_blocks_are_one_pass() {
+        let n = 3 * PAIRS + 17;
+        let src: Vec<f32> = (0..n)
+            .map(|i| ((i * 7919) % 1000) as f32 * 0.013 - 6.0)
+            .collect();
+        for d in [0, 1, 336, PAIRS - 1, PAIRS + 5, n - 3, n + 2] {
+            let (mut one, mut par) = (vec![0u16; 2 * n], vec![7u16; 2 * n]);
+            shift_pairs(&src, d, &mut one);
+            shift_pairs_par(&src, d, &mut par);
+            assert!(one == par, "d = {d}");
+        }
+        // And rows in pairs, an odd count and a stride past the columns.
+        let (rows, cols, ld) = (2 * PAIRS.div_ceil(24) * 3 + 1, 24, 26);
+        let src: Vec<f32> = (0..rows * ld)
+            .map(|i| (i % 977) as f32 * 0.3 - 100.0)
+            .collect();
+        let mut one = vec![0u16; 2 * rows.div_ceil(2) * cols];
+        pack_pairs_into(&src, rows, cols, ld, &mut one);
+        let mut par = vec![5u16; 3];
+        assert_eq!(pack_pairs(&src, rows, cols, ld, &mut par), rows.div_ceil(2));
+        assert!(one == par, "pack_pairs");
     }
 }
