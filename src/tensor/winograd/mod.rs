@@ -471,8 +471,9 @@ impl<T: Float> Chunk<'_, T> {
         }
     }
 
-    /// [`Chunk::input`] rounded to bf16 into `vb` (the same layout), each tile transformed in
-    /// f32 into `v`'s first block and rounded from there ([`round_into`]: to nearest even).
+    /// [`Chunk::input`] rounded to bf16 into `vb` (the same layout): on AVX-512 as each value
+    /// is stored, elsewhere each tile transformed in f32 into `v`'s first block and rounded
+    /// from there ([`round_into`]), to nearest even either way.
     fn input_bf16(&self, v: &mut [T], vb: &mut [u16], zeros: &[T]) {
         let s = self.s;
         let (places, blk, ch) = (s.places(), s.kind.block(), s.channels());
@@ -481,6 +482,13 @@ impl<T: Float> Chunk<'_, T> {
         for img in self.x.chunks_exact(s.h * s.w * s.ci) {
             for starts in self.pixels.chunks_exact(places * blk) {
                 let vbt = tiles.next().expect("one V block per tile");
+                #[cfg(target_arch = "x86_64")]
+                if self.fast.input == Path::Avx512 {
+                    // SAFETY: as `input_tile_any`'s AVX-512 call (`Transforms::choose` checked
+                    // AVX-512F, f32 and `seg`; `vbt` holds a whole tile's block).
+                    unsafe { avx512::input_tile_bf16(&s, f32s(img), f32s(zeros), starts, vbt, ch) };
+                    continue;
+                }
                 input_tile_any(&s, img, zeros, starts, vt, ch, self.fast.input);
                 round_into(f32s(&vt[..places * ch]), &mut vbt[..places * ch]);
             }

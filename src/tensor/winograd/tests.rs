@@ -205,6 +205,68 @@ fn input_transforms_match_their_portable_twins() {
     }
 }
 
+/// The input transform rounded to bf16 as it is stored (AVX-512) and rounded after it (the
+/// portable loops, then `round_into`): the same bits, for random images and for one whose
+/// only nonzero pixel holds values that test the rounding itself (the transform passes a lone
+/// pixel through as ±itself): NaNs (quieted by the transform's arithmetic, payloads kept),
+/// infinities, subnormals, ties either way, a value that rounds up to infinity.
+#[test]
+fn input_transforms_rounded_as_stored_match_rounded_after() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let special = [
+        f32::NAN,
+        f32::from_bits(0xFFA0_1234),
+        f32::from_bits(0x7F80_0001),
+        // Payloads that a plain rounding would carry into the sign or round to zero.
+        f32::from_bits(0x7FFF_FFFF),
+        f32::from_bits(0xFFFF_FFF0),
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        1e-40,
+        -1.4e-45,
+        f32::MAX,
+        -3.3953e38,
+        1.0 + 2f32.powi(-8),
+        1.0 + 3.0 * 2f32.powi(-8),
+        -(1.0 + 2f32.powi(-8) + 2f32.powi(-20)),
+        0.0,
+        -0.0,
+    ];
+    for s in shapes() {
+        let (fast, portable) = twins(&s, s.co / s.out_pieces);
+        let mut x = values(s.n * s.h * s.w * s.ci, &mut rng);
+        // Image 1: zeros but for pixel (1, 1), its channels cycling through `special`.
+        let image = s.h * s.w * s.ci;
+        x[image..2 * image].fill(0.0);
+        for c in 0..s.ci {
+            x[image + (s.w + 1) * s.ci + c] = special[c % special.len()];
+        }
+        let mut pixels = Vec::new();
+        input_offsets(&s, &mut pixels);
+        let zeros = vec![0.0f32; s.seg()];
+        let (ty, tx) = s.tiles();
+        let run = |t: Transforms| {
+            let chunk = Chunk {
+                s,
+                fast: t,
+                images: s.n,
+                x: &x,
+                u: Filters::Same(&[]),
+                bias: None,
+                relu: false,
+                pixels: &pixels,
+                out_pixels: &[],
+            };
+            let mut v = vec![0.0f32; s.v_stride()];
+            // 0xDEAD where nothing is written: the same places must stay untouched.
+            let mut vb = vec![0xDEADu16; s.n * ty * tx * s.v_stride()];
+            chunk.input_bf16(&mut v, &mut vb, &zeros);
+            vb
+        };
+        assert!(run(fast) == run(portable), "{s:?}");
+    }
+}
+
 /// The output transform with and without bias and ReLU, into pieces, some skipped.
 #[test]
 fn output_transforms_match_their_portable_twins() {

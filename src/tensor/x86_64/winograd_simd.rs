@@ -22,10 +22,34 @@ pub(super) unsafe fn input_tile<V: F32s, T: Float>(
     s: &WinogradShape, img: &[T], zeros: &[T], starts: &[Option<usize>], v: &mut [T], stride: usize,
 ) {
     let (img, zeros, v) = (cast(img), cast(zeros), cast_mut(v));
+    let (seg, blk, places) = (s.seg(), s.kind.block(), s.places());
+    assert!(
+        v.len() >= (places - 1) * stride + blk * seg,
+        "input_tile: v"
+    );
+    let vp = v.as_mut_ptr();
+    // SAFETY (of each store): `at` is below `(P − 1)·stride + blk·seg` (`input_tile_with`),
+    // inside `v` (asserted).
+    let store = |at: usize, val: V| V::store(vp.add(at), val);
+    input_tile_with(s, img, zeros, starts, stride, store)
+}
+
+/// [`input_tile`]'s transform with each vector of `V::LANES` channels handed to
+/// `store(at, value)`, `at` the place in a destination laid out as [`input_tile`]'s `v`
+/// (`ξ·stride + dy·seg + c`, below `(P − 1)·stride + blk·seg`): a caller may round it
+/// (`winograd_avx512::input_tile_bf16`) instead of storing it as it is.
+///
+/// # Safety
+/// As [`input_tile`], `store` safe to call for every such place.
+#[inline(always)]
+pub(super) unsafe fn input_tile_with<V: F32s>(
+    s: &WinogradShape, img: &[f32], zeros: &[f32], starts: &[Option<usize>], stride: usize,
+    store: impl Fn(usize, V),
+) {
     if s.places() == 16 {
-        input_tile_v::<V, 16>(s, img, zeros, starts, v, stride, input_transform16::<V>)
+        input_tile_v::<V, 16>(s, img, zeros, starts, stride, input_transform16::<V>, store)
     } else {
-        input_tile_v::<V, 9>(s, img, zeros, starts, v, stride, input_transform9::<V>)
+        input_tile_v::<V, 9>(s, img, zeros, starts, stride, input_transform9::<V>, store)
     }
 }
 
@@ -67,33 +91,31 @@ pub(super) unsafe fn adjoint_tile<V: F32s, T: Float>(
 /// The input transform for a whole tile (all `blk` block rows of `seg` values, from `s`), f32,
 /// `P` positions (16 for F(2×2, 3×3), 9 for F(2×2, 2×2)): for each block row `dy` and
 /// `V::LANES` channels at a time, the positions' values `d` from the rows `starts[k·blk + dy]` (zeros
-/// where `None`), transformed by `transform` (`Bᵀ·d·B`) and stored at
-/// `v[ξ·stride + dy·seg + c]`.
+/// where `None`), transformed by `transform` (`Bᵀ·d·B`) and handed to `store` for place
+/// `ξ·stride + dy·seg + c` of the destination.
 ///
 /// # Safety
 /// `V`'s instruction set must be available; every `Some` start must have `seg` values in `img`, `zeros`
-/// hold `seg`, `stride ≥ blk·seg` and `v` `(P − 1)·stride + blk·seg` values; `seg` a multiple
-/// of `V::LANES`.
+/// hold `seg`, `stride ≥ blk·seg`, `store` take every place below `(P − 1)·stride + blk·seg`;
+/// `seg` a multiple of `V::LANES`.
 #[inline(always)]
 unsafe fn input_tile_v<V: F32s, const P: usize>(
-    s: &WinogradShape, img: &[f32], zeros: &[f32], starts: &[Option<usize>], v: &mut [f32],
-    stride: usize, transform: unsafe fn(&[V; P]) -> [V; P],
+    s: &WinogradShape, img: &[f32], zeros: &[f32], starts: &[Option<usize>], stride: usize,
+    transform: unsafe fn(&[V; P]) -> [V; P], store: impl Fn(usize, V),
 ) {
     let (seg, blk) = (s.seg(), s.kind.block());
     debug_assert!(seg.is_multiple_of(V::LANES) && zeros.len() >= seg && stride >= blk * seg);
-    debug_assert!(v.len() >= (P - 1) * stride + blk * seg);
     debug_assert!(starts.len() == P * blk);
     debug_assert!(starts.iter().flatten().all(|&o| o + seg <= img.len()));
     for dy in 0..blk {
         let px: [*const f32; P] = std::array::from_fn(|k| row(img, zeros, starts[k * blk + dy]));
-        let vp = v.as_mut_ptr().add(dy * seg);
         for c0 in (0..seg).step_by(V::LANES) {
             let mut d = [V::zero(); P];
             for k in 0..P {
                 d[k] = V::load(px[k].add(c0));
             }
             for (xi, &val) in transform(&d).iter().enumerate() {
-                V::store(vp.add(xi * stride + c0), val);
+                store(xi * stride + dy * seg + c0, val);
             }
         }
     }
