@@ -267,6 +267,22 @@ fn input_transforms_rounded_as_stored_match_rounded_after() {
     }
 }
 
+/// The bf16 weight gradient's `V` and `dM` rounded into pairs of tiles as the AVX-512
+/// transforms store them, and transformed by the portable loops then packed: the same `dU`,
+/// bit for bit (odd tile counts included: the last pair's zero halves).
+#[test]
+fn weight_gradient_pairs_rounded_as_stored_match_packed_after() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    for s in shapes().into_iter().filter(|s| s.out_pieces == 1) {
+        let (fast, portable) = twins(&s, s.co);
+        let x = values(s.n * s.h * s.w * s.ci, &mut rng);
+        let dz = values(s.n * s.oh * s.ow * s.co, &mut rng);
+        let du = |t| super::wgrad::chunk_du_bf16(s, &x, &dz, t);
+        let (a, b) = (du(fast), du(portable));
+        same_bits(&format!("{s:?}"), &a, &b);
+    }
+}
+
 /// The output transform with and without bias and ReLU, into pieces, some skipped.
 #[test]
 fn output_transforms_match_their_portable_twins() {

@@ -172,13 +172,10 @@ fn transform_image<T: Float>(
 /// thread read the transforms the other wrote: on a host whose cores share no cache, that
 /// cost more than the products.)
 fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut WinogradScratch<T>) {
-    let (ty, tx) = s.tiles();
-    let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
+    let (places, ci, co) = (s.places(), s.channels(), s.co);
     let per_chunk = images_per_chunk(&s);
     let chunks = s.n.div_ceil(per_chunk);
     let fast = Transforms::choose::<T>(&s, co);
-    let img_tiles = ty * tx;
-    let pairs = img_tiles.div_ceil(2);
     let du_len = places * ci * co;
     scratch.du.resize(du_len, T::zero());
     // Group g: chunks `g·chunks/G` up to `(g + 1)·chunks/G`, summed in order into its own
@@ -192,16 +189,7 @@ fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut Winograd
         scratch.parts.resize_with(threads, Part::default);
     }
     for part in &mut scratch.parts[..threads] {
-        let (nv, nm) = (places * img_tiles * ci, places * img_tiles * co);
-        part.v.resize(part.v.len().max(nv), T::zero());
-        part.m.resize(part.m.len().max(nm), T::zero());
-        part.zeros.resize(part.zeros.len().max(seg), T::zero());
-        let (nvb, nmb) = (
-            places * per_chunk * pairs * 2 * ci,
-            places * per_chunk * pairs * 2 * co,
-        );
-        part.vb.resize(part.vb.len().max(nvb), 0);
-        part.mb.resize(part.mb.len().max(nmb), 0);
+        part.size_for_chunks(&s, per_chunk);
     }
     let mut runs: Vec<(usize, &mut [T])> = Vec::with_capacity(threads);
     let mut rest = &mut partials[..];
@@ -253,6 +241,50 @@ fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut Winograd
         });
 }
 
+impl<T: Float> Part<T> {
+    /// Grows the buffers [`ChunkGrad::run`] uses for chunks of `per_chunk` images.
+    fn size_for_chunks(&mut self, s: &WinogradShape, per_chunk: usize) {
+        let (ty, tx) = s.tiles();
+        let (places, ci, co, seg) = (s.places(), s.channels(), s.co, s.seg());
+        let (img_tiles, pairs) = (ty * tx, (ty * tx).div_ceil(2));
+        let grow = |v: &mut Vec<T>, n: usize| v.resize(v.len().max(n), T::zero());
+        grow(&mut self.v, places * img_tiles * ci);
+        grow(&mut self.m, places * img_tiles * co);
+        grow(&mut self.zeros, seg);
+        let (nvb, nmb) = (
+            places * per_chunk * pairs * 2 * ci,
+            places * per_chunk * pairs * 2 * co,
+        );
+        self.vb.resize(self.vb.len().max(nvb), 0);
+        self.mb.resize(self.mb.len().max(nmb), 0);
+    }
+}
+
+/// Chunk 0's `dU [P, I, O]` of [`winograd_wgrad_bf16`] (`x` and `dz` one chunk of images)
+/// with the transforms `fast`: the tests compare the pairs rounded as stored with the pairs
+/// packed after.
+#[cfg(test)]
+pub(super) fn chunk_du_bf16(s: WinogradShape, x: &[f32], dz: &[f32], fast: Transforms) -> Vec<f32> {
+    let mut pixels = Vec::new();
+    input_offsets(&s, &mut pixels);
+    let mut part = Part::default();
+    part.size_for_chunks(&s, s.n);
+    // Stale pairs (bf16 ones) where a chunk before left them: nothing may read them.
+    part.vb.fill(0x3F80);
+    part.mb.fill(0x3F80);
+    let job = ChunkGrad {
+        s,
+        fast,
+        x,
+        dz,
+        pixels: &pixels,
+        per_chunk: s.n,
+    };
+    let mut du = vec![f32::NAN; s.places() * s.channels() * s.co];
+    job.run(0, &mut part, &mut du, Init::Zero);
+    du
+}
+
 /// Groups of chunks in [`du_bf16`]: as many threads as it can keep busy. More groups would
 /// split the batch finer and sum more partial `dU`s.
 const GROUPS: usize = 4;
@@ -268,6 +300,20 @@ struct ChunkGrad<'a, T> {
 }
 
 impl<T: Float> ChunkGrad<'_, T> {
+    /// Whether `V` and `dM` are rounded into their pairs as the transforms store them (on
+    /// AVX-512 with BW, where [`Transforms`] chose AVX-512 for them), rather than transformed
+    /// in f32 and packed after (`pack_pairs_into`): the same bits either way.
+    fn pairs_as_stored(&self) -> (bool, bool) {
+        #[cfg(target_arch = "x86_64")]
+        let bw = std::arch::is_x86_feature_detected!("avx512bw");
+        #[cfg(not(target_arch = "x86_64"))]
+        let bw = false;
+        (
+            bw && self.fast.input == Path::Avx512,
+            bw && self.fast.output == Path::Avx512,
+        )
+    }
+
     /// Chunk `c`'s `dU_ξ = V_ξᵀ·dM_ξ` for every place, into `du [P, I, O]` as `init` says:
     /// its images transformed one at a time (`V [ξ, tile, I]` and `dM [ξ, tile, O]` in f32),
     /// then rounded into pairs of tiles (`V [image, ξ, pair, I, 2]`, `dM [ξ, image, pair, O,
@@ -289,18 +335,61 @@ impl<T: Float> ChunkGrad<'_, T> {
             &mut part.vb[..places * images * vb_image],
             &mut part.mb[..places * images * mb_image],
         );
+        let (v_pairs, m_pairs) = self.pairs_as_stored();
         for img in 0..images {
             let x = &self.x[(first + img) * image..][..image];
             let dz = &self.dz[(first + img) * dz_image..][..dz_image];
-            transform_image(&s, self.fast, self.pixels, &part.zeros[..seg], x, v);
-            output_adjoint(&s, dz, m, self.fast.output);
-            for xi in 0..places {
-                let src = f32s(&v[xi * img_tiles * ci..][..img_tiles * ci]);
-                let out = &mut vb[(img * places + xi) * vb_image..][..vb_image];
-                pack_pairs_into(src, img_tiles, ci, ci, out);
-                let src = f32s(&m[xi * img_tiles * co..][..img_tiles * co]);
-                let out = &mut mb[(xi * images + img) * mb_image..][..mb_image];
-                pack_pairs_into(src, img_tiles, co, co, out);
+            let zeros = &part.zeros[..seg];
+            // V's pairs: place ξ of pair u is `ξ·vb_image + 2u·I` into the image's block.
+            let vb = &mut vb[img * places * vb_image..][..places * vb_image];
+            if v_pairs {
+                zero_odd_halves(vb, vb_image, ci, img_tiles);
+                let blk = s.kind.block();
+                for (t, starts) in self.pixels.chunks_exact(places * blk).enumerate() {
+                    let (u, k) = (t / 2, t % 2);
+                    let dst = &mut vb[2 * u * ci..];
+                    let (x, zeros) = (f32s(x), f32s(zeros));
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: `pairs_as_stored` checked AVX-512F and BW, f32 and whole vectors
+                    // (`Transforms::choose`); place ξ ≤ P − 1 of pair u ends inside `dst`.
+                    unsafe {
+                        avx512::input_tile_pairs(&s, x, zeros, starts, dst, pairs * ci, k)
+                    };
+                    #[cfg(not(target_arch = "x86_64"))]
+                    unreachable!("{:?}{:?}{:?}{dst:?}{k}", x, zeros, starts);
+                }
+            } else {
+                transform_image(&s, self.fast, self.pixels, zeros, x, v);
+                for xi in 0..places {
+                    let src = f32s(&v[xi * img_tiles * ci..][..img_tiles * ci]);
+                    let out = &mut vb[xi * vb_image..][..vb_image];
+                    pack_pairs_into(src, img_tiles, ci, ci, out);
+                }
+            }
+            // dM's pairs: place ξ of pair u is `ξ·images·mb_image + img·mb_image + 2u·O`.
+            let mb = &mut mb[img * mb_image..];
+            if m_pairs {
+                let stride = images * mb_image;
+                zero_odd_halves(mb, stride, co, img_tiles);
+                for (t, at) in tile_outputs(&s).enumerate() {
+                    let (u, k) = (t / 2, t % 2);
+                    let dst = &mut mb[2 * u * co..];
+                    #[cfg(target_arch = "x86_64")]
+                    // SAFETY: as for V; every `Some` output holds `O` values of `dz`; place
+                    // ξ ≤ P − 1 of pair u ends inside `dst`.
+                    unsafe {
+                        avx512::adjoint_tile_pairs(f32s(dz), at, dst, stride / 2, co, places, k)
+                    };
+                    #[cfg(not(target_arch = "x86_64"))]
+                    unreachable!("{at:?}{dst:?}{k}");
+                }
+            } else {
+                output_adjoint(&s, dz, m, self.fast.output);
+                for xi in 0..places {
+                    let src = f32s(&m[xi * img_tiles * co..][..img_tiles * co]);
+                    let out = &mut mb[xi * images * mb_image..][..mb_image];
+                    pack_pairs_into(src, img_tiles, co, co, out);
+                }
             }
         }
         // Row i of V_ξᵀ is `2i` into a pair's block; pair u of image `img` is
@@ -318,6 +407,33 @@ impl<T: Float> ChunkGrad<'_, T> {
             gather_gemm_bf16(GatherGemmBf16::new(a, p, q, b, co, du, init));
         }
     }
+}
+
+/// Zeros the second halves of an image's last pair of tiles when its tile count is odd (the
+/// pair has no second tile): `width` values in each of the `P` places, `stride` apart.
+fn zero_odd_halves(pairs: &mut [u16], stride: usize, width: usize, tiles: usize) {
+    if tiles.is_multiple_of(2) {
+        return;
+    }
+    let last = (tiles / 2) * 2 * width;
+    for place in pairs.chunks_mut(stride) {
+        if let Some(pair) = place.get_mut(last..last + 2 * width) {
+            pair.iter_mut().skip(1).step_by(2).for_each(|h| *h = 0);
+        }
+    }
+}
+
+/// Where each tile's 2×2 outputs start in an image of `dz` (`None` past the edge), tile by
+/// tile in row-major order.
+fn tile_outputs(s: &WinogradShape) -> impl Iterator<Item = [Option<usize>; 4]> + '_ {
+    let (ty, tx) = s.tiles();
+    (0..ty * tx).map(move |t| {
+        let (a, b) = (t / tx, t % tx);
+        std::array::from_fn(|k| {
+            let (oy, ox) = (2 * a + k / 2, 2 * b + k % 2);
+            (oy < s.oh && ox < s.ow).then_some((oy * s.ow + ox) * s.co)
+        })
+    })
 }
 
 /// `dM = A·dY·Aᵀ` for every tile of a chunk of images: `dz` `[images, OH, OW, O]` into `m`

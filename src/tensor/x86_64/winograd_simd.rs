@@ -81,10 +81,28 @@ pub(super) unsafe fn adjoint_tile<V: F32s, T: Float>(
     img: &[T], at: [Option<usize>; 4], mt: &mut [T], stride: usize, co: usize, places: usize,
 ) {
     let (img, mt) = (cast(img), cast_mut(mt));
+    assert!(mt.len() >= (places - 1) * stride + co, "adjoint_tile: m");
+    let mp = mt.as_mut_ptr();
+    // SAFETY (of each store): `at` is below `(P − 1)·stride + co`, inside `mt` (asserted).
+    let store = |at: usize, val: V| V::store(mp.add(at), val);
+    adjoint_tile_with(img, at, stride, co, places, store)
+}
+
+/// [`adjoint_tile`]'s transform with each vector of `V::LANES` channels handed to
+/// `store(at, value)`, `at` the place in a destination laid out as [`adjoint_tile`]'s `mt`
+/// (`ξ·stride + c`, below `(P − 1)·stride + co`).
+///
+/// # Safety
+/// As [`adjoint_tile`], `store` safe to call for every such place.
+#[inline(always)]
+pub(super) unsafe fn adjoint_tile_with<V: F32s>(
+    img: &[f32], at: [Option<usize>; 4], stride: usize, co: usize, places: usize,
+    store: impl Fn(usize, V),
+) {
     if places == 16 {
-        adjoint_tile_v::<V, 16>(img, at, mt, stride, co, adjoint_transform16::<V>)
+        adjoint_tile_v::<V, 16>(img, at, stride, co, adjoint_transform16::<V>, store)
     } else {
-        adjoint_tile_v::<V, 9>(img, at, mt, stride, co, adjoint_transform9::<V>)
+        adjoint_tile_v::<V, 9>(img, at, stride, co, adjoint_transform9::<V>, store)
     }
 }
 
@@ -170,19 +188,19 @@ unsafe fn input_transform9<V: F32s>(d: &[V; 9]) -> [V; 9] {
 
 /// The output adjoint for one tile, f32, `P` places (16 for F(2×2, 3×3), 9 for F(2×2, 2×2)),
 /// `V::LANES` channels at a time: the tile's 2×2 outputs `y` from `img[at[k] + c]` (zeros for `None`),
-/// spread by `transform` (`A·y·Aᵀ`) to `m[ξ·stride + c]`.
+/// spread by `transform` (`A·y·Aᵀ`) and handed to `store` for place `ξ·stride + c`.
 ///
 /// # Safety
-/// `V`'s instruction set must be available; every `Some` offset must have `co` values in `img`, `m` hold
-/// `(P − 1)·stride + co` values, and `co` be a multiple of `V::LANES`.
+/// `V`'s instruction set must be available; every `Some` offset must have `co` values in `img`,
+/// `store` take every place below `(P − 1)·stride + co`, and `co` be a multiple of `V::LANES`.
 #[inline(always)]
 unsafe fn adjoint_tile_v<V: F32s, const P: usize>(
-    img: &[f32], at: [Option<usize>; 4], m: &mut [f32], stride: usize, co: usize,
-    transform: unsafe fn(&[V; 4]) -> [V; P],
+    img: &[f32], at: [Option<usize>; 4], stride: usize, co: usize,
+    transform: unsafe fn(&[V; 4]) -> [V; P], store: impl Fn(usize, V),
 ) {
-    debug_assert!(co.is_multiple_of(V::LANES) && m.len() >= (P - 1) * stride + co);
+    debug_assert!(co.is_multiple_of(V::LANES));
     debug_assert!(at.iter().flatten().all(|&o| o + co <= img.len()));
-    let (ip, mp) = (img.as_ptr(), m.as_mut_ptr());
+    let ip = img.as_ptr();
     for c0 in (0..co).step_by(V::LANES) {
         // A loop, not `array::from_fn`: a closure here would not be compiled for `V`'s
         // instruction set, and its loads would be calls.
@@ -193,7 +211,7 @@ unsafe fn adjoint_tile_v<V: F32s, const P: usize>(
             }
         }
         for (xi, &val) in transform(&y).iter().enumerate() {
-            V::store(mp.add(xi * stride + c0), val);
+            store(xi * stride + c0, val);
         }
     }
 }
