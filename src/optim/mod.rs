@@ -11,7 +11,8 @@ pub use sgd::Sgd;
 
 use crate::layers::Sequential;
 use crate::ops::lanes::Lanes;
-use crate::tensor::{vectorized, Float};
+use crate::tensor::cpu::avx512_twin;
+use crate::tensor::Float;
 
 /// The global L2 norm of all gradients: `sqrt(Σ_p Σ_i g_p[i]²)`.
 ///
@@ -20,11 +21,17 @@ use crate::tensor::{vectorized, Float};
 /// would be a chain of a million dependent additions (about 2 ms per train step).
 pub fn global_grad_norm<T: Float>(net: &Sequential<T>) -> T {
     let mut lanes = Lanes::default();
-    net.visit_params(|p| {
-        let g = p.grad.data();
-        vectorized(|| lanes.add_products(g, g));
-    });
+    net.visit_params(|p| add_squares(&mut lanes, p.grad.data()));
     lanes.total().sqrt()
+}
+
+avx512_twin! {
+    /// `lanes += g ⊙ g` lane by lane. A function of its own compiled for AVX-512
+    /// ([`avx512_twin`]): handed to [`crate::tensor::vectorized`] as a closure, it was not
+    /// inlined and ran 4 lanes wide, 1.7% of the article's bf16 train step on one thread.
+    fn add_squares<T: Float>(lanes: &mut Lanes<T>, g: &[T]) {
+        lanes.add_products(g, g)
+    }
 }
 
 /// Clipping by global norm (`tf.clip_by_global_norm`): if the global norm `‖g‖` of the network's
