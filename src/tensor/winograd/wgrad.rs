@@ -161,16 +161,15 @@ fn transform_image<T: Float>(
     job.input_by_place(v, zeros);
 }
 
-/// `dU [P, I, O]` into `scratch.du` with the products in bf16. The chunks of images are split
-/// among the threads in runs of consecutive chunks, and a thread takes each of its chunks from
-/// the images to its partial `dU_c` alone: it transforms the chunk's images (`V` and `dM`, in
-/// f32 one image at a time), rounds them into pairs of tiles (`V [image, ξ, pair, I, 2]`,
-/// `dM [ξ, image, pair, O, 2]`) and runs the `P` products `dU_c,ξ = V_ξᵀ·dM_ξ`. Nothing a
-/// thread writes is read by another until the sum `dU = dU_0 + dU_1 + …`, in chunk order, so
-/// the bits do not depend on the thread count, and on two cores no cache line moves between
-/// them mid-chunk. (Splitting the products by place instead, as [`du_f32`] does, has each
-/// thread read the transforms the other wrote: on a host whose cores share no cache, that
-/// cost more than the products.)
+/// `dU [P, I, O]` into `scratch.du` with the products in bf16. The chunks of images form
+/// [`GROUPS`] groups of consecutive chunks, and one thread takes a group from the images to
+/// its partial `dU_g`: for each chunk it transforms the images, rounding `V` and `dM` into
+/// pairs of tiles (`V [image, ξ, pair, I, 2]`, `dM [ξ, image, pair, O, 2]`), and adds the `P`
+/// products `V_ξᵀ·dM_ξ` to `dU_g`. Nothing a thread writes is read by another until the sum
+/// `dU = dU_0 + dU_1 + …`, in group order, so the bits do not depend on the thread count, and
+/// no cache line moves between cores mid-group. (Splitting the products by place instead, as
+/// [`du_f32`] does, has each thread read the transforms the other wrote: on this Zen 4 guest
+/// that made two threads barely faster than one.)
 fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut WinogradScratch<T>) {
     let (places, ci, co) = (s.places(), s.channels(), s.co);
     let per_chunk = images_per_chunk(&s);
@@ -179,25 +178,17 @@ fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut Winograd
     let du_len = places * ci * co;
     scratch.du.resize(du_len, T::zero());
     // Group g: chunks `g·chunks/G` up to `(g + 1)·chunks/G`, summed in order into its own
-    // partial; thread t takes groups `t·G/threads` up to `(t + 1)·G/threads`.
+    // partial with its own scratch; the groups are rayon's to place (a thread whose core is
+    // also playing the game takes fewer of them).
     let groups = chunks.min(GROUPS);
     let group = |g: usize| g * chunks / groups..(g + 1) * chunks / groups;
     let partials = &mut scratch.partials;
     partials.resize(groups * du_len, T::zero());
-    let threads = rayon::current_num_threads().clamp(1, groups);
-    if scratch.parts.len() < threads {
-        scratch.parts.resize_with(threads, Part::default);
+    if scratch.parts.len() < groups {
+        scratch.parts.resize_with(groups, Part::default);
     }
-    for part in &mut scratch.parts[..threads] {
+    for part in &mut scratch.parts[..groups] {
         part.size_for_chunks(&s, per_chunk);
-    }
-    let mut runs: Vec<(usize, &mut [T])> = Vec::with_capacity(threads);
-    let mut rest = &mut partials[..];
-    for t in 0..threads {
-        let (g0, g1) = (t * groups / threads, (t + 1) * groups / threads);
-        let (mine, more) = rest.split_at_mut((g1 - g0) * du_len);
-        runs.push((g0, mine));
-        rest = more;
     }
     let job = ChunkGrad {
         s,
@@ -207,19 +198,18 @@ fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut Winograd
         pixels: &scratch.pixels,
         per_chunk,
     };
-    scratch.parts[..threads]
+    scratch.parts[..groups]
         .par_iter_mut()
-        .zip(runs)
-        .for_each(|(part, (g0, out))| {
-            for (g, du) in (g0..).zip(out.chunks_exact_mut(du_len)) {
-                for c in group(g) {
-                    let init = if c == group(g).start {
-                        Init::Zero
-                    } else {
-                        Init::Accumulate
-                    };
-                    job.run(c, part, f32s_mut(du), init);
-                }
+        .zip(partials.par_chunks_mut(du_len))
+        .enumerate()
+        .for_each(|(g, (part, du))| {
+            for c in group(g) {
+                let init = if c == group(g).start {
+                    Init::Zero
+                } else {
+                    Init::Accumulate
+                };
+                job.run(c, part, f32s_mut(du), init);
             }
         });
     // dU = dU_0 + dU_1 + …, in group order, in blocks across the threads.
@@ -286,7 +276,7 @@ pub(super) fn chunk_du_bf16(s: WinogradShape, x: &[f32], dz: &[f32], fast: Trans
 }
 
 /// Groups of chunks in [`du_bf16`]: as many threads as it can keep busy. More groups would
-/// split the batch finer and sum more partial `dU`s.
+/// split the batch finer and sum more partial `dU`s (and keep more scratch).
 const GROUPS: usize = 4;
 
 /// One chunk of [`du_bf16`]'s images, from the images to its products.
