@@ -528,7 +528,7 @@ fn bf16_winograd_is_the_same_on_any_thread_count() {
             )
             .unwrap();
             let conv = Conv2d::<f32>::new("c", g).with_relu().with_winograd(true);
-            // 18 images: 5 weight-gradient chunks in 4 groups, split 1, 1, 2 on 3 threads.
+            // 18 images: 5 weight-gradient chunks in 4 groups of 1, 1, 1 and 2 chunks.
             let out = common::conv_and_dense_passes(conv, 18, Precision::Bf16, &mut rng(7));
             if bf16_expected() {
                 let kind = if k == 3 {

@@ -402,7 +402,7 @@ pub(crate) use avx512_twin;
 /// Runs `f` compiled for AVX-512 where [`avx512`] holds, else as built (baseline x86-64: 4-wide
 /// SSE). The one place that enters AVX-512 code from portable code for a plain loop.
 ///
-/// For the element-wise loops between the products (Adam, the ReLU masks, the gradient norm,
+/// For the element-wise loops between the products (Adam, the ReLU masks,
 /// the offset-table checks): they are written as plain loops, and inlined here LLVM vectorises
 /// them 16 lanes wide. Each element gets the same operations in the same order either way (no
 /// reassociation, no fused multiply-add), so the result is bit-identical with or without it.

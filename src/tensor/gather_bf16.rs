@@ -240,7 +240,8 @@ avx512_twin! {
     }
 }
 
-/// Pairs per task of [`shift_pairs_par`].
+/// Pairs per task of [`shift_pairs_par`], and values per task (as pairs of them) of
+/// [`pack_pairs`] and [`to_bf16_vec`].
 const PAIRS: usize = 1 << 15;
 
 /// [`shift_pairs`] of all of `src` into `dst` (`2·src.len()` values), in blocks of pairs

@@ -190,7 +190,7 @@ pub struct WinogradScratch<T> {
     pixels: Vec<Option<usize>>,
     /// The weight gradient's `dU [16, I, O]` ([`winograd_wgrad`]).
     du: Vec<T>,
-    /// In bf16, each chunk of images' own `dU` ([`winograd_wgrad_bf16`]), summed in order.
+    /// In bf16, each group of chunks' own `dU` ([`winograd_wgrad_bf16`]), summed in order.
     partials: Vec<T>,
 }
 

@@ -30,7 +30,9 @@ pub fn winograd_wgrad<T: Float>(
 
 /// [`winograd_wgrad`] with the products `dU_ξ = V_ξᵀ·dM_ξ` in bf16 (f32 layers): `V` and `dM`
 /// rounded to bf16 in pairs of consecutive tiles of an image (an odd count's last tile paired
-/// with zeros), the sums and both adjoint transforms in f32. The error is bounded as
+/// with zeros), the sums and both adjoint transforms in f32. The batch's chunks are summed in
+/// four groups, each in order, then the groups in order (`du_bf16`): another order than
+/// [`winograd_wgrad`]'s, the same on any thread count. The error is bounded as
 /// [`super::winograd_conv_bf16`]'s, over the absolute transforms (`tests/winograd_bf16.rs`).
 pub fn winograd_wgrad_bf16<T: Float>(
     s: WinogradShape, x: &[T], dz: &[T], dw: &mut [T], scratch: &mut WinogradScratch<T>,
@@ -176,6 +178,7 @@ fn du_bf16<T: Float>(s: WinogradShape, x: &[T], dz: &[T], scratch: &mut Winograd
     let chunks = s.n.div_ceil(per_chunk);
     let fast = Transforms::choose::<T>(&s, co);
     let du_len = places * ci * co;
+    scratch.du.clear();
     scratch.du.resize(du_len, T::zero());
     // Group g: chunks `g·chunks/G` up to `(g + 1)·chunks/G`, summed in order into its own
     // partial with its own scratch; the groups are rayon's to place (a thread whose core is
@@ -305,9 +308,10 @@ impl<T: Float> ChunkGrad<'_, T> {
     }
 
     /// Chunk `c`'s `dU_ξ = V_ξᵀ·dM_ξ` for every place, into `du [P, I, O]` as `init` says:
-    /// its images transformed one at a time (`V [ξ, tile, I]` and `dM [ξ, tile, O]` in f32),
-    /// then rounded into pairs of tiles (`V [image, ξ, pair, I, 2]`, `dM [ξ, image, pair, O,
-    /// 2]`), then the `P` products over the chunk's pairs.
+    /// its images transformed one at a time into pairs of tiles rounded to bf16 (`V [image, ξ,
+    /// pair, I, 2]`, `dM [ξ, image, pair, O, 2]`; rounded as stored where
+    /// [`ChunkGrad::pairs_as_stored`], else `V [ξ, tile, I]` and `dM [ξ, tile, O]` in f32 first
+    /// and packed after), then the `P` products over the chunk's pairs.
     fn run(&self, c: usize, part: &mut Part<T>, du: &mut [f32], init: Init<'_, f32>) {
         let s = self.s;
         let (ty, tx) = s.tiles();
