@@ -11,7 +11,7 @@
 //! flipping the choice between runs). The fastest step, not the median: a neighbour on the host
 //! only ever lengthens a step, and a burst of it over half of one precision's steps moved the
 //! median enough to pick f32 on an AMD Zen 4 where bf16 is 25% faster (1 call in 12, 2 threads;
-//! docs/performance.md, series I). Where the first [`TIMED`] pairs leave the two within
+//! docs/performance-history.md, series I). Where the first [`TIMED`] pairs leave the two within
 //! [`BF16_MARGIN`] of each other, [`TIMED`] more are timed and pooled. Where bf16 does not run,
 //! the answer is f32 without a measurement. The resolved value is what the run records in its
 //! `config.toml`, so a resumed run, its evaluation and a rerun from that file keep it.
