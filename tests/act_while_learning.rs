@@ -1,8 +1,9 @@
 //! Acting beside learning (`act_while_learning`, issue #101): each update runs on the pool's
 //! other threads while the agent plays the steps through the next update's with the parameters
-//! from before it, and samples the next update's batch. The schedule is fixed by `train_every`,
-//! so a run's results depend on its seed, not on the thread count; it resumes exactly; where the
-//! network does not act (ε = 1 throughout) it makes the turn-taking loop's updates bit for bit.
+//! from before it, samples the next update's batch and makes its target pass. The schedule is
+//! fixed by `train_every`, so a run's results depend on its seed, not on the thread count; it
+//! resumes exactly; where the network does not act (ε = 1 throughout) it makes the turn-taking
+//! loop's updates bit for bit.
 //! (It learns the toy corridor: `tests/dqn.rs`, `acting_while_learning_learns_a_toy_corridor`.)
 
 mod common;
@@ -70,17 +71,23 @@ fn results_depend_on_the_seed_not_the_thread_count() {
         serial.0 != pipelined.0,
         "acting one update late changes the play"
     );
-    for train_every in [1, 4] {
+    // Target copies every 25 steps, and every 7 with an update every 2 steps (episodes of
+    // several updates): copies fall between two updates of a block (the next update's target
+    // pass, made ahead with the old target network, is dropped) and between episodes (the
+    // playing thread's copy of the target network follows it). Either one missed fails here.
+    for (train_every, target_update) in [(1, 25), (4, 25), (2, 7)] {
         let random = |beside: bool| Config {
             epsilon_start: 1.0,
             epsilon_end: 1.0,
+            target_update,
             ..corridor_config(train_every, beside)
         };
         let serial = run(random(false), 15, 2);
         assert!(serial.1 > 10, "learning ran: {} updates", serial.1);
         assert!(
             run(random(true), 15, 2) == serial,
-            "acting at random, every {train_every} steps: the same updates as taking turns"
+            "acting at random, every {train_every} steps, target copies every {target_update}: \
+             the same updates as taking turns"
         );
     }
 }
@@ -111,4 +118,56 @@ fn act_while_learning_is_refused_where_it_cannot_apply() {
     assert!(e.contains("act_with_target_network"), "{e}");
     let e = err(Preset::Strong, "act_while_learning = true\n[pqn]");
     assert!(e.contains("act_while_learning"), "{e}");
+}
+
+/// The target pass that the playing thread makes ahead ([`NextValues`], by a copy of the
+/// target network) gives the update the numbers it would compute itself: three updates of
+/// `strong`'s network with the pass given and without it end with the same statistics and
+/// weights, bit for bit, for each head and target rule (Double DQN with the dueling head,
+/// QR-DQN's quantiles, M-IQN's implicit quantiles with Munchausen's bootstrap), in f32 and in
+/// bf16. A target copy between the updates keeps the target network moving.
+#[test]
+fn the_target_pass_made_ahead_is_the_one_the_update_makes() {
+    use invaders::dqn::{Batch, Learner, NextValues, Preset};
+    use rand::SeedableRng;
+    let heads = [
+        "",
+        "dueling = false\nquantiles = 8\n",
+        "iqn_samples = 8\niqn_target_samples = 8\niqn_policy_samples = 8\nmunchausen_alpha = 0.9\n",
+    ];
+    for head in heads {
+        for precision in ["f32", "bf16"] {
+            let text = format!("{head}hidden = 16\nbatch_size = 4\nprecision = \"{precision}\"\n");
+            let config = Config::resolve(Some(Preset::Strong), Some(&text)).unwrap();
+            let learner =
+                || Learner::from_config(&config, 6, &mut rand_chacha::ChaCha8Rng::seed_from_u64(7));
+            let (mut own, mut given) = (learner(), learner());
+            let mut next = NextValues::new(&config, &given);
+            let (rng, mut values) = (&mut rand_chacha::ChaCha8Rng::seed_from_u64(8), Vec::new());
+            for step in 0..3 {
+                let batch = Batch::random(&config, rng);
+                next.compute(&batch, &mut values);
+                let a = own.train_step(&batch);
+                let b = given.train_step_with(&batch, Some(&values));
+                assert_eq!(a, b, "{head}{precision}: step {step}'s statistics");
+                assert_eq!(
+                    own.targets(),
+                    given.targets(),
+                    "{head}{precision}: step {step}'s y"
+                );
+                if step == 1 {
+                    own.update_target();
+                    given.update_target();
+                    next.sync(&given);
+                }
+            }
+            let weights = |l: &Learner| -> Vec<Vec<f32>> {
+                l.online.params().map(|p| p.value.data().to_vec()).collect()
+            };
+            assert!(
+                weights(&own) == weights(&given),
+                "{head}{precision}: the weights"
+            );
+        }
+    }
 }

@@ -169,7 +169,14 @@ fn train_by_frames() {
         let p = &json[key]["core_shares"]["player"];
         let share = |k: &str| p[k].as_f64().unwrap_or(-1.0);
         let parts = [
-            "acting", "emulator", "storing", "sampling", "update", "joining", "other",
+            "acting",
+            "emulator",
+            "storing",
+            "sampling",
+            "target_pass",
+            "update",
+            "joining",
+            "other",
         ];
         assert!(
             parts.iter().all(|&k| (0.0..=1.0).contains(&share(k))),
@@ -185,11 +192,13 @@ fn train_by_frames() {
             "{key} in {text}"
         );
         let (update, joining) = (share("update"), share("joining"));
+        // Beside the play, the playing thread makes each next update's target pass.
+        let target_pass = share("target_pass");
         assert!(
             if beside {
-                update == 0.0 && joining > 0.0
+                update == 0.0 && joining > 0.0 && target_pass > 0.0
             } else {
-                update > 0.0 && joining == 0.0
+                update > 0.0 && joining == 0.0 && target_pass == 0.0
             },
             "{key} in {text}"
         );

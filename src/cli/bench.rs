@@ -131,6 +131,8 @@ struct PlayerShares {
     emulator: f64,
     storing: f64,
     sampling: f64,
+    /// Beside the updates: the next update's target pass, made ahead.
+    target_pass: f64,
     /// The updates it took its turn in (none when it plays beside them).
     update: f64,
     /// Beside the updates: from the end of its block to the update's end.
@@ -143,13 +145,15 @@ impl CoreShares {
     /// The shares of `t` over `wall` seconds; `beside`: the updates ran beside the play.
     fn of(t: &LoopTimes, wall: f64, beside: bool) -> Self {
         let update = if beside { 0.0 } else { t.update };
-        let played = t.acting + t.emulator + t.storing + t.sampling + update + t.joining;
+        let played =
+            t.acting + t.emulator + t.storing + t.sampling + t.target_pass + update + t.joining;
         CoreShares {
             player: PlayerShares {
                 acting: t.acting / wall,
                 emulator: t.emulator / wall,
                 storing: t.storing / wall,
                 sampling: t.sampling / wall,
+                target_pass: t.target_pass / wall,
                 update: update / wall,
                 joining: t.joining / wall,
                 other: (wall - played).max(0.0) / wall,
@@ -163,11 +167,12 @@ impl CoreShares {
         let p = &self.player;
         let pc = |x: f64| format!("{:.0}%", 100.0 * x);
         format!(
-            "player: acting {}, emulator {}, storing {}, sampling {}, update {}, joining {}, other {}; each other thread: update {}",
+            "player: acting {}, emulator {}, storing {}, sampling {}, target pass {}, update {}, joining {}, other {}; each other thread: update {}",
             pc(p.acting),
             pc(p.emulator),
             pc(p.storing),
             pc(p.sampling),
+            pc(p.target_pass),
             pc(p.update),
             pc(p.joining),
             pc(p.other),

@@ -24,7 +24,7 @@
 //! up on those steps once the update has landed.
 
 use super::acting::greedy;
-use super::{Batch, Config, Head, Learner, Replay, StepStats};
+use super::{Batch, Config, Head, Learner, NextValues, Replay, StepStats};
 use crate::env::{Game, Observer, StepResult, FRAME_LEN};
 use crate::layers::init::VarianceScaling;
 use crate::layers::Sequential;
@@ -64,6 +64,10 @@ pub struct LoopTimes {
     pub storing: f64,
     /// Sampling each update's minibatch (ALGO 6's batch), on the playing thread.
     pub sampling: f64,
+    /// With [`Config::act_while_learning`]: the next update's target pass (step 1 of ALGO 6's
+    /// gradient step, [`super::NextValues`]), made by the playing thread beside the update
+    /// before it.
+    pub target_pass: f64,
     /// The updates (ALGO 6's gradient step), start to end: on every thread of the pool when
     /// they take turns with play; beside the play with [`Config::act_while_learning`].
     pub update: f64,
@@ -80,6 +84,7 @@ impl LoopTimes {
             emulator: self.emulator - before.emulator,
             storing: self.storing - before.storing,
             sampling: self.sampling - before.sampling,
+            target_pass: self.target_pass - before.target_pass,
             update: self.update - before.update,
             joining: self.joining - before.joining,
         }
@@ -313,6 +318,13 @@ pub struct Agent<G: Game> {
     /// With [`Config::act_while_learning`]: the next update's minibatch, sampled while the
     /// update before it runs.
     ahead: Option<Batch>,
+    /// With [`Config::act_while_learning`]: a copy of the target network, with which the playing
+    /// thread makes the next update's target pass over `ahead` beside the update before it.
+    next: Option<NextValues>,
+    /// That pass's outputs for `ahead` and for `batch` (empty where it was not made: the update
+    /// then makes it).
+    ahead_values: Vec<f32>,
+    batch_values: Vec<f32>,
     /// Where the wall time went.
     pub times: LoopTimes,
 }
@@ -342,6 +354,11 @@ impl<G: Game> Agent<G> {
             input: Tensor::zeros(&[1, input[0], input[1], input[2]]),
             batch: batch(),
             ahead: config.act_while_learning.then(batch),
+            next: config
+                .act_while_learning
+                .then(|| NextValues::new(&config, &learner)),
+            ahead_values: Vec::new(),
+            batch_values: Vec::new(),
             acting: config.act_while_learning.then(|| {
                 // Its values are overwritten before each use; the draw touches no run stream.
                 let rng = &mut ChaCha8Rng::seed_from_u64(0);
@@ -510,6 +527,8 @@ impl<G: Game> Agent<G> {
             table,
             &mut self.batch,
         );
+        // A new batch: the update makes its target pass.
+        self.batch_values.clear();
         self.times.sampling += secs(start);
     }
 
@@ -517,7 +536,8 @@ impl<G: Game> Agent<G> {
     fn train_step(&mut self, t: u64) -> StepStats {
         let start = Instant::now();
         self.learner.adam.lr = self.config.learning_rate(t) as f32;
-        let stats = self.learner.train_step(&self.batch);
+        let values = (!self.batch_values.is_empty()).then_some(&self.batch_values[..]);
+        let stats = self.learner.train_step_with(&self.batch, values);
         self.times.update += secs(start);
         stats
     }
@@ -536,24 +556,29 @@ impl<G: Game> Agent<G> {
     }
 
     /// ALGO 7 (and beside it the resets of `reset_dense_at`) for each agent step in `steps`.
-    fn refresh_target(&mut self, steps: std::ops::RangeInclusive<u64>) {
+    /// Returns whether the target network changed.
+    fn refresh_target(&mut self, steps: std::ops::RangeInclusive<u64>) -> bool {
+        let mut copied = false;
         for t in steps {
             // ALGO 7: every `target_update` steps, copy the online network into the target.
             if t.is_multiple_of(self.config.target_update) {
                 self.learner.update_target();
+                copied = true;
             }
             // Not the algorithm: a reset of the dense layers, if `reset_dense_at` lists `t`.
             if self.config.reset_dense_at.binary_search(&t).is_ok() {
                 self.reset_dense(t);
             }
         }
+        copied
     }
 
     /// ALGO 6 beside ALGO 2–5, from the update at agent step `t` on. Each update is spawned
     /// into the pool ([`rayon::in_place_scope`]) while this thread plays the block of agent steps
     /// through the next update's (`train_every` of them, fewer if the episode ends), acting with
-    /// a copy of the online network made before the update, and samples the next update's
-    /// batch; then it joins the update. ALGO 7 catches up on the steps before the next update,
+    /// a copy of the online network made before the update, samples the next update's batch
+    /// and makes that update's target pass with a copy of the target network
+    /// ([`NextValues`]); then it joins the update. ALGO 7 catches up on the steps before the next update,
     /// which then starts the same way, until a block ends the episode (an update due at its
     /// last step then runs alone). Returns the last step played and the first step ALGO 7 has
     /// not reached.
@@ -565,19 +590,25 @@ impl<G: Game> Agent<G> {
         &mut self, mut t: u64, lives: &mut Option<i32>, metrics: &mut EpisodeMetrics,
     ) -> anyhow::Result<(Played, u64)> {
         self.sample_batch();
+        // The copy of the target network as this chain's first update finds it.
+        let next_net = self.next.as_mut().expect("built for act_while_learning");
+        next_net.sync(&self.learner);
         loop {
             self.learner.adam.lr = self.config.learning_rate(t) as f32;
             let acting = self.acting.as_mut().expect("built for act_while_learning");
             acting.copy_params_from(&self.learner.online);
             let through = t + self.config.train_every;
             let (learner, batch) = (&mut self.learner, &self.batch);
+            let values = (!self.batch_values.is_empty()).then_some(&self.batch_values[..]);
             let ahead = self.ahead.as_mut().expect("built for act_while_learning");
+            let next_net = self.next.as_mut().expect("built for act_while_learning");
+            let ahead_values = &mut self.ahead_values;
             let sample_rng = &mut self.sample_rng;
             let mut player = player!(self, metrics);
             let (mut stats, mut update_secs, mut play_secs) = (None, 0.0, 0.0);
             let mut update = || {
                 let start = Instant::now();
-                stats = Some(learner.train_step(batch));
+                stats = Some(learner.train_step_with(batch, values));
                 update_secs = secs(start);
             };
             let start = Instant::now();
@@ -591,6 +622,10 @@ impl<G: Game> Agent<G> {
                     let start = Instant::now();
                     sample(p.config, p.replay, sample_rng, p.table, ahead);
                     p.times.sampling += secs(start);
+                    // And its target pass, off the update's critical path.
+                    let start = Instant::now();
+                    next_net.compute(ahead, ahead_values);
+                    p.times.target_pass += secs(start);
                     Some(through)
                 } else {
                     None
@@ -604,8 +639,14 @@ impl<G: Game> Agent<G> {
             let Some(next) = next else {
                 return Ok((played, t));
             };
-            self.refresh_target(t..=next - 1);
+            if self.refresh_target(t..=next - 1) {
+                // The pass was made with the target network before it changed: the next
+                // update makes it anew, and the copy follows the target.
+                self.ahead_values.clear();
+                self.next.as_mut().expect("built").sync(&self.learner);
+            }
             std::mem::swap(&mut self.batch, self.ahead.as_mut().expect("built"));
+            std::mem::swap(&mut self.batch_values, &mut self.ahead_values);
             t = next;
             if played.ended {
                 // The episode's last update, with nothing left to play beside it.

@@ -278,6 +278,14 @@ impl Learner {
     /// The target network's pass over `s'` and the online one's over `s` are independent: they
     /// run side by side, each layer's work still split over the pool.
     pub fn train_step(&mut self, batch: &Batch) -> StepStats {
+        self.train_step_with(batch, None)
+    }
+
+    /// [`Learner::train_step`], the target network's pass over the next states given where
+    /// another thread made it ahead ([`NextValues`]): `next` is that pass's output for this
+    /// `batch` by a copy of this learner's target network, the numbers the step would compute
+    /// itself (`None`: the step makes the pass).
+    pub fn train_step_with(&mut self, batch: &Batch, next: Option<&[f32]>) -> StepStats {
         let (head, na, rule, gamma) = (&*self.head, self.n_actions, self.rule, self.gamma);
         // 1. The targets y: the rule's own pass first (Double DQN: `Q_online(s', ·)`;
         //    Munchausen: `Q_target(s, ·)`), then the target network's over s', beside step 2.
@@ -286,7 +294,13 @@ impl Learner {
         rule.policy(head, &mut self.online, target, batch, q, taus, policy);
         let (online, y) = (&mut self.online, &mut self.y);
         let ((), out) = rayon::join(
-            || targets(head, rule, target, batch, policy, gamma, y, [q, z], taus),
+            || {
+                let out = match next {
+                    Some(out) => out,
+                    None => next_values(head, target, batch, taus),
+                };
+                targets(head, rule, out, batch, policy, gamma, y, [q, z]);
+            },
             // 2. The forward pass; θ = Q(s, a) of the taken actions.
             || forward(head, online, batch),
         );
@@ -377,18 +391,76 @@ impl Learner {
     }
 }
 
+/// Step 1's target pass made ahead, on another thread than the update's: a copy of a learner's
+/// target network, and its head. With [`super::Config::act_while_learning`] the playing thread
+/// makes the pass over the next update's batch while the current update runs, and the next
+/// update takes it ([`Learner::train_step_with`]) instead of making it on its own critical path.
+/// The copy must hold the target network's parameters as that update will see them: whoever
+/// holds it [`syncs`](NextValues::sync) it when the target network changes, and drops a pass
+/// made before.
+pub struct NextValues {
+    /// The copy of the target network.
+    net: Sequential<f32>,
+    /// The learner's head (an implicit quantile head sets the copy's target fractions).
+    head: Box<dyn ValueHead>,
+    /// An implicit quantile head's fractions (scratch).
+    taus: Vec<f64>,
+}
+
+impl NextValues {
+    /// A copy of the target network of `learner`, built from `config` as
+    /// [`Learner::from_config`] builds it.
+    pub fn new(config: &super::Config, learner: &Learner) -> Self {
+        let head = Head::of(config);
+        // Its values are overwritten at once; the draw touches no run stream.
+        let rng = &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(0);
+        let (input, n_actions) = (config.input_shape(), learner.n_actions);
+        let mut net = qnet(input, n_actions, head, &VarianceScaling::HE, rng);
+        net.set_precision(config.precision);
+        net.copy_params_from(learner.target());
+        NextValues {
+            net,
+            head: value_head(&head, n_actions),
+            taus: Vec::new(),
+        }
+    }
+
+    /// Copies the target network's parameters into the copy (after the target changed).
+    pub fn sync(&mut self, learner: &Learner) {
+        self.net.copy_params_from(learner.target());
+    }
+
+    /// The target network's outputs at `batch`'s next states ([`next_values`]) into `out`.
+    pub fn compute(&mut self, batch: &Batch, out: &mut Vec<f32>) {
+        out.clear();
+        out.extend_from_slice(next_values(
+            &*self.head,
+            &mut self.net,
+            batch,
+            &mut self.taus,
+        ));
+    }
+}
+
+/// Step 1's forward pass: the target network's (`net`, or a copy of it) outputs at the batch's
+/// next states, one row per state (an implicit quantile head's `N'` rows, at the batch's target
+/// fractions) of `A·k` values; `taus` is scratch.
+fn next_values<'n>(
+    head: &dyn ValueHead, net: &'n mut Sequential<f32>, batch: &Batch, taus: &mut Vec<f64>,
+) -> &'n [f32] {
+    head.fractions(net, Pass::Next, batch, taus);
+    net.infer(&batch.next_states).data()
+}
+
 /// Step 1 without the rule's own pass: the targets `y` (`[B, M]`) from the target network's
-/// outputs at the next states, each state's split by the head into `Q(s', ·)` (`[A]`) and the
-/// target samples `Z_j(s', ·)` (`[M, A]`), bootstrapped by `rule` with `policy` (`[B, A]` or
-/// empty, [`TargetRule::policy`]); `q_next`, `z` and `taus` are scratch.
+/// outputs at the next states (`out`, [`next_values`]), each state's split by the head into
+/// `Q(s', ·)` (`[A]`) and the target samples `Z_j(s', ·)` (`[M, A]`), bootstrapped by `rule`
+/// with `policy` (`[B, A]` or empty, [`TargetRule::policy`]); `q_next` and `z` are scratch.
 #[allow(clippy::too_many_arguments)] // the step's inputs, then its scratch buffers
 fn targets(
-    head: &dyn ValueHead, rule: TargetRule, target: &mut Sequential<f32>, batch: &Batch,
-    policy: &[f32], gamma: f32, y: &mut Vec<f32>, [q_next, z]: [&mut Vec<f32>; 2],
-    taus: &mut Vec<f64>,
+    head: &dyn ValueHead, rule: TargetRule, out: &[f32], batch: &Batch, policy: &[f32], gamma: f32,
+    y: &mut Vec<f32>, [q_next, z]: [&mut Vec<f32>; 2],
 ) {
-    head.fractions(target, Pass::Next, batch, taus);
-    let out = target.infer(&batch.next_states).data();
     y.clear();
     for (i, out) in out.chunks_exact(out.len() / batch.len()).enumerate() {
         head.q_values(head.next(out, z), q_next);

@@ -20,7 +20,7 @@ pub use config::{
     merge_toml, Config, Pqn, Preset, ARTICLE_HIDDEN, IMPORTANCE_EXPONENT, MAX_PQN_GAMES,
     NO_EPISODE_LIMIT, PRIORITY_EXPONENT, STRONG_FRAMES, STRONG_V1_FRAMES,
 };
-pub use learner::{argmax, greedy_atoms, Learner, Munchausen, StepStats, TargetRule};
+pub use learner::{argmax, greedy_atoms, Learner, Munchausen, NextValues, StepStats, TargetRule};
 pub use pqn::{game_seed, q_lambda_returns, Player, PqnAgent};
 pub use precision::{resolve_precision, Resolved};
 pub use qnet::{
