@@ -578,10 +578,10 @@ impl<G: Game> Agent<G> {
     /// through the next update's (`train_every` of them, fewer if the episode ends), acting with
     /// a copy of the online network made before the update, samples the next update's batch
     /// and makes that update's target pass with a copy of the target network
-    /// ([`NextValues`]); then it joins the update. ALGO 7 catches up on the steps before the next update,
-    /// which then starts the same way, until a block ends the episode (an update due at its
-    /// last step then runs alone). Returns the last step played and the first step ALGO 7 has
-    /// not reached.
+    /// ([`NextValues`]); then it joins the update. ALGO 7 catches up on the steps before the
+    /// next update, which then starts the same way, until a block ends the episode (an update
+    /// due at its last step then runs alone). Returns the last step played and the first step
+    /// ALGO 7 has not reached.
     ///
     /// The schedule depends on `train_every` alone, and every kernel's result on its inputs
     /// alone, so a run's results do not depend on the thread count; with one thread each
