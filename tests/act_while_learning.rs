@@ -125,7 +125,8 @@ fn act_while_learning_is_refused_where_it_cannot_apply() {
 /// `strong`'s network with the pass given and without it end with the same statistics and
 /// weights, bit for bit, for each head and target rule (Double DQN with the dueling head,
 /// QR-DQN's quantiles, M-IQN's implicit quantiles with Munchausen's bootstrap), in f32 and in
-/// bf16. A target copy between the updates keeps the target network moving.
+/// bf16. A target copy between the updates keeps the target network moving, and a copy that
+/// misses it gives other targets: the step uses the pass it is given.
 #[test]
 fn the_target_pass_made_ahead_is_the_one_the_update_makes() {
     use invaders::dqn::{Batch, Learner, NextValues, Preset};
@@ -141,8 +142,10 @@ fn the_target_pass_made_ahead_is_the_one_the_update_makes() {
             let config = Config::resolve(Some(Preset::Strong), Some(&text)).unwrap();
             let learner =
                 || Learner::from_config(&config, 6, &mut rand_chacha::ChaCha8Rng::seed_from_u64(7));
-            let (mut own, mut given) = (learner(), learner());
+            let (mut own, mut given, mut stale) = (learner(), learner(), learner());
             let mut next = NextValues::new(&config, &given);
+            // A copy that misses the target copy below: the pass it gives must change the step.
+            let mut missed = NextValues::new(&config, &stale);
             let (rng, mut values) = (&mut rand_chacha::ChaCha8Rng::seed_from_u64(8), Vec::new());
             for step in 0..3 {
                 let batch = Batch::random(&config, rng);
@@ -155,9 +158,16 @@ fn the_target_pass_made_ahead_is_the_one_the_update_makes() {
                     given.targets(),
                     "{head}{precision}: step {step}'s y"
                 );
+                missed.compute(&batch, &mut values);
+                stale.train_step_with(&batch, Some(&values));
+                assert!(
+                    (own.targets() == stale.targets()) == (step < 2),
+                    "{head}{precision}: step {step}: the given pass is what the step uses"
+                );
                 if step == 1 {
-                    own.update_target();
-                    given.update_target();
+                    for l in [&mut own, &mut given, &mut stale] {
+                        l.update_target();
+                    }
                     next.sync(&given);
                 }
             }

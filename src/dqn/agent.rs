@@ -20,8 +20,8 @@
 //! the convolutions are drawn afresh ([`Learner::reset_dense`]). Another changes when ALGO 6
 //! runs, not what it computes: with [`Config::act_while_learning`] each update runs on the
 //! pool's other threads while this one plays the steps through the next update's (ALGO 2–5)
-//! with the parameters from before it and samples the next update's batch, and ALGO 7 catches
-//! up on those steps once the update has landed.
+//! with the parameters from before it, samples the next update's batch and makes its target
+//! pass, and ALGO 7 catches up on those steps once the update has landed.
 
 use super::acting::greedy;
 use super::{Batch, Config, Head, Learner, NextValues, Replay, StepStats};

@@ -296,7 +296,15 @@ impl Learner {
         let ((), out) = rayon::join(
             || {
                 let out = match next {
-                    Some(out) => out,
+                    Some(out) => {
+                        assert!(
+                            !out.is_empty() && out.len().is_multiple_of(batch.len()),
+                            "train_step_with: {} target values for a batch of {}",
+                            out.len(),
+                            batch.len()
+                        );
+                        out
+                    }
                     None => next_values(head, target, batch, taus),
                 };
                 targets(head, rule, out, batch, policy, gamma, y, [q, z]);

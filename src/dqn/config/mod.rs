@@ -439,10 +439,10 @@ pub struct Config {
     pub act_with_target_network: bool,
     /// Acting beside learning (issue #101): each update runs on the pool's other threads while
     /// this thread plays the agent steps through the next update's (`train_every` of them), which
-    /// act with a copy of the parameters from before the update (one update old), and samples
-    /// the next update's batch. Results depend on the seed alone, not on the thread count; with
-    /// one thread the block is played first, then the update. Default off: each update lands
-    /// before the next action.
+    /// act with a copy of the parameters from before the update (one update old), samples the
+    /// next update's batch and makes its target pass (the same numbers as the update would).
+    /// Results depend on the seed alone, not on the thread count; with one thread the block is
+    /// played first, then the update. Default off: each update lands before the next action.
     #[serde(default, skip_serializing_if = "is_false")]
     pub act_while_learning: bool,
     /// The notebook's extra transition at each episode end: the final state, the last action,
