@@ -438,7 +438,7 @@ impl NextValues {
         self.net.copy_params_from(learner.target());
     }
 
-    /// The target network's outputs at `batch`'s next states ([`next_values`]) into `out`.
+    /// The target network's outputs at `batch`'s next states (step 1's pass) into `out`.
     pub fn compute(&mut self, batch: &Batch, out: &mut Vec<f32>) {
         out.clear();
         out.extend_from_slice(next_values(
