@@ -13,7 +13,10 @@
 //! * Loading a missing file makes the C++ side throw, which aborts the process; every check that
 //!   can fail is done in Rust first.
 //!
-//! The wrapper is deliberately not `Send`: create each emulator inside the thread that uses it.
+//! An emulator may move to another thread (`Send`, so that several games step in parallel), but
+//! it is used by one thread at a time (not `Sync`): each `ALEInterface` owns all of its state,
+//! and the ALE keeps none per thread (`vendor/ale-sys/ale` holds no `thread_local`); the little
+//! global state it has is written while a ROM loads, which is serialised (`LOAD_LOCK`).
 
 use std::ffi::CString;
 use std::fs;
@@ -54,9 +57,10 @@ pub struct AleSettings {
 /// averaging is off, so every [`act`](Ale::act) is exactly one raw frame.
 ///
 /// Invariant, which every `unsafe` call below relies on: `ptr` is the non-null `ALEInterface` that
-/// `ALE_new` returned, owned by this value alone (`Ale` is neither `Clone` nor `Send`, and the
+/// `ALE_new` returned, owned by this value alone (`Ale` is neither `Clone` nor `Sync`, and the
 /// pointer never leaves it), with the ROM loaded once [`Ale::new`] has returned; it is deleted
-/// only in `Drop`. ALE's C functions are then sound to call with it from this thread.
+/// only in `Drop`. ALE's C functions are then sound to call with it from whichever one thread
+/// holds the value.
 pub struct Ale {
     ptr: *mut ale_sys::ALEInterface,
     minimal_actions: Vec<i32>,
@@ -265,6 +269,14 @@ impl Ale {
         Ok(())
     }
 }
+
+// SAFETY: the interface behind `ptr` is owned by this value alone and holds all of its own
+// state; the ALE and Stella keep no thread-local state (no `thread_local`, `__thread` or
+// `pthread_getspecific` in `vendor/ale-sys/ale`), and their few globals (the cartridge
+// description, the TIA's playfield table) are written only while a ROM loads, under `LOAD_LOCK`,
+// with the same values each time. Moving the value to another thread and calling the ALE there
+// is therefore sound; `&Ale` is not shared between threads (`Ale` is not `Sync`).
+unsafe impl Send for Ale {}
 
 impl Drop for Ale {
     fn drop(&mut self) {

@@ -3,8 +3,9 @@
 
 use super::{EnvError, SpaceInvaders, StepResult};
 
-/// An episodic game with a discrete action set and 88x80 grey frames.
-pub trait Game {
+/// An episodic game with a discrete action set and 88x80 grey frames. `Send`, so that the games
+/// an agent plays side by side step in parallel ([`crate::dqn::Config::games`]).
+pub trait Game: Send {
     /// Number of actions.
     fn n_actions(&self) -> usize;
     /// Starts a new episode.

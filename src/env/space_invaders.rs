@@ -57,7 +57,7 @@ pub struct EpisodeStats {
 
 /// Space Invaders through the ALE, with the configured frame skip, sticky actions and limits.
 ///
-/// Not `Send` (it owns a C++ emulator): create it in the thread that uses it.
+/// `Send` but not `Sync` (it owns a C++ emulator, [`Ale`]): one thread at a time steps it.
 pub struct SpaceInvaders {
     ale: Ale,
     config: EnvConfig,
