@@ -36,6 +36,17 @@
 //! Kostrikov et al. 2021, whose DQN on Atari pads 84x84 by 4). The learner then fits Q-values
 //! that cannot depend on where exactly the screen sits, only on what is where relative to what;
 //! acting sees the frames as they are.
+//!
+//! # Several games
+//!
+//! [`Replay::with_lanes`] splits the ring into `L` lanes, one per game played side by side
+//! ([`super::Config::games`]): lane `l` holds the entries `l, l + L, l + 2L, …`, in the slots
+//! `l, l + L, …` (entry `g` still lives in slot `g % capacity`), and keeps its own counter. A
+//! state is rebuilt, and an n-step return summed, along its lane (entry `g − L` before `g`,
+//! `g + L` after), so one game's frames never enter another's states; each lane forgets its own
+//! oldest entries. Uniform sampling draws a slot in use and keeps it if its entry is
+//! sampleable; prioritized sampling needs nothing new (its tree is over slots). With one lane
+//! every rule above is the one-game memory's, draw for draw.
 
 use super::input_border;
 use super::sumtree::SumTree;
@@ -65,14 +76,17 @@ pub struct Replay {
     dones: Vec<bool>,
     /// Whether this entry is the first observation of an episode.
     starts: Vec<bool>,
-    /// Whether the agent acted on this entry (so entry `g + 1` is its `s'`).
+    /// Whether the agent acted on this entry (so the next entry of its lane, `g + lanes`, is its
+    /// `s'`).
     acted: Vec<bool>,
     /// Steps of the sampled returns (1: the one-step TD target).
     n_step: usize,
     /// The discount the n-step returns are summed with.
     gamma: f32,
-    /// Entries written so far.
-    written: u64,
+    /// Games written side by side, each into its own lane ([`Replay::with_lanes`]; 1: one).
+    lanes: usize,
+    /// Entries written so far into each lane (lane-local counters).
+    written: Vec<u64>,
     /// Scratch: the sampled entries.
     picks: Vec<u64>,
     /// Prioritized sampling, if on.
@@ -117,7 +131,8 @@ impl Replay {
             acted: vec![false; capacity],
             n_step: 1,
             gamma: 1.0,
-            written: 0,
+            lanes: 1,
+            written: vec![0],
             picks: Vec::new(),
             priorities: None,
             shift: 0,
@@ -152,6 +167,32 @@ impl Replay {
         self
     }
 
+    /// The same memory split into `lanes` lanes of `capacity / lanes` entries each, for as many
+    /// games played side by side (module documentation, "Several games"). Lane `l` holds the
+    /// entries `l, l + lanes, l + 2·lanes, …` in the slots `l + lanes·j`; [`push_start_in`] and
+    /// [`push_step_in`] write to one lane.
+    ///
+    /// [`push_start_in`]: Self::push_start_in
+    /// [`push_step_in`]: Self::push_step_in
+    ///
+    /// # Panics
+    /// If `lanes` is 0 or does not divide the capacity, if a lane would hold no more than a
+    /// state's frames and one more, or if anything has been written.
+    pub fn with_lanes(mut self, lanes: usize) -> Self {
+        assert!(
+            lanes >= 1 && self.capacity.is_multiple_of(lanes),
+            "the lanes divide the capacity"
+        );
+        assert!(
+            self.capacity / lanes > self.k + 1,
+            "each lane's capacity must exceed the stack size + 1"
+        );
+        assert!(self.is_empty(), "lanes are set before anything is written");
+        self.lanes = lanes;
+        self.written = vec![0; lanes];
+        self
+    }
+
     /// The same memory sampling `n`-step returns discounted by `gamma` ([`Replay::sample`]).
     pub fn with_returns(mut self, n: usize, gamma: f32) -> Self {
         assert!(n >= 1, "returns of at least one step");
@@ -162,12 +203,34 @@ impl Replay {
 
     /// The number of entries held (at most `capacity`).
     pub fn len(&self) -> usize {
-        self.written.min(self.capacity as u64) as usize
+        let cap = self.lane_capacity() as u64;
+        self.written.iter().map(|&w| w.min(cap) as usize).sum()
     }
 
     /// Whether nothing has been stored.
     pub fn is_empty(&self) -> bool {
-        self.written == 0
+        self.written.iter().all(|&w| w == 0)
+    }
+
+    /// The number of lanes ([`Replay::with_lanes`]; 1 without).
+    pub fn lanes(&self) -> usize {
+        self.lanes
+    }
+
+    /// Entries written into each lane so far.
+    pub fn lane_written(&self) -> &[u64] {
+        &self.written
+    }
+
+    /// The entries one lane holds at most.
+    fn lane_capacity(&self) -> usize {
+        self.capacity / self.lanes
+    }
+
+    /// The slots in use, in whole rows of `lanes` slots: the rows a checkpoint saves (every held
+    /// entry's slot is below it; with one lane, `len`).
+    pub fn rows(&self) -> usize {
+        rows(&self.written, self.lane_capacity())
     }
 
     /// The capacity in entries.
@@ -175,41 +238,65 @@ impl Replay {
         self.capacity
     }
 
-    /// Entries written since creation (the global counter).
+    /// Entries written since creation, in all lanes (with one lane, the global counter).
     pub fn written(&self) -> u64 {
-        self.written
+        self.written.iter().sum()
     }
 
     fn slot(&self, g: u64) -> usize {
         (g % self.capacity as u64) as usize
     }
 
-    fn oldest(&self) -> u64 {
-        self.written.saturating_sub(self.capacity as u64)
+    /// The lane of entry `g`.
+    fn lane(&self, g: u64) -> usize {
+        (g % self.lanes as u64) as usize
     }
 
-    fn push_frame(&mut self, frame: &[u8], start: bool) {
-        let s = self.slot(self.written);
+    /// The entry lane `l` writes next.
+    fn next(&self, l: usize) -> u64 {
+        self.written[l] * self.lanes as u64 + l as u64
+    }
+
+    /// The oldest entry lane `l` holds (or will hold first).
+    fn oldest(&self, l: usize) -> u64 {
+        let cap = self.lane_capacity() as u64;
+        self.written[l].saturating_sub(cap) * self.lanes as u64 + l as u64
+    }
+
+    fn push_frame(&mut self, lane: usize, frame: &[u8], start: bool) {
+        let s = self.slot(self.next(lane));
         if let Some(p) = &mut self.priorities {
             p.tree.set(s, 0.0); // not acted on yet (and whatever it held is gone)
         }
         self.frames[s * FRAME_LEN..][..FRAME_LEN].copy_from_slice(frame);
         self.starts[s] = start;
         self.acted[s] = false;
-        self.written += 1;
+        self.written[lane] += 1;
     }
 
     /// Stores the first observation of an episode.
     pub fn push_start(&mut self, frame: &[u8]) {
-        self.push_frame(frame, true);
+        self.push_start_in(0, frame);
+    }
+
+    /// Stores the first observation of an episode of the game written to `lane`.
+    pub fn push_start_in(&mut self, lane: usize, frame: &[u8]) {
+        self.push_frame(lane, frame, true);
     }
 
     /// Records that the agent took `action` in the latest entry, received `reward`, and saw
     /// `next_frame`; `done` means the episode ended for good (a time limit is not `done`: the
     /// state still has a future, so its value is still bootstrapped).
     pub fn push_step(&mut self, action: usize, reward: f32, done: bool, next_frame: &[u8]) {
-        assert!(self.written > 0, "push_start comes first");
-        let s = self.slot(self.written - 1);
+        self.push_step_in(0, action, reward, done, next_frame);
+    }
+
+    /// [`push_step`](Self::push_step) for the game written to `lane`.
+    pub fn push_step_in(
+        &mut self, lane: usize, action: usize, reward: f32, done: bool, next_frame: &[u8],
+    ) {
+        assert!(self.written[lane] > 0, "push_start comes first");
+        let s = self.slot(self.next(lane) - self.lanes as u64);
         self.actions[s] = u8::try_from(action).expect("action index fits a byte");
         self.rewards[s] = reward;
         self.dones[s] = done;
@@ -217,26 +304,28 @@ impl Replay {
         if let Some(p) = &mut self.priorities {
             p.tree.set(s, p.max);
         }
-        self.push_frame(next_frame, false);
+        self.push_frame(lane, next_frame, false);
     }
 
-    /// Whether entry `g` can be sampled: it and its successor are held, and it was acted on.
+    /// Whether entry `g` can be sampled: it and its successor in its lane are held, and it was
+    /// acted on.
     fn valid(&self, g: u64) -> bool {
-        g >= self.oldest() && g + 1 < self.written && self.acted[self.slot(g)]
+        let l = self.lane(g);
+        g >= self.oldest(l) && g + (self.lanes as u64) < self.next(l) && self.acted[self.slot(g)]
     }
 
     /// The `k` frames of the state ending at entry `g`, oldest first, or `None` if they reach back
     /// past the oldest entry held (the ring has overwritten them).
     fn state_frames(&self, g: u64) -> Option<[&[u8]; 4]> {
         let mut out: [&[u8]; 4] = [&[]; 4];
-        let mut e = g;
+        let (mut e, oldest) = (g, self.oldest(self.lane(g)));
         for i in (0..self.k).rev() {
             out[i] = &self.frames[self.slot(e) * FRAME_LEN..][..FRAME_LEN];
             if i > 0 && !self.starts[self.slot(e)] {
-                if e == self.oldest() {
+                if e == oldest {
                     return None;
                 }
-                e -= 1;
+                e -= self.lanes as u64;
             }
         }
         Some(out)
@@ -244,7 +333,8 @@ impl Replay {
 
     /// Whether at least `n` transitions can be sampled.
     pub fn can_sample(&self, n: usize) -> bool {
-        self.len() > n + self.k
+        // Each lane's newest entry has no successor yet.
+        self.len() > n + self.k + self.lanes - 1
     }
 
     /// Frames per state.
@@ -253,10 +343,11 @@ impl Replay {
     }
 
     /// The held entries for a checkpoint, in slot order (row `g % capacity` holds entry `g`):
-    /// `(frames [len · 88·80], actions [len], rewards [len], flags [len])` with flag bits
-    /// [`FLAG_DONE`], [`FLAG_START`], [`FLAG_ACTED`].
+    /// `(frames [rows · 88·80], actions [rows], rewards [rows], flags [rows])` with flag bits
+    /// [`FLAG_DONE`], [`FLAG_START`], [`FLAG_ACTED`], over the [`rows`](Self::rows) in use (with
+    /// lanes, a lane behind the others leaves rows of its own unwritten: their flags are 0).
     pub fn parts(&self) -> (&[u8], &[u8], &[f32], Vec<u8>) {
-        let len = self.len();
+        let len = self.rows();
         let flags = (0..len)
             .map(|s| {
                 let mut f = 0;
@@ -281,19 +372,26 @@ impl Replay {
     }
 
     /// Replaces the contents with `parts` as made by [`parts`](Self::parts) of a memory of the
-    /// same capacity that had written `written` entries, the frames written by `read_frames`
-    /// straight into the memory's first `len · 88·80` bytes (a loader streams a file into them
-    /// without a second copy of the memory). Every length and flag is checked first; on an error
-    /// from those checks nothing is changed, on one from `read_frames` the frames may be partly
-    /// overwritten (discard the memory).
+    /// same capacity and lanes that had written `written` entries into each lane, the frames
+    /// written by `read_frames` straight into the memory's first `rows · 88·80` bytes (a loader
+    /// streams a file into them without a second copy of the memory). Every length and flag is
+    /// checked first; on an error from those checks nothing is changed, on one from
+    /// `read_frames` the frames may be partly overwritten (discard the memory).
     pub fn restore(
-        &mut self, written: u64, actions: &[u8], rewards: &[f32], flags: &[u8],
+        &mut self, written: &[u64], actions: &[u8], rewards: &[f32], flags: &[u8],
         read_frames: impl FnOnce(&mut [u8]) -> Result<(), String>,
     ) -> Result<(), String> {
-        let len = written.min(self.capacity as u64) as usize;
+        if written.len() != self.lanes {
+            return Err(format!(
+                "counters of {} lanes for a memory of {}",
+                written.len(),
+                self.lanes
+            ));
+        }
+        let len = rows(written, self.lane_capacity());
         if actions.len() != len || rewards.len() != len || flags.len() != len {
             return Err(format!(
-                "{written} entries written into a memory of {} need {len} rows of each array",
+                "{written:?} entries written into a memory of {} need {len} rows of each array",
                 self.capacity
             ));
         }
@@ -314,7 +412,7 @@ impl Replay {
             self.starts[s] = f & FLAG_START != 0;
             self.acted[s] = f & FLAG_ACTED != 0;
         }
-        self.written = written;
+        self.written = written.to_vec();
         Ok(())
     }
 
@@ -330,21 +428,26 @@ impl Replay {
             if self.dones[s] {
                 return (ret, m, true);
             }
-            // Entry j + 1 has no action when the episode was cut there, or it is the newest.
-            if m as usize == self.n_step || !self.valid(j + 1) {
+            // The lane's next entry has no action when the episode was cut there, or it is the
+            // newest.
+            let after = j + self.lanes as u64;
+            if m as usize == self.n_step || !self.valid(after) {
                 return (ret, m, false);
             }
             discount *= self.gamma;
-            j += 1;
+            j = after;
         }
         unreachable!("n_step >= 1")
     }
 
     /// The entry held in slot `s` (the one of the last `capacity` written that lives there).
     fn entry_in_slot(&self, s: usize) -> u64 {
-        let cap = self.capacity as u64;
-        let base = self.oldest();
-        base + (s as u64 + cap - base % cap) % cap
+        // The lane's own counter `j` of the entry in its slot `s / lanes`.
+        let (l, n) = (s % self.lanes, self.lanes as u64);
+        let cap = self.lane_capacity() as u64;
+        let base = self.written[l].saturating_sub(cap);
+        let j = base + ((s / self.lanes) as u64 + cap - base % cap) % cap;
+        j * n + l as u64
     }
 
     /// Whether entry `g` can be sampled with its whole state.
@@ -369,10 +472,21 @@ impl Replay {
         batch.weights.clear();
         batch.entries.clear();
         match &self.priorities {
-            None => {
-                let (lo, hi) = (self.oldest(), self.written - 1);
+            None if self.lanes == 1 => {
+                let (lo, hi) = (self.oldest(0), self.next(0) - 1);
                 while picks.len() < batch.len() {
                     let g = rng.random_range(lo..hi);
+                    if self.sampleable(g) {
+                        picks.push(g);
+                    }
+                }
+            }
+            None => {
+                // A slot in use at random, again until it holds a sampleable entry: uniform over
+                // the sampleable entries of every lane.
+                let rows = self.rows();
+                while picks.len() < batch.len() {
+                    let g = self.entry_in_slot(rng.random_range(0..rows));
                     if self.sampleable(g) {
                         picks.push(g);
                     }
@@ -429,7 +543,7 @@ impl Replay {
             batch.steps[i] = m;
             batch.dones[i] = done;
             let tables = (table, rounded.as_ref());
-            let next = g + m as u64;
+            let next = g + u64::from(m) * self.lanes as u64;
             for (entry, out) in [(g, &mut batch.states), (next, &mut batch.next_states)] {
                 let state = self
                     .state_frames(entry)
@@ -461,14 +575,18 @@ impl Replay {
     /// `p = (|δ| + ε)^α` ([`PRIORITY_EPSILON`]). Entries no longer held are skipped; without
     /// prioritized sampling this does nothing.
     pub fn update_priorities(&mut self, entries: &[u64], td: &[f32]) {
-        let oldest = self.oldest();
+        let held: Vec<(u64, u64)> = (0..self.lanes)
+            .map(|l| (self.oldest(l), self.next(l)))
+            .collect();
+        let lanes = self.lanes as u64;
         let Some(p) = &mut self.priorities else {
             return;
         };
         assert_eq!(entries.len(), td.len(), "one TD error per entry");
         for (&g, &d) in entries.iter().zip(td) {
             let s = (g % self.capacity as u64) as usize;
-            if g >= oldest && g < self.written && self.acted[s] {
+            let (oldest, next) = held[(g % lanes) as usize];
+            if g >= oldest && g < next && self.acted[s] {
                 let v = (f64::from(d.abs()) + PRIORITY_EPSILON).powf(p.alpha);
                 if v.is_finite() {
                     p.tree.set(s, v);
@@ -483,14 +601,14 @@ impl Replay {
     pub fn priorities(&self) -> Option<(Vec<f64>, f64)> {
         self.priorities
             .as_ref()
-            .map(|p| ((0..self.len()).map(|s| p.tree.get(s)).collect(), p.max))
+            .map(|p| ((0..self.rows()).map(|s| p.tree.get(s)).collect(), p.max))
     }
 
     /// Restores what [`priorities`](Self::priorities) gave, after [`restore`](Self::restore).
     /// Each value must be finite and `>= 0`, positive exactly where the entry was acted on, and
     /// at most `max`.
     pub fn restore_priorities(&mut self, values: &[f64], max: f64) -> Result<(), String> {
-        let len = self.len();
+        let len = self.rows();
         let acted = &self.acted;
         let Some(p) = &mut self.priorities else {
             return Err("this memory does not sample by priority".into());
@@ -512,6 +630,13 @@ impl Replay {
         p.max = max;
         Ok(())
     }
+}
+
+/// The rows in use of a memory whose lanes of `lane_capacity` entries have written `written`
+/// entries each: the longest lane's, in whole rows of `written.len()` slots.
+fn rows(written: &[u64], lane_capacity: usize) -> usize {
+    let longest = written.iter().map(|&w| w.min(lane_capacity as u64)).max();
+    longest.unwrap_or(0) as usize * written.len()
 }
 
 /// One 88x80 frame moved by `(dy, dx)` pixels with its border repeated: `to[y, x] =

@@ -53,7 +53,7 @@ pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow:
         ));
     }
     let checksum = tensors_checksum(tensors.iter().map(|(n, v)| (*n, v.data())));
-    let meta = HashMap::from([
+    let mut meta = HashMap::from([
         ("format".to_string(), REPLAY_FORMAT.to_string()),
         ("checksum".to_string(), format!("{checksum:08x}")),
         ("written".to_string(), replay.written().to_string()),
@@ -65,6 +65,11 @@ pub fn save_replay(path: &Path, replay: &Replay, counters: &Counters) -> anyhow:
         ("episodes".to_string(), counters.episodes.to_string()),
         ("agent_steps".to_string(), counters.agent_steps.to_string()),
     ]);
+    if replay.lanes() > 1 {
+        // Each lane's own counter, as `lane_written = "w0,w1,…"`.
+        let each: Vec<String> = replay.lane_written().iter().map(u64::to_string).collect();
+        meta.insert("lane_written".to_string(), each.join(","));
+    }
     write_atomic_with(path, |tmp| {
         // The operating system's error as itself (a full disk says so), not as the library's
         // `IoError(Os { … })`.
@@ -166,7 +171,23 @@ pub fn read_replay<R: Read + Seek>(
         );
     }
     let written = num("written")?;
-    let len = written.min(config.replay_capacity as u64) as usize;
+    let mut replay = config.new_replay();
+    let lanes = replay.lanes();
+    let lane_written: Vec<u64> = if lanes == 1 {
+        vec![written]
+    } else {
+        meta_get(&meta, "lane_written")?
+            .split(',')
+            .map(|w| w.parse().ok())
+            .collect::<Option<_>>()
+            .ok_or_else(|| anyhow!("replay metadata `lane_written` is not a list of numbers"))?
+    };
+    if lane_written.len() != lanes || lane_written.iter().sum::<u64>() != written {
+        bail!("the replay memory's lanes differ from the checkpoint's config ({lanes} games)");
+    }
+    let lane_capacity = (config.replay_capacity / lanes) as u64;
+    let longest = lane_written.iter().map(|&w| w.min(lane_capacity)).max();
+    let len = longest.unwrap_or(0) as usize * lanes;
     let mut expected = vec![
         (
             "replay.frames",
@@ -224,10 +245,9 @@ pub fn read_replay<R: Read + Seek>(
     let mut names: Vec<&str> = expected.iter().map(|e| e.0).collect();
     names.sort();
     let mut crc = crc32fast::Hasher::new();
-    let mut replay = config.new_replay();
     replay
         .restore(
-            written,
+            &lane_written,
             actions,
             &rewards,
             &small["replay.flags"],
