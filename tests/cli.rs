@@ -152,6 +152,7 @@ fn train_by_frames() {
         "env_frames_per_s",
         "agent_steps_per_s",
         "strong_agent_steps_per_s",
+        "strong_4_games_agent_steps_per_s",
         "strong_v1_agent_steps_per_s",
     ] {
         let v = json[key].as_f64().unwrap_or(-1.0);
@@ -163,6 +164,8 @@ fn train_by_frames() {
     for (key, beside) in [
         ("strong_final_epsilon", false),
         ("strong_acting_while_learning_final_epsilon", true),
+        ("strong_4_games_final_epsilon", false),
+        ("strong_4_games_acting_while_learning_final_epsilon", true),
     ] {
         let v = json[key]["agent_steps_per_s"].as_f64().unwrap_or(-1.0);
         assert!(v > 0.0 && v.is_finite(), "{key} in {text}");
@@ -215,9 +218,11 @@ fn train_by_frames() {
         "each product's kernel: {text}"
     );
     // A weights-only model file times acting too (the shipped player's network); a config of
-    // one's own is timed from the preset `--preset` names, which the report says.
+    // one's own is timed from the preset `--preset` names, which the report says (here 3 games
+    // side by side, whose replay lanes must divide the benchmark's smaller memory too).
     let own = root.join("own.toml");
-    std::fs::write(&own, "precision = \"f32\"\n").unwrap();
+    let own_text = "precision = \"f32\"\ngames = 3\nreplay_capacity = 999999\n";
+    std::fs::write(&own, own_text).unwrap();
     let text = ok(&invaders(&[
         "bench",
         "--threads",
@@ -242,6 +247,8 @@ fn train_by_frames() {
     assert_eq!(json["config_batch_size"], 32, "{text}");
     let v = json["config_train_step_ms"].as_f64().unwrap_or(-1.0);
     assert!(v > 0.0 && v.is_finite(), "config_train_step_ms: {text}");
+    let v = json["config_agent_steps_per_s"].as_f64().unwrap_or(-1.0);
+    assert!(v > 0.0 && v.is_finite(), "config_agent_steps_per_s: {text}");
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -73,6 +73,23 @@ fn acting_while_learning_learns_a_toy_corridor() {
     });
 }
 
+/// Playing 4 corridors side by side (`games = 4`: one acting pass for the 4, each game in its
+/// own lane of the replay memory) the agent learns the corridor too.
+#[test]
+fn games_side_by_side_learn_a_toy_corridor() {
+    learns(|c| c.games = 4);
+}
+
+/// And with each update beside the play (`act_while_learning`, one update every 4 steps).
+#[test]
+fn games_beside_the_update_learn_a_toy_corridor() {
+    learns(|c| {
+        c.games = 4;
+        c.act_while_learning = true;
+        c.train_every = 4;
+    });
+}
+
 /// With layer normalisation before each ReLU (`layer_norm`) the agent learns the corridor too.
 #[test]
 fn layer_norm_learns_a_toy_corridor() {
@@ -159,7 +176,8 @@ fn padding_is_same_unless_asked() {
 fn learns(set: impl FnOnce(&mut Config)) {
     let mut config = toy_config();
     set(&mut config);
-    let mut agent = Agent::new(config, Corridor::new());
+    let games = (0..config.games).map(|_| Corridor::new()).collect();
+    let mut agent = Agent::with_games(config, games).unwrap();
     for _ in 0..120 {
         agent.play_episode().unwrap();
     }
@@ -432,6 +450,137 @@ fn replay_sums_n_step_returns_within_episodes() {
         seen.insert(f);
     });
     assert_eq!(seen.len(), 10, "every sampleable entry drawn: {seen:?}");
+}
+
+/// Three games written side by side into the lanes of one memory (`Replay::with_lanes`, as
+/// `games = 3` does), their pushes interleaved, give each game's transitions as a memory of its
+/// own would: the episodes of `replay_sums_n_step_returns_within_episodes`, one per lane, give
+/// the same states, n-step returns and next states, and never a frame of another lane. Then
+/// the lanes survive a checkpoint's round trip (`parts`, `restore`): the same draws follow.
+#[test]
+fn replay_lanes_keep_each_games_transitions_apart() {
+    let mut replay = Replay::new(63, 4).with_lanes(3).with_returns(3, 0.5);
+    // Lane 0: episode A, 10 → 14. Lane 1: episode B, 20 → 24. Lane 2: episode C, 30 → 32.
+    let a = [(1.0, false), (2.0, false), (4.0, false), (8.0, true)];
+    let b = [(1.0, false), (1.0, false), (1.0, true), (1.0, false)];
+    let c = [(2.0, false), (2.0, false)];
+    for (lane, first) in [(0, 10), (1, 20), (2, 30)] {
+        replay.push_start_in(lane, &frame(first));
+    }
+    for i in 0..4 {
+        for (lane, steps, first) in [(2, &c[..], 30), (0, &a[..], 10), (1, &b[..], 20)] {
+            if let Some(&(r, done)) = steps.get(i) {
+                replay.push_step_in(lane, i, r, done, &frame(first + 1 + i as u8));
+            }
+        }
+    }
+    assert_eq!(replay.len(), 13);
+    assert_eq!(replay.lane_written(), &[5, 5, 3]);
+    let expected = |f: u8| -> (f32, u32, bool, u8, u8) {
+        match f {
+            10 => (1.0 + 0.5 * 2.0 + 0.25 * 4.0, 3, false, 13, 10),
+            11 => (2.0 + 0.5 * 4.0 + 0.25 * 8.0, 3, true, 14, 10),
+            12 => (4.0 + 0.5 * 8.0, 2, true, 14, 10),
+            13 => (8.0, 1, true, 14, 10),
+            20 => (1.0 + 0.5 + 0.25, 3, true, 23, 20),
+            21 => (1.0 + 0.5, 2, true, 23, 20),
+            22 => (1.0, 1, true, 23, 20),
+            23 => (1.0, 1, false, 24, 20),
+            30 => (2.0 + 0.5 * 2.0, 2, false, 32, 30),
+            31 => (2.0, 1, false, 32, 30),
+            f => panic!("entry {f} has no successor and must not be sampled"),
+        }
+    };
+    let table = common::identity_table();
+    let draws = |replay: &mut Replay| {
+        let mut batch = Batch::new(2, [88, 80, 4]);
+        let mut rng = common::rng(5);
+        let mut seen = Vec::new();
+        for _ in 0..200 {
+            replay.sample(&mut rng, &table, &mut batch);
+            for i in 0..2 {
+                let f = px(&batch.states, i)[3] as u8;
+                let (ret, m, done, next, first) = expected(f);
+                assert_eq!(px(&batch.states, i), stack(f, first), "state ending at {f}");
+                assert_eq!(
+                    (
+                        batch.rewards[i],
+                        batch.steps[i],
+                        batch.dones[i],
+                        batch.actions[i]
+                    ),
+                    (ret, m, done, (f - first) as usize),
+                    "return from {f}"
+                );
+                assert_eq!(px(&batch.next_states, i), stack(next, first), "s' of {f}");
+                seen.push(f);
+            }
+        }
+        seen
+    };
+    let seen = draws(&mut replay);
+    let distinct: std::collections::BTreeSet<_> = seen.iter().collect();
+    assert_eq!(
+        distinct.len(),
+        10,
+        "every sampleable entry drawn: {distinct:?}"
+    );
+    // The round trip: a lane behind the others leaves rows of its own unwritten.
+    let (frames, actions, rewards, flags) = replay.parts();
+    assert_eq!(actions.len(), 15, "5 rows of 3 lanes");
+    let mut back = Replay::new(63, 4).with_lanes(3).with_returns(3, 0.5);
+    back.restore(replay.lane_written(), actions, rewards, &flags, |to| {
+        to.copy_from_slice(frames);
+        Ok(())
+    })
+    .unwrap();
+    assert!(back.parts() == replay.parts());
+    assert_eq!(
+        draws(&mut back),
+        seen,
+        "the same draws after the round trip"
+    );
+    let err = Replay::new(63, 4)
+        .with_lanes(3)
+        .restore(&[13], actions, rewards, &flags, |_| Ok(()))
+        .unwrap_err();
+    assert!(err.contains("3"), "{err}");
+}
+
+/// Prioritized sampling over lanes: each lane's entries get their priorities, and a lane's
+/// overwritten entries (the ring wrapped within it) are never drawn.
+#[test]
+fn prioritized_lanes_draw_only_held_entries() {
+    let mut replay = Replay::new(40, 4).with_lanes(2).with_priorities(0.5, 0.5);
+    // Lane 0 writes 3 episodes of 10 entries (it wraps: 20 slots), lane 1 one of 6.
+    for ep in 0..3u8 {
+        replay.push_start_in(0, &frame(100 + 10 * ep));
+        for i in 1..10u8 {
+            replay.push_step_in(0, 0, 1.0, i == 9, &frame(100 + 10 * ep + i));
+        }
+    }
+    replay.push_start_in(1, &frame(50));
+    for i in 1..6u8 {
+        replay.push_step_in(1, 1, 0.0, false, &frame(50 + i));
+    }
+    let table = common::identity_table();
+    let mut batch = Batch::new(4, [88, 80, 4]);
+    let mut rng = common::rng(9);
+    let mut seen = std::collections::BTreeSet::new();
+    for _ in 0..300 {
+        replay.sample(&mut rng, &table, &mut batch);
+        let td: Vec<f32> = batch.entries.iter().map(|&g| (g % 7) as f32).collect();
+        let entries = batch.entries.clone();
+        replay.update_priorities(&entries, &td);
+        for i in 0..4 {
+            let f = px(&batch.states, i)[3] as u8;
+            let (lane0, lane1) = ((110..=128).contains(&f), (50..=54).contains(&f));
+            assert!(lane0 || lane1, "frame {f} is held and has a successor");
+            assert_eq!(batch.actions[i], lane1 as usize, "frame {f}'s action");
+            seen.insert(f);
+        }
+    }
+    assert!(seen.len() > 15, "draws spread over both lanes: {seen:?}");
 }
 
 /// A replay memory of 40 patterned frames (a terminal every 13 steps) and a table that maps

@@ -59,32 +59,32 @@ pub struct BenchArgs {
 }
 
 /// A configuration as the end-to-end figures run it: in `precision`, learning from agent step
-/// 500, a replay memory of 5 000.
+/// 500, a replay memory of 5 000 (or the multiple of `games` just below, a lane per game).
 fn bench_config(c: Config, precision: Precision) -> Config {
     Config {
         precision,
         learning_starts: 500,
-        replay_capacity: 5_000,
+        replay_capacity: 5_000 / c.games * c.games,
         ..c
     }
 }
 
-/// Agent steps per second and each core's shares ([`CoreShares`]) of two DQN configurations
+/// Agent steps per second and each core's shares ([`CoreShares`]) of `N` DQN configurations
 /// played as most of a run plays them, ε at its floor (nearly every action a forward pass; from
 /// ε = 1 nearly every action is random): after 600 steps each to warm up, their episodes take
 /// turns until each has played 6 000 more agent steps, each timed over its own episodes, so
-/// that a neighbour who slows the host for a while slows both.
-fn paired_at_floor(
-    configs: [Config; 2], precision: Precision,
-) -> anyhow::Result<[(f64, CoreShares); 2]> {
+/// that a neighbour who slows the host for a while slows all.
+fn paired_at_floor<const N: usize>(
+    configs: [Config; N], precision: Precision,
+) -> anyhow::Result<[(f64, CoreShares); N]> {
     let mut agents = Vec::new();
     for c in configs {
         let c = Config {
             epsilon_start: c.epsilon_end,
             ..bench_config(c, precision)
         };
-        let env = SpaceInvaders::new(&c.env, 0).context("cannot start Space Invaders")?;
-        let mut agent = Agent::new(c, env);
+        let games = bench_games(&c, c.games)?;
+        let mut agent = Agent::with_games(c, games)?;
         while agent.counters.agent_steps < 600 {
             agent.play_episode()?;
         }
@@ -94,7 +94,7 @@ fn paired_at_floor(
         .iter()
         .map(|a| (a.counters.agent_steps, a.times))
         .collect();
-    let mut walls = [0.0; 2];
+    let mut walls = [0.0; N];
     while agents
         .iter()
         .zip(&starts)
@@ -112,6 +112,15 @@ fn paired_at_floor(
         let shares = CoreShares::of(&a.times.since(times0), walls[i], beside);
         ((a.counters.agent_steps - s0) as f64 / walls[i], shares)
     }))
+}
+
+/// `n` games of Space Invaders with `config`'s environment, seeded as a run seeded 0 seeds them
+/// ([`game_seed`]).
+fn bench_games(config: &Config, n: usize) -> anyhow::Result<Vec<SpaceInvaders>> {
+    (0..n)
+        .map(|g| SpaceInvaders::new(&config.env, game_seed(0, g)))
+        .collect::<Result<Vec<_>, _>>()
+        .context("cannot start Space Invaders")
 }
 
 /// Where each core's wall time went in an end-to-end loop ([`LoopTimes`] over the wall time):
@@ -304,10 +313,7 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         let e2e = bench_config(e2e, precision);
         if let Some(pqn) = e2e.pqn {
             // PQN: whole rollouts (one to warm up), at least 2 000 agent steps timed.
-            let games = (0..pqn.games)
-                .map(|g| SpaceInvaders::new(&e2e.env, game_seed(0, g)))
-                .collect::<Result<Vec<_>, _>>()
-                .context("cannot start Space Invaders")?;
+            let games = bench_games(&e2e, pqn.games)?;
             let mut agent = PqnAgent::new(e2e, games)?;
             agent.play_rollout()?;
             let (s0, t0) = (agent.counters.agent_steps, Instant::now());
@@ -316,8 +322,8 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
             }
             return Ok((agent.counters.agent_steps - s0) as f64 / t0.elapsed().as_secs_f64());
         }
-        let env = SpaceInvaders::new(&e2e.env, 0).context("cannot start Space Invaders")?;
-        let mut agent = Agent::new(e2e, env);
+        let games = bench_games(&e2e, e2e.games)?;
+        let mut agent = Agent::with_games(e2e, games)?;
         while agent.counters.agent_steps < 600 {
             agent.play_episode()?;
         }
@@ -335,10 +341,23 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         ..Config::preset(Preset::Strong)
     };
     let strong_beside_steps_per_s = end_to_end(beside.clone())?;
+    // Four games side by side, taking turns with the updates (issue #101).
+    let games = Config {
+        games: 4,
+        ..Config::preset(Preset::Strong)
+    };
+    let strong_4_games_steps_per_s = end_to_end(games.clone())?;
     // Both loops as most of a run plays them, ε at its floor, episodes taking turns, with where
     // each core's time goes.
-    let [strong_floor, beside_floor] =
-        paired_at_floor([Config::preset(Preset::Strong), beside], precision)?;
+    // And the 4 games with each update beside the play.
+    let games_beside = Config {
+        act_while_learning: true,
+        ..games.clone()
+    };
+    let [strong_floor, beside_floor, games_floor, games_beside_floor] = paired_at_floor(
+        [Config::preset(Preset::Strong), beside, games, games_beside],
+        precision,
+    )?;
     let loop_json = |(sps, shares): (f64, CoreShares)| serde_json::json!({"agent_steps_per_s": sps, "core_shares": shares});
     // The first `strong`: issue #43's compute cap is counted in its agent steps.
     let strong_v1_steps_per_s = end_to_end(Config::preset(Preset::StrongV1))?;
@@ -393,9 +412,12 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
                 "agent_steps_per_s": agent_steps_per_s,
                 "strong_agent_steps_per_s": strong_steps_per_s,
                 "strong_acting_while_learning_agent_steps_per_s": strong_beside_steps_per_s,
+                "strong_4_games_agent_steps_per_s": strong_4_games_steps_per_s,
                 "strong_v1_agent_steps_per_s": strong_v1_steps_per_s,
                 "strong_final_epsilon": loop_json(strong_floor),
                 "strong_acting_while_learning_final_epsilon": loop_json(beside_floor),
+                "strong_4_games_final_epsilon": loop_json(games_floor),
+                "strong_4_games_acting_while_learning_final_epsilon": loop_json(games_beside_floor),
                 "config": args.config,
                 "config_preset": own.as_ref().map(|c| c.preset.name()),
                 "config_batch_size": own.as_ref().map(|c| c.batch_size),
@@ -420,9 +442,12 @@ fn bench(args: &BenchArgs) -> anyhow::Result<()> {
         out!("training, end to end    {agent_steps_per_s:.1} agent steps/s (emulator and preprocessing: {:.1}% of the time)", 100.0 * env_share);
         out!("  the strong preset     {strong_steps_per_s:.1} agent steps/s");
         out!("  acting while learning {strong_beside_steps_per_s:.1} agent steps/s (strong with act_while_learning)");
+        out!("  4 games side by side {strong_4_games_steps_per_s:.1} agent steps/s (strong with games = 4)");
         for (words, (sps, shares)) in [
             ("strong", strong_floor),
             ("acting while learning", beside_floor),
+            ("4 games side by side", games_floor),
+            ("4 games beside learning", games_beside_floor),
         ] {
             out!("  {words}, final ε: {sps:.1} agent steps/s");
             out!("    {}", shares.words());

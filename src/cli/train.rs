@@ -293,31 +293,31 @@ fn train(args: &TrainArgs) -> anyhow::Result<()> {
             let resume = || format!("cannot resume {}", dir.display());
             match pqn {
                 None => Box::new(
-                    ckpt.into_agent(new_game(&config, 0)?, replay)
+                    ckpt.into_agent_games(run_games(&config)?, replay)
                         .with_context(resume)?,
                 ),
                 Some(_) => Box::new(
-                    ckpt.into_pqn_agent(pqn_games(&config)?)
+                    ckpt.into_pqn_agent(run_games(&config)?)
                         .with_context(resume)?,
                 ),
             }
         }
-        (None, None) => Box::new(Agent::new(config.clone(), new_game(&config, 0)?)),
-        (None, Some(_)) => Box::new(PqnAgent::new(config.clone(), pqn_games(&config)?)?),
+        (None, None) => Box::new(Agent::with_games(config.clone(), run_games(&config)?)?),
+        (None, Some(_)) => Box::new(PqnAgent::new(config.clone(), run_games(&config)?)?),
     };
     train_loop(agent.as_mut(), &dir, snapshot, args.log_rss)
 }
 
-/// Game `g` of a run (a DQN run plays game 0 only): Space Invaders with the run's environment
+/// Game `g` of a run: Space Invaders with the run's environment
 /// settings and the emulator seed [`game_seed`] gives it.
 fn new_game(config: &Config, g: usize) -> anyhow::Result<SpaceInvaders> {
     SpaceInvaders::new(&config.env, game_seed(config.seed, g))
         .context("cannot start Space Invaders")
 }
 
-/// A PQN run's games.
-fn pqn_games(config: &Config) -> anyhow::Result<Vec<SpaceInvaders>> {
-    let n = config.pqn.map_or(1, |p| p.games);
+/// A run's games: PQN's `pqn.games`, or the DQN agent's `games` played side by side.
+fn run_games(config: &Config) -> anyhow::Result<Vec<SpaceInvaders>> {
+    let n = config.pqn.map_or(config.games, |p| p.games);
     (0..n).map(|g| new_game(config, g)).collect()
 }
 

@@ -22,6 +22,12 @@
 //! pool's other threads while this one plays the steps through the next update's (ALGO 2–5)
 //! with the parameters from before it, samples the next update's batch and makes its target
 //! pass, and ALGO 7 catches up on those steps once the update has landed.
+//!
+//! With [`Config::games`] above 1 the agent plays that many games side by side
+//! ([`Agent::with_games`]): each pass of the loop plays one agent step of every game (ALGO 2–5
+//! for all of them, their greedy actions from one forward pass and the emulators stepped in
+//! parallel, each game storing into its own lane of the replay memory), then ALGO 6 and 7 for
+//! each of those agent steps in turn; a game whose episode ends starts its next at once (ALGO 1).
 
 use super::acting::greedy;
 use super::{Batch, Config, Head, Learner, NextValues, Replay, StepStats};
@@ -32,6 +38,8 @@ use crate::tensor::Tensor;
 use anyhow::{bail, Context};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use std::collections::VecDeque;
 use std::time::Instant;
 
 const HE: VarianceScaling = VarianceScaling::HE;
@@ -109,12 +117,13 @@ pub struct AgentState {
     pub stack: Vec<u8>,
     /// The game's saved state, if it can be saved.
     pub game: Option<Vec<u8>>,
-    /// PQN only (else empty): its games after the first, each as the fields above hold the
-    /// first ([`super::PqnAgent`]).
+    /// PQN's, or a DQN agent's with [`Config::games`] above 1 (else empty): the games after the
+    /// first, each as the fields above hold the first ([`super::PqnAgent`]).
     pub other_games: Vec<GameSlot>,
-    /// PQN only: every game's episode in progress.
+    /// The same agents': every game's episode in progress.
     pub players: Vec<super::Player>,
-    /// PQN only: finished episodes whose rows have not been handed out yet, oldest first.
+    /// The same agents': finished episodes whose rows have not been handed out yet, oldest
+    /// first.
     pub finished: Vec<EpisodeRow>,
 }
 
@@ -288,6 +297,163 @@ impl<G: Game> Player<'_, G> {
     }
 }
 
+/// The [`Games`] of an agent's fields: a macro, so that each field is borrowed on its own and
+/// the learner, the batches and the acting network stay free for the update.
+macro_rules! games {
+    ($agent:expr) => {
+        Games {
+            config: &$agent.config,
+            game: &mut $agent.game,
+            observer: &mut $agent.observer,
+            others: &mut $agent.others,
+            players: &mut $agent.players,
+            finished: &mut $agent.finished,
+            replay: &mut $agent.replay,
+            counters: &mut $agent.counters,
+            explore_rng: &mut $agent.explore_rng,
+            table: &$agent.table,
+            inputs: &mut $agent.inputs,
+            actions: &mut $agent.actions,
+            times: &mut $agent.times,
+        }
+    };
+}
+
+/// What a tick of the games played side by side ([`Config::games`]) touches besides the
+/// networks, borrowed from an [`Agent`]: the first game and its observer, the others, every
+/// game's episode in progress and the rows waiting to go out.
+struct Games<'a, G> {
+    config: &'a Config,
+    game: &'a mut G,
+    observer: &'a mut Observer,
+    others: &'a mut [(G, Observer)],
+    players: &'a mut [super::Player],
+    finished: &'a mut VecDeque<EpisodeRow>,
+    replay: &'a mut Replay,
+    counters: &'a mut Counters,
+    explore_rng: &'a mut ChaCha8Rng,
+    table: &'a [f32; 256],
+    inputs: &'a mut Tensor<f32>,
+    actions: &'a mut Vec<usize>,
+    times: &'a mut LoopTimes,
+}
+
+impl<G: Game> Games<'_, G> {
+    /// ALGO 2–5 for one agent step of each of the `G` games, acting with `net`: game `g` plays
+    /// agent step `t₀ + g + 1`, where `t₀` is the count before; its ε is that step's, and its
+    /// coin flips come after those of the games before it. A game whose episode ends queues its
+    /// row (its wall time counted from `start`) and starts its next (ALGO 1).
+    fn tick(&mut self, net: &mut Sequential<f32>, start: Instant) {
+        let t_act = Instant::now();
+        let n = self.players.len();
+        let t0 = self.counters.agent_steps;
+        let n_actions = self.game.n_actions();
+        // ALGO 2: ε of each game's agent step. ALGO 3: a random action with probability ε, the
+        // coin flips in game order; else argmax_a Q(stack, a), every game's from one pass.
+        let mut random = vec![None; n];
+        for (g, a) in random.iter_mut().enumerate() {
+            let eps = self.config.epsilon(t0 + g as u64);
+            if self.explore_rng.random::<f32>() < eps {
+                *a = Some(self.explore_rng.random_range(0..n_actions));
+            }
+        }
+        if random.iter().any(Option::is_none) {
+            let per = self.inputs.len() / n;
+            let observers =
+                std::iter::once(&*self.observer).chain(self.others.iter().map(|o| &o.1));
+            for (o, x) in observers.zip(self.inputs.data_mut().chunks_exact_mut(per)) {
+                o.write_input(self.table, x);
+            }
+            let head = Head::of(self.config);
+            super::learner::greedy_each(&head, net, self.inputs, n_actions, self.actions);
+        } else {
+            self.actions.clear();
+            self.actions.resize(n, 0);
+        }
+        for (a, r) in self.actions.iter_mut().zip(&random) {
+            *a = r.unwrap_or(*a);
+        }
+        let t1 = Instant::now();
+        // ALGO 4: play each game's action, the emulators in parallel; compose each step's frame
+        // and push it on that game's stack.
+        let mut lanes: Vec<(&mut G, &mut Observer)> =
+            std::iter::once((&mut *self.game, &mut *self.observer))
+                .chain(self.others.iter_mut().map(|(g, o)| (g, o)))
+                .collect();
+        let results: Vec<StepResult> = lanes
+            .par_iter_mut()
+            .zip(&*self.actions)
+            .map(|((game, observer), &a)| {
+                let r = game.step(a);
+                observer.step(&**game);
+                r
+            })
+            .collect();
+        drop(lanes);
+        let t2 = Instant::now();
+        // ALGO 5: store each game's (a, r, done, new frame) in its lane of the replay memory, in
+        // game order; a game whose episode ended starts its next (ALGO 1).
+        for (g, r) in results.iter().enumerate() {
+            let p = &mut self.players[g];
+            let lives_lost = p.lives.map_or(0, |l| l - r.lives);
+            let reward = self.config.learner_reward(r.reward, lives_lost);
+            p.lives = Some(r.lives);
+            p.score += r.reward as f64;
+            p.length += 1;
+            let done = r.terminal || (self.config.life_loss_terminal && lives_lost > 0);
+            let observer = if g == 0 {
+                &*self.observer
+            } else {
+                &self.others[g - 1].1
+            };
+            let frame = observer.stack().get(observer.stack().len() - 1);
+            self.replay
+                .push_step_in(g, self.actions[g], reward, done, frame);
+            self.counters.agent_steps += 1;
+            self.counters.frames += r.frames as u64;
+            if r.terminal || r.truncated {
+                let wall = self.counters.wall_seconds + secs(start);
+                self.finish(g, wall);
+                self.start(g);
+            }
+        }
+        self.times.acting += (t1 - t_act).as_secs_f64();
+        self.times.emulator += (t2 - t1).as_secs_f64();
+        self.times.storing += secs(t2);
+    }
+
+    /// ALGO 1 for game `g`: reset it; compose its first frame; fill its stack with it; store it
+    /// in its lane.
+    fn start(&mut self, g: usize) {
+        let (game, observer) = if g == 0 {
+            (&mut *self.game, &mut *self.observer)
+        } else {
+            let (game, observer) = &mut self.others[g - 1];
+            (game, observer)
+        };
+        game.reset();
+        let first = observer.reset(game);
+        self.replay.push_start_in(g, first);
+        self.players[g] = super::Player::default();
+    }
+
+    /// Queues the row of game `g`'s episode, which ended at the agent step just counted.
+    fn finish(&mut self, g: usize, wall_seconds: f64) {
+        let p = std::mem::take(&mut self.players[g]);
+        self.finished.push_back(EpisodeRow {
+            episode: self.counters.episodes + self.finished.len() as u64 + 1,
+            agent_steps: self.counters.agent_steps,
+            frames: self.counters.frames,
+            reward: p.score,
+            length: p.length,
+            epsilon: self.config.epsilon(self.counters.agent_steps),
+            mean_loss: p.mean(p.loss_sum),
+            mean_max_q: p.mean(p.q_sum),
+            wall_seconds,
+        });
+    }
+}
+
 /// A DQN agent playing and learning one game.
 pub struct Agent<G: Game> {
     /// The run's configuration.
@@ -325,20 +491,63 @@ pub struct Agent<G: Game> {
     /// then makes it).
     ahead_values: Vec<f32>,
     batch_values: Vec<f32>,
+    /// With [`Config::games`] above 1: the games after the first (`game`), each with its
+    /// observer, and every game's episode in progress (the first's first).
+    others: Vec<(G, Observer)>,
+    players: Vec<super::Player>,
+    /// With [`Config::games`] above 1: finished episodes' rows not yet handed out, oldest first.
+    finished: VecDeque<EpisodeRow>,
+    /// With [`Config::games`] above 1: `[G, H, W, k]`, every game's stack for one acting pass,
+    /// and the actions it gives.
+    inputs: Tensor<f32>,
+    actions: Vec<usize>,
     /// Where the wall time went.
     pub times: LoopTimes,
 }
 
 impl<G: Game> Agent<G> {
     /// A fresh agent: networks initialised from the config's seed, empty replay memory.
+    ///
+    /// # Panics
+    /// If the config plays several games side by side ([`Agent::with_games`] starts those).
     pub fn new(config: Config, game: G) -> Self {
+        assert_eq!(config.games, 1, "Agent::with_games starts several games");
         let learner = Learner::from_config(&config, game.n_actions(), &mut stream(config.seed, 1));
         Self::with_learner(config, game, learner, Counters::default())
     }
 
+    /// A fresh agent playing `games` side by side ([`Config::games`] of them; with one, as
+    /// [`Agent::new`]): networks initialised from the config's seed, empty replay memory, and
+    /// with more than one game every game started (ALGO 1).
+    ///
+    /// # Errors
+    /// If `games` is not `config.games` games, or their action counts differ.
+    pub fn with_games(config: Config, games: Vec<G>) -> anyhow::Result<Self> {
+        check_games(&config, &games)?;
+        let n_actions = games[0].n_actions();
+        let learner = Learner::from_config(&config, n_actions, &mut stream(config.seed, 1));
+        let mut agent = Self::with_learner_games(config, games, learner, Counters::default());
+        for g in 0..agent.players.len() {
+            agent.start(g);
+        }
+        Ok(agent)
+    }
+
     /// An agent that continues from a learner and counters (a checkpoint).
     pub fn with_learner(config: Config, game: G, learner: Learner, counters: Counters) -> Self {
+        Self::with_learner_games(config, vec![game], learner, counters)
+    }
+
+    /// [`Agent::with_learner`] for `games` (checked by the caller); the games are not started.
+    fn with_learner_games(
+        config: Config, games: Vec<G>, learner: Learner, counters: Counters,
+    ) -> Self {
         let input = config.input_shape();
+        let n = games.len();
+        let mut games = games.into_iter();
+        let game = games.next().expect("at least one game");
+        let others: Vec<(G, Observer)> =
+            games.map(|g| (g, Observer::new(config.pipeline))).collect();
         let batch = || Batch {
             keep_bf16: crate::ops::plan::bf16_runs(config.precision),
             ..Batch::with_border(
@@ -359,6 +568,15 @@ impl<G: Game> Agent<G> {
                 .then(|| NextValues::new(&config, &learner)),
             ahead_values: Vec::new(),
             batch_values: Vec::new(),
+            others,
+            players: if n > 1 {
+                vec![super::Player::default(); n]
+            } else {
+                Vec::new()
+            },
+            finished: VecDeque::new(),
+            inputs: Tensor::zeros(&[n, input[0], input[1], input[2]]),
+            actions: Vec::new(),
             acting: config.act_while_learning.then(|| {
                 // Its values are overwritten before each use; the draw touches no run stream.
                 let rng = &mut ChaCha8Rng::seed_from_u64(0);
@@ -383,21 +601,38 @@ impl<G: Game> Agent<G> {
         game: G, config: Config, counters: Counters, learner: Learner, state: AgentState,
         replay: Option<Replay>,
     ) -> anyhow::Result<Self> {
-        if learner.n_actions() != game.n_actions() {
+        Self::resume_games(vec![game], config, counters, learner, state, replay)
+    }
+
+    /// [`Agent::resume`] for the [`Config::games`] games played side by side, each built with the
+    /// checkpoint's environment settings (and seeds, [`super::game_seed`]): each game's
+    /// observer, saved state and episode in progress, and the finished episodes' rows not yet
+    /// handed out.
+    pub fn resume_games(
+        games: Vec<G>, config: Config, counters: Counters, learner: Learner, state: AgentState,
+        replay: Option<Replay>,
+    ) -> anyhow::Result<Self> {
+        check_games(&config, &games)?;
+        if learner.n_actions() != games[0].n_actions() {
             bail!(
                 "the checkpoint's network has {} actions, the game {}",
                 learner.n_actions(),
-                game.n_actions()
+                games[0].n_actions()
             );
         }
-        if !state.other_games.is_empty() || !state.players.is_empty() || !state.finished.is_empty()
-        {
-            bail!("the saved state is a PQN agent's, not a DQN agent's");
+        let n = games.len();
+        let players = if n > 1 { n } else { 0 };
+        if state.other_games.len() + 1 != n || state.players.len() != players {
+            bail!("the saved state is not that of a DQN agent playing {n} games");
         }
-        let mut agent = Self::with_learner(config, game, learner, counters);
+        if n == 1 && !state.finished.is_empty() {
+            bail!("the saved state holds episodes a one-game agent cannot have pending");
+        }
+        let mut agent = Self::with_learner_games(config, games, learner, counters);
         if let Some(r) = replay {
             if r.capacity() != agent.replay.capacity()
                 || r.frames_per_state() != agent.replay.frames_per_state()
+                || r.lanes() != agent.replay.lanes()
             {
                 bail!("the saved replay memory does not match the configuration");
             }
@@ -415,6 +650,25 @@ impl<G: Game> Agent<G> {
         }
         let frames: Vec<&[u8]> = state.stack.chunks_exact(FRAME_LEN).collect();
         agent.observer.restore(&state.composite, &frames);
+        for (g, (slot, (game, observer))) in
+            state.other_games.iter().zip(&mut agent.others).enumerate()
+        {
+            let g = g + 1;
+            match &slot.game {
+                Some(saved) => game
+                    .restore_state(saved)
+                    .with_context(|| format!("cannot restore game {g}'s saved state"))?,
+                // A game that cannot be saved starts afresh (as PQN's; the run is then not exact).
+                None => game.reset(),
+            }
+            if slot.composite.len() != FRAME_LEN || slot.stack.len() != k * FRAME_LEN {
+                bail!("the saved observer of game {g} does not match the configuration");
+            }
+            let frames: Vec<&[u8]> = slot.stack.chunks_exact(FRAME_LEN).collect();
+            observer.restore(&slot.composite, &frames);
+        }
+        agent.players = state.players;
+        agent.finished = state.finished.into();
         agent.explore_rng = state.explore_rng;
         agent.sample_rng = state.sample_rng;
         Ok(agent)
@@ -424,6 +678,15 @@ impl<G: Game> Agent<G> {
     /// this agent exactly.
     pub fn state(&self) -> AgentState {
         let stack = self.observer.stack();
+        let slot = |game: &G, o: &Observer| {
+            let mut stack = vec![0; o.stack().len() * FRAME_LEN];
+            super::pqn::copy_stack(o, &mut stack);
+            GameSlot {
+                composite: o.composer_frame().to_vec(),
+                stack,
+                game: game.save_state(),
+            }
+        };
         AgentState {
             explore_rng: self.explore_rng.clone(),
             sample_rng: self.sample_rng.clone(),
@@ -432,10 +695,15 @@ impl<G: Game> Agent<G> {
                 .flat_map(|i| stack.get(i).to_vec())
                 .collect(),
             game: self.game.save_state(),
-            other_games: Vec::new(),
-            players: Vec::new(),
-            finished: Vec::new(),
+            other_games: self.others.iter().map(|(g, o)| slot(g, o)).collect(),
+            players: self.players.clone(),
+            finished: self.finished.iter().copied().collect(),
         }
+    }
+
+    /// Finished episodes whose rows have not been handed out (only with several games).
+    pub fn pending(&self) -> usize {
+        self.finished.len()
     }
 
     /// ε now.
@@ -474,6 +742,9 @@ impl<G: Game> Agent<G> {
     /// The error names the agent step and the train step; the agent is then unusable (its
     /// weights are not finite), and nothing has been saved.
     pub fn play_episode(&mut self) -> anyhow::Result<EpisodeRow> {
+        if !self.players.is_empty() {
+            return self.play_games();
+        }
         let start = Instant::now();
         let mut metrics = EpisodeMetrics::default();
         // ALGO 1: reset the game; compose the first frame; fill the stack with it; store it.
@@ -552,6 +823,9 @@ impl<G: Game> Agent<G> {
         self.counters.train_steps += 1;
         self.check_finite(stats, t)?;
         metrics.add_train_step(stats);
+        for p in &mut self.players {
+            p.add_train_step(stats);
+        }
         Ok(())
     }
 
@@ -657,6 +931,174 @@ impl<G: Game> Agent<G> {
         }
     }
 
+    /// The next finished episode's row, playing every game side by side until one of them ends
+    /// an episode: taking turns with the updates ([`Agent::play_tick`]), or beside them
+    /// ([`Agent::play_games_beside`]).
+    fn play_games(&mut self) -> anyhow::Result<EpisodeRow> {
+        while self.finished.is_empty() {
+            if self.config.act_while_learning {
+                self.play_games_beside()?;
+            } else {
+                self.play_tick()?;
+            }
+        }
+        let row = self.finished.pop_front().expect("a finished episode");
+        self.counters.episodes += 1;
+        Ok(row)
+    }
+
+    /// One agent step of each of the `G` games played side by side ([`Games::tick`]), then ALGO
+    /// 6 and 7 for each of those `G` agent steps in turn.
+    fn play_tick(&mut self) -> anyhow::Result<()> {
+        let start = Instant::now();
+        let t0 = self.counters.agent_steps;
+        let net = if self.config.act_with_target_network {
+            self.learner.target_mut()
+        } else {
+            &mut self.learner.online
+        };
+        games!(self).tick(net, start);
+        // ALGO 6 and 7 for each of the tick's agent steps in turn.
+        for t in t0 + 1..=self.counters.agent_steps {
+            if self.train_due(t) {
+                self.sample_batch();
+                let stats = self.train_step(t);
+                self.landed(&stats, t, &mut EpisodeMetrics::default())?;
+            }
+            self.refresh_target(t..=t);
+        }
+        self.counters.wall_seconds += secs(start);
+        Ok(())
+    }
+
+    /// The games side by side with [`Config::act_while_learning`]: ticks taking turns while no
+    /// update is due; from the first tick whose agent steps hold one, each update runs on the
+    /// pool while this thread plays the ticks through the one that holds the next update's step
+    /// (at most one a tick: `train_every >= games`), acting with a copy of the parameters from
+    /// before the update, then samples that update's batch and makes its target pass, as
+    /// [`Agent::learn_while_acting`] does for one game. ALGO 7 catches up on the steps before the
+    /// next update once this one has landed. The chain ends where an episode has ended (its
+    /// row waits to go out): the next update, if one is due, then runs alone, so nothing is in
+    /// flight when the row goes out. With every action random (ε = 1) this makes
+    /// [`Agent::play_tick`]'s updates and target copies, in its order, bit for bit.
+    fn play_games_beside(&mut self) -> anyhow::Result<()> {
+        let start = Instant::now();
+        let result = self.games_beside(start);
+        self.counters.wall_seconds += secs(start);
+        result
+    }
+
+    /// [`Agent::play_games_beside`], its wall time counted from `start` by the caller.
+    fn games_beside(&mut self, start: Instant) -> anyhow::Result<()> {
+        // Ticks taking turns until one holds an update's agent step (ALGO 2–5, then ALGO 7).
+        let mut t = loop {
+            let t0 = self.counters.agent_steps;
+            games!(self).tick(&mut self.learner.online, start);
+            let now = self.counters.agent_steps;
+            match (t0 + 1..=now).find(|&t| self.train_due(t)) {
+                Some(t) => {
+                    self.refresh_target(t0 + 1..=t - 1);
+                    self.sample_batch();
+                    if self.finished.is_empty() {
+                        break t;
+                    }
+                    // A row waits to go out: this update runs alone, as taking turns.
+                    let stats = self.train_step(t);
+                    self.landed(&stats, t, &mut EpisodeMetrics::default())?;
+                    self.refresh_target(t..=now);
+                    return Ok(());
+                }
+                None => {
+                    self.refresh_target(t0 + 1..=now);
+                    if !self.finished.is_empty() {
+                        return Ok(());
+                    }
+                }
+            }
+        };
+        // The copy of the target network as this chain's first update finds it.
+        self.next.as_mut().expect("built").sync(&self.learner);
+        loop {
+            // ALGO 6 at agent step `t` on the pool, beside ALGO 2–5 of the ticks that follow.
+            self.learner.adam.lr = self.config.learning_rate(t) as f32;
+            let acting = self.acting.as_mut().expect("built for act_while_learning");
+            acting.copy_params_from(&self.learner.online);
+            let (learner, batch) = (&mut self.learner, &self.batch);
+            let values = (!self.batch_values.is_empty()).then_some(&self.batch_values[..]);
+            let ahead = self.ahead.as_mut().expect("built for act_while_learning");
+            let next_net = self.next.as_mut().expect("built for act_while_learning");
+            let ahead_values = &mut self.ahead_values;
+            let sample_rng = &mut self.sample_rng;
+            let mut games = games!(self);
+            let (mut stats, mut update_secs, mut play_secs) = (None, 0.0, 0.0);
+            let mut update = || {
+                let start = Instant::now();
+                stats = Some(learner.train_step_with(batch, values));
+                update_secs = secs(start);
+            };
+            let block = Instant::now();
+            let next = rayon::in_place_scope(|scope| {
+                scope.spawn(move |_| update());
+                let next = loop {
+                    let t0 = games.counters.agent_steps;
+                    games.tick(acting, start);
+                    let now = games.counters.agent_steps;
+                    let g = &mut games;
+                    let due =
+                        (t0 + 1..=now).find(|&s| train_due(g.config, g.replay, ahead.len(), s));
+                    if let Some(s) = due {
+                        // The next update's batch, and its target pass, off its critical path.
+                        let at = Instant::now();
+                        sample(g.config, g.replay, sample_rng, g.table, ahead);
+                        g.times.sampling += secs(at);
+                        let at = Instant::now();
+                        next_net.compute(ahead, ahead_values);
+                        g.times.target_pass += secs(at);
+                        break Some(s);
+                    }
+                    if !g.finished.is_empty() {
+                        break None;
+                    }
+                };
+                play_secs = secs(block);
+                next
+            });
+            self.times.update += update_secs;
+            self.times.joining += secs(block) - play_secs;
+            self.landed(
+                &stats.expect("the update ran in the scope"),
+                t,
+                &mut EpisodeMetrics::default(),
+            )?;
+            let Some(next) = next else {
+                // ALGO 7 for the steps played since; the row goes out.
+                self.refresh_target(t..=self.counters.agent_steps);
+                return Ok(());
+            };
+            if self.refresh_target(t..=next - 1) {
+                // The pass was made with the target network before it changed: the next
+                // update makes it anew, and the copy follows the target.
+                self.ahead_values.clear();
+                self.next.as_mut().expect("built").sync(&self.learner);
+            }
+            std::mem::swap(&mut self.batch, self.ahead.as_mut().expect("built"));
+            std::mem::swap(&mut self.batch_values, &mut self.ahead_values);
+            t = next;
+            if !self.finished.is_empty() {
+                // A row waits to go out: this update runs alone, with nothing left in flight.
+                let stats = self.train_step(t);
+                self.landed(&stats, t, &mut EpisodeMetrics::default())?;
+                self.refresh_target(t..=self.counters.agent_steps);
+                return Ok(());
+            }
+        }
+    }
+
+    /// ALGO 1 for game `g` of those played side by side ([`Games::start`]).
+    fn start(&mut self, g: usize) {
+        games!(self).start(g);
+    }
+
     /// Draws the layers after the convolutions afresh at agent step `t`
     /// ([`Learner::reset_dense`]), from a network initialised as a run's first is, on a random
     /// stream of its own for each `t` (so a resumed run resets as one never stopped would).
@@ -715,6 +1157,22 @@ impl<G: Game> Agent<G> {
             wall_seconds: self.counters.wall_seconds,
         }
     }
+}
+
+/// Refuses `games` that are not the `config.games` an agent plays, or whose action counts
+/// differ.
+fn check_games<G: Game>(config: &Config, games: &[G]) -> anyhow::Result<()> {
+    if games.len() != config.games {
+        bail!(
+            "the configuration plays {} games side by side, and {} were given",
+            config.games,
+            games.len()
+        );
+    }
+    if games.iter().any(|g| g.n_actions() != games[0].n_actions()) {
+        bail!("every game must have the same actions");
+    }
+    Ok(())
 }
 
 /// Whether agent step `t` takes a gradient step: past `learning_starts`, every `train_every`

@@ -693,6 +693,25 @@ pub fn greedy(head: &Head, net: &mut Sequential<f32>, x: &Tensor<f32>, n_actions
     argmax(&q)
 }
 
+/// `argmax_a Q(x_g, a)` for each of the `G` states of `x` (`[G, H, W, C]`: games played side by
+/// side) by `net`, built with `head`, into `actions`: one batch-`G` [`Sequential::infer`], each
+/// state's output reduced as [`greedy`] reduces its one (the first action on ties).
+pub fn greedy_each(
+    head: &Head, net: &mut Sequential<f32>, x: &Tensor<f32>, n_actions: usize,
+    actions: &mut Vec<usize>,
+) {
+    let states = x.shape()[0];
+    let values = value_head(head, n_actions);
+    values.policy_fractions(net, states, &mut Vec::new());
+    let out = net.infer(x).data();
+    let mut q = Vec::with_capacity(n_actions);
+    actions.clear();
+    for row in out.chunks_exact(out.len() / states) {
+        values.q_values(row, &mut q);
+        actions.push(argmax(&q));
+    }
+}
+
 /// The TD errors for prioritized replay, `b` samples: the mean of each sample's predictions
 /// minus the mean of its targets (with one of each, `Q(s, a) − y`).
 fn td_errors(q: &[f32], y: &[f32], b: usize, td: &mut Vec<f32>) {

@@ -118,8 +118,15 @@ pub struct Player {
 }
 
 impl Player {
+    /// Counts a gradient step taken during the episode: its loss and mean `max_a Q`.
+    pub(super) fn add_train_step(&mut self, s: &super::StepStats) {
+        self.loss_sum += s.loss as f64;
+        self.q_sum += s.mean_max_q as f64;
+        self.n_train += 1;
+    }
+
     /// The mean of a sum over the episode's gradient steps (NaN without any).
-    fn mean(&self, sum: f64) -> f32 {
+    pub(super) fn mean(&self, sum: f64) -> f32 {
         if self.n_train > 0 {
             (sum / self.n_train as f64) as f32
         } else {
@@ -474,9 +481,7 @@ impl<G: Game> PqnAgent<G> {
                 let episode = self.counters.episodes + self.finished.len() as u64 + 1;
                 check_finite(&self.learner, &stats, t, self.counters.train_steps, episode)?;
                 for p in &mut self.players {
-                    p.loss_sum += stats.loss as f64;
-                    p.q_sum += stats.mean_max_q as f64;
-                    p.n_train += 1;
+                    p.add_train_step(&stats);
                 }
             }
         }
@@ -507,7 +512,7 @@ impl<G: Game> PqnAgent<G> {
 }
 
 /// Copies an observer's frame stack into `out` (`k·88·80` bytes), oldest frame first.
-fn copy_stack(observer: &Observer, out: &mut [u8]) {
+pub(super) fn copy_stack(observer: &Observer, out: &mut [u8]) {
     let stack = observer.stack();
     for (i, to) in out.chunks_exact_mut(FRAME_LEN).enumerate() {
         to.copy_from_slice(stack.get(i));

@@ -28,12 +28,6 @@ pub trait Trainer {
     fn finished(&self) -> bool;
 }
 
-/// Whether `counters` meet `config`'s budget of episodes or frames.
-fn budget_spent(config: &Config, counters: &Counters) -> bool {
-    counters.episodes >= config.episodes
-        || (config.max_frames > 0 && counters.frames >= config.max_frames)
-}
-
 /// The methods both agents implement alike: their fields `config`, `counters` and `learner`,
 /// and their own `state` and `play_episode`.
 macro_rules! alike {
@@ -61,8 +55,14 @@ impl<G: Game> Trainer for Agent<G> {
     fn replay(&self) -> Option<&Replay> {
         Some(&self.replay)
     }
+    /// With several games side by side, as PQN's: the agent step that crosses a frame budget
+    /// finishes every game's step, and the rows of the episodes finished still go out.
     fn finished(&self) -> bool {
-        budget_spent(&self.config, &self.counters)
+        let c = &self.counters;
+        c.episodes >= self.config.episodes
+            || (self.config.max_frames > 0
+                && c.frames >= self.config.max_frames
+                && self.pending() == 0)
     }
 }
 

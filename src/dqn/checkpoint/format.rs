@@ -200,7 +200,7 @@ fn encode(
     if snapshot {
         meta.insert("contents".to_string(), SNAPSHOT_CONTENTS.to_string());
     }
-    if config.pqn.is_some() {
+    if config.pqn.is_some() || config.games > 1 {
         let pqn = PqnMeta {
             players: agent.players.clone(),
             finished: agent.finished.iter().map(RowWire::from).collect(),
@@ -484,29 +484,33 @@ pub fn from_bytes(bytes: &[u8]) -> anyhow::Result<Checkpoint> {
     })
 }
 
-/// A PQN checkpoint's games after the first, every game's episode in progress and the rows not
-/// yet handed out (the `pqn.*` tensors and the `pqn` metadata); all empty for a DQN run, whose
-/// checkpoint must have none of them.
+/// The games after the first of a PQN checkpoint, or of a DQN run playing [`Config::games`] side
+/// by side, every game's episode in progress and the rows not yet handed out (the `pqn.*`
+/// tensors and the `pqn` metadata, named for PQN, which had them first); all empty for a
+/// one-game DQN run, whose checkpoint must have none of them.
 #[allow(clippy::type_complexity)]
 fn read_pqn(
     st: &SafeTensors<'_>, meta: &HashMap<String, String>, config: &Config,
 ) -> anyhow::Result<(Vec<GameSlot>, Vec<crate::dqn::Player>, Vec<EpisodeRow>)> {
-    let Some(pqn) = config.pqn else {
-        if meta.contains_key("pqn") {
-            bail!("the checkpoint holds a PQN agent's state, and its config has no [pqn] table");
+    let games = match config.pqn {
+        Some(pqn) => pqn.games,
+        None if config.games > 1 => config.games,
+        None => {
+            if meta.contains_key("pqn") {
+                bail!("the checkpoint holds the state of several games (PQN's, or games side by side), and its config plays one");
+            }
+            return Ok((Vec::new(), Vec::new(), Vec::new()));
         }
-        return Ok((Vec::new(), Vec::new(), Vec::new()));
     };
     let saved: PqnMeta =
-        serde_json::from_str(meta_get(meta, "pqn")?).context("checkpoint's PQN state")?;
-    if saved.players.len() != pqn.games {
+        serde_json::from_str(meta_get(meta, "pqn")?).context("checkpoint's games' state")?;
+    if saved.players.len() != games {
         bail!(
-            "the checkpoint's PQN state has {} games, its config {}",
+            "the checkpoint's state has {} games, its config {games}",
             saved.players.len(),
-            pqn.games
         );
     }
-    let n = pqn.games - 1;
+    let n = games - 1;
     let mut others = Vec::with_capacity(n);
     if n > 0 {
         let k = config.pipeline.channels();

@@ -208,6 +208,22 @@ impl Checkpoint {
         )
     }
 
+    /// [`Checkpoint::into_agent`] for the [`Config::games`] games the run plays side by side,
+    /// each built with the checkpoint's environment settings and seed
+    /// ([`crate::dqn::game_seed`]): [`Agent::resume_games`].
+    pub fn into_agent_games<G: Game>(
+        self, games: Vec<G>, replay: Option<Replay>,
+    ) -> anyhow::Result<Agent<G>> {
+        Agent::resume_games(
+            games,
+            self.config,
+            self.counters,
+            self.learner,
+            self.agent,
+            replay,
+        )
+    }
+
     /// The PQN agent that continues this run on `games` (built with the checkpoint's
     /// environment settings, [`crate::dqn::game_seed`]): [`PqnAgent::resume`].
     pub fn into_pqn_agent<G: Game>(self, games: Vec<G>) -> anyhow::Result<PqnAgent<G>> {

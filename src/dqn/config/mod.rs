@@ -21,6 +21,8 @@ pub use file::merge_toml;
 pub const MAX_REPLAY: usize = 10_000_000;
 /// The largest minibatch a configuration may ask for.
 pub const MAX_BATCH: usize = 4_096;
+/// The most games a DQN run may play side by side ([`Config::games`]).
+pub const MAX_GAMES: usize = 256;
 
 /// The named configurations.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -157,6 +159,14 @@ fn is_zero(v: &usize) -> bool {
 
 fn one_f64() -> f64 {
     1.0
+}
+
+fn one_usize() -> usize {
+    1
+}
+
+fn is_one(v: &usize) -> bool {
+    *v == 1
 }
 
 fn article_hidden() -> usize {
@@ -445,6 +455,16 @@ pub struct Config {
     /// played first, then the update. Default off: each update lands before the next action.
     #[serde(default, skip_serializing_if = "is_false")]
     pub act_while_learning: bool,
+    /// Games played side by side (issue #101; default 1). Each agent step of the loop plays one
+    /// step of every game: their actions from one forward pass over their `games` stacks, the
+    /// emulators stepped in parallel on the pool's threads; each game writes its own lane of the
+    /// replay memory (`replay_capacity / games` entries; `dqn::Replay::with_lanes`), and each of
+    /// the agent steps counts towards ε, `train_every` and `target_update` as one game's would.
+    /// An episode's row goes out when its game ends it. The seeds of the games after the first
+    /// come from `dqn::game_seed`, as PQN's. With `act_while_learning` each update runs beside
+    /// the passes through the next update's (then `train_every >= games`).
+    #[serde(default = "one_usize", skip_serializing_if = "is_one")]
+    pub games: usize,
     /// The notebook's extra transition at each episode end: the final state, the last action,
     /// reward 0, marked terminal, leading to itself.
     pub fake_terminal_transition: bool,
@@ -520,6 +540,7 @@ impl Config {
             reward_clip: 1.0,
             act_with_target_network: false,
             act_while_learning: false,
+            games: 1,
             fake_terminal_transition: false,
             checkpoint_every: 25,
             checkpoint_replay: true,
@@ -638,10 +659,11 @@ impl Config {
         }
     }
 
-    /// An empty replay memory as this configuration asks for: its capacity, frames per state,
-    /// `n_step` returns, its `random_shift` and, if `prioritized`, prioritized sampling.
+    /// An empty replay memory as this configuration asks for: its capacity, a lane for each of
+    /// its `games`, frames per state, `n_step` returns, its `random_shift` and, if `prioritized`, prioritized sampling.
     pub fn new_replay(&self) -> Replay {
         let replay = Replay::new(self.replay_capacity, self.pipeline.channels())
+            .with_lanes(self.games)
             .with_returns(self.n_step as usize, self.gamma as f32)
             .with_random_shift(self.random_shift);
         if self.prioritized {

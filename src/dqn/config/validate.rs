@@ -213,10 +213,44 @@ impl Config {
         if let Some(p) = &c.pqn {
             c.validate_pqn(p)?;
         }
+        c.validate_games()?;
         if c.checkpoint_every == 0 || c.plot_every == 0 {
             bail!("checkpoint_every and plot_every must be at least 1");
         }
         c.env.validate()?;
+        Ok(())
+    }
+
+    /// The games played side by side: how many, a replay lane of enough entries for each, and the
+    /// switches that assume one game.
+    fn validate_games(&self) -> anyhow::Result<()> {
+        let n = self.games;
+        if !(1..=MAX_GAMES).contains(&n) {
+            bail!("games must be in 1..={MAX_GAMES}, got {n}");
+        }
+        if n == 1 {
+            return Ok(());
+        }
+        if self.pqn.is_some() {
+            bail!("games is the DQN agent's: PQN plays pqn.games games (drop one of them)");
+        }
+        let k = self.pipeline.channels();
+        if !self.replay_capacity.is_multiple_of(n) || self.replay_capacity / n <= k + 1 {
+            bail!(
+                "replay_capacity ({}) must be a multiple of games ({n}), with more than {} entries for each game's lane",
+                self.replay_capacity,
+                k + 1
+            );
+        }
+        if self.fake_terminal_transition {
+            bail!("fake_terminal_transition is the notebook's one-game loop: it cannot be combined with games > 1");
+        }
+        if self.act_while_learning && self.train_every < n as u64 {
+            bail!(
+                "act_while_learning with games side by side runs at most one update beside each pass over the games: train_every ({}) must be at least games ({n})",
+                self.train_every
+            );
+        }
         Ok(())
     }
 
