@@ -24,31 +24,10 @@ fn corridor_config(train_every: u64, act_while_learning: bool) -> Config {
     }
 }
 
-/// What a run leaves: each episode's metrics row (without its wall time), the train steps, and
-/// both networks' weights, after `episodes` episodes on a pool of `threads` threads.
-fn run(config: Config, episodes: usize, threads: usize) -> (Vec<String>, u64, Vec<Vec<f32>>) {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| {
-        let mut agent = Agent::new(config, Corridor::new());
-        let rows = (0..episodes)
-            .map(|_| {
-                let row = agent.play_episode().unwrap().csv();
-                row.rsplit_once(',').unwrap().0.to_string()
-            })
-            .collect();
-        let nets = [&agent.learner.online, agent.learner.target()];
-        let weights = nets
-            .iter()
-            .flat_map(|n| {
-                n.params()
-                    .map(|p| p.value.data().to_vec())
-                    .collect::<Vec<_>>()
-            })
-            .collect();
-        (rows, agent.counters.train_steps, weights)
+/// A run of `config` on one corridor (`common::corridor::run`).
+fn run(config: Config, episodes: usize, threads: usize) -> common::corridor::Run {
+    common::corridor::run(config, episodes, threads, |c| {
+        Agent::new(c, Corridor::new())
     })
 }
 

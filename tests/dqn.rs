@@ -395,6 +395,25 @@ fn replay_rebuilds_stacks_within_episodes() {
     });
 }
 
+/// What `replay_sums_n_step_returns_within_episodes` expects of the state ending at frame `f` of
+/// its episodes A (10 → 14), B (20 → 24) and C (30 → 32), n = 3, γ = 0.5: `(R, m, done, newest
+/// frame of s', first frame of the episode)`.
+fn three_episodes_expected(f: u8) -> (f32, u32, bool, u8, u8) {
+    match f {
+        10 => (1.0 + 0.5 * 2.0 + 0.25 * 4.0, 3, false, 13, 10),
+        11 => (2.0 + 0.5 * 4.0 + 0.25 * 8.0, 3, true, 14, 10),
+        12 => (4.0 + 0.5 * 8.0, 2, true, 14, 10),
+        13 => (8.0, 1, true, 14, 10),
+        20 => (1.0 + 0.5 + 0.25, 3, true, 23, 20),
+        21 => (1.0 + 0.5, 2, true, 23, 20),
+        22 => (1.0, 1, true, 23, 20),
+        23 => (1.0, 1, false, 24, 20),
+        30 => (2.0 + 0.5 * 2.0, 2, false, 32, 30),
+        31 => (2.0, 1, false, 32, 30),
+        f => panic!("entry {f} has no successor and must not be sampled"),
+    }
+}
+
 /// n-step returns (n = 3, γ = 0.5, so every sum is exact) against sums worked out by hand: they
 /// stop at a terminal step (a game over, or a lost life marked done while the episode goes on),
 /// at an episode cut by its time limit, and at the newest step; `s'` is the state `m` entries on,
@@ -416,26 +435,10 @@ fn replay_sums_n_step_returns_within_episodes() {
     replay.push_start(&frame(30));
     replay.push_step(4, 2.0, false, &frame(31));
     replay.push_step(5, 2.0, false, &frame(32));
-    // newest frame of s → (R, m, done, newest frame of s', first frame of the episode)
-    let expected = |f: u8| -> (f32, u32, bool, u8, u8) {
-        match f {
-            10 => (1.0 + 0.5 * 2.0 + 0.25 * 4.0, 3, false, 13, 10),
-            11 => (2.0 + 0.5 * 4.0 + 0.25 * 8.0, 3, true, 14, 10),
-            12 => (4.0 + 0.5 * 8.0, 2, true, 14, 10),
-            13 => (8.0, 1, true, 14, 10),
-            20 => (1.0 + 0.5 + 0.25, 3, true, 23, 20),
-            21 => (1.0 + 0.5, 2, true, 23, 20),
-            22 => (1.0, 1, true, 23, 20),
-            23 => (1.0, 1, false, 24, 20),
-            30 => (2.0 + 0.5 * 2.0, 2, false, 32, 30),
-            31 => (2.0, 1, false, 32, 30),
-            f => panic!("entry {f} has no successor and must not be sampled"),
-        }
-    };
     let mut seen = std::collections::BTreeSet::new();
     for_each_sampled(&mut replay, 2, 100, |batch, b| {
         let f = px(&batch.states, b)[3] as u8;
-        let (ret, m, done, next, first) = expected(f);
+        let (ret, m, done, next, first) = three_episodes_expected(f);
         assert_eq!(px(&batch.states, b), stack(f, first), "state ending at {f}");
         assert_eq!(
             (batch.rewards[b], batch.steps[b], batch.dones[b]),
@@ -476,21 +479,6 @@ fn replay_lanes_keep_each_games_transitions_apart() {
     }
     assert_eq!(replay.len(), 13);
     assert_eq!(replay.lane_written(), &[5, 5, 3]);
-    let expected = |f: u8| -> (f32, u32, bool, u8, u8) {
-        match f {
-            10 => (1.0 + 0.5 * 2.0 + 0.25 * 4.0, 3, false, 13, 10),
-            11 => (2.0 + 0.5 * 4.0 + 0.25 * 8.0, 3, true, 14, 10),
-            12 => (4.0 + 0.5 * 8.0, 2, true, 14, 10),
-            13 => (8.0, 1, true, 14, 10),
-            20 => (1.0 + 0.5 + 0.25, 3, true, 23, 20),
-            21 => (1.0 + 0.5, 2, true, 23, 20),
-            22 => (1.0, 1, true, 23, 20),
-            23 => (1.0, 1, false, 24, 20),
-            30 => (2.0 + 0.5 * 2.0, 2, false, 32, 30),
-            31 => (2.0, 1, false, 32, 30),
-            f => panic!("entry {f} has no successor and must not be sampled"),
-        }
-    };
     let table = common::identity_table();
     let draws = |replay: &mut Replay| {
         let mut batch = Batch::new(2, [88, 80, 4]);
@@ -500,7 +488,7 @@ fn replay_lanes_keep_each_games_transitions_apart() {
             replay.sample(&mut rng, &table, &mut batch);
             for i in 0..2 {
                 let f = px(&batch.states, i)[3] as u8;
-                let (ret, m, done, next, first) = expected(f);
+                let (ret, m, done, next, first) = three_episodes_expected(f);
                 assert_eq!(px(&batch.states, i), stack(f, first), "state ending at {f}");
                 assert_eq!(
                     (

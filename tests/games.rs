@@ -28,40 +28,16 @@ fn beside(games: usize, act_while_learning: bool) -> Config {
     }
 }
 
-/// What a run leaves: each episode's metrics row (without its wall time), the train steps, and
-/// both networks' weights, after `episodes` rows on a pool of `threads` threads; `new` builds
-/// the agent.
-fn run(
-    config: Config, episodes: usize, threads: usize, one: bool,
-) -> (Vec<String>, u64, Vec<Vec<f32>>) {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| {
-        let mut agent = if one {
-            Agent::new(config, Corridor::new())
-        } else {
-            let games = (0..config.games).map(|_| Corridor::new()).collect();
-            Agent::with_games(config, games).unwrap()
-        };
-        let rows = (0..episodes)
-            .map(|_| {
-                let row = agent.play_episode().unwrap().csv();
-                row.rsplit_once(',').unwrap().0.to_string()
-            })
-            .collect();
-        let nets = [&agent.learner.online, agent.learner.target()];
-        let weights = nets
-            .iter()
-            .flat_map(|n| {
-                n.params()
-                    .map(|p| p.value.data().to_vec())
-                    .collect::<Vec<_>>()
-            })
-            .collect();
-        (rows, agent.counters.train_steps, weights)
-    })
+/// A run of `config` on corridors: `Agent::new` on one if `one`, else `Agent::with_games`
+/// (`common::corridor::run`).
+fn run(config: Config, episodes: usize, threads: usize, one: bool) -> common::corridor::Run {
+    if one {
+        common::corridor::run(config, episodes, threads, |c| {
+            Agent::new(c, Corridor::new())
+        })
+    } else {
+        common::corridor::run_games(config, episodes, threads)
+    }
 }
 
 /// Three games side by side on 1, 2 and 4 threads end with the same rows and weights; their
@@ -143,7 +119,7 @@ fn games_beside_the_update_depend_on_the_seed_not_the_thread_count() {
         };
         // The rows' loss statistics are those of the updates that landed during each episode,
         // which land later beside the play: the rows are compared without them.
-        let plain = |(rows, steps, weights): (Vec<String>, u64, Vec<Vec<f32>>)| {
+        let plain = |(rows, steps, weights): common::corridor::Run| {
             let rows: Vec<String> = rows
                 .iter()
                 .map(|r| r.split(',').take(6).collect::<Vec<_>>().join(","))

@@ -440,17 +440,10 @@ impl<G: Game> Games<'_, G> {
     /// Queues the row of game `g`'s episode, which ended at the agent step just counted.
     fn finish(&mut self, g: usize, wall_seconds: f64) {
         let p = std::mem::take(&mut self.players[g]);
-        self.finished.push_back(EpisodeRow {
-            episode: self.counters.episodes + self.finished.len() as u64 + 1,
-            agent_steps: self.counters.agent_steps,
-            frames: self.counters.frames,
-            reward: p.score,
-            length: p.length,
-            epsilon: self.config.epsilon(self.counters.agent_steps),
-            mean_loss: p.mean(p.loss_sum),
-            mean_max_q: p.mean(p.q_sum),
-            wall_seconds,
-        });
+        let episode = self.counters.episodes + self.finished.len() as u64 + 1;
+        let epsilon = self.config.epsilon(self.counters.agent_steps);
+        let row = p.row(episode, self.counters, epsilon, wall_seconds);
+        self.finished.push_back(row);
     }
 }
 

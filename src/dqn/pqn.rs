@@ -125,8 +125,26 @@ impl Player {
         self.n_train += 1;
     }
 
+    /// The row of this episode, which ended at the agent step `counters` have just counted:
+    /// its `episode` number, ε there and the wall time since the run began.
+    pub(super) fn row(
+        &self, episode: u64, counters: &Counters, epsilon: f32, wall_seconds: f64,
+    ) -> EpisodeRow {
+        EpisodeRow {
+            episode,
+            agent_steps: counters.agent_steps,
+            frames: counters.frames,
+            reward: self.score,
+            length: self.length,
+            epsilon,
+            mean_loss: self.mean(self.loss_sum),
+            mean_max_q: self.mean(self.q_sum),
+            wall_seconds,
+        }
+    }
+
     /// The mean of a sum over the episode's gradient steps (NaN without any).
-    pub(super) fn mean(&self, sum: f64) -> f32 {
+    fn mean(&self, sum: f64) -> f32 {
         if self.n_train > 0 {
             (sum / self.n_train as f64) as f32
         } else {
@@ -491,17 +509,9 @@ impl<G: Game> PqnAgent<G> {
     /// Ends game `g`'s episode: its row joins the finished ones, the game starts again.
     fn finish_episode(&mut self, g: usize, wall_seconds: f64) {
         let p = std::mem::take(&mut self.players[g]);
-        self.finished.push_back(EpisodeRow {
-            episode: self.counters.episodes + self.finished.len() as u64 + 1,
-            agent_steps: self.counters.agent_steps,
-            frames: self.counters.frames,
-            reward: p.score,
-            length: p.length,
-            epsilon: self.epsilon(),
-            mean_loss: p.mean(p.loss_sum),
-            mean_max_q: p.mean(p.q_sum),
-            wall_seconds,
-        });
+        let episode = self.counters.episodes + self.finished.len() as u64 + 1;
+        let row = p.row(episode, &self.counters, self.epsilon(), wall_seconds);
+        self.finished.push_back(row);
         self.games[g].reset();
         self.observers[g].reset(&self.games[g]);
     }

@@ -109,3 +109,49 @@ pub fn assert_learned(cell: usize, q: &[f32]) {
         q[1]
     );
 }
+
+/// What a corridor run leaves, for comparing two: each episode's metrics row (without its wall
+/// time), the train steps, and both networks' weights.
+#[allow(dead_code)]
+pub type Run = (Vec<String>, u64, Vec<Vec<f32>>);
+
+/// A run of `config` on corridors, the agent made by `make` (with `config.games` corridors, or
+/// one): its [`Run`] after `episodes` rows on a pool of `threads` threads.
+#[allow(dead_code)]
+pub fn run(
+    config: invaders::dqn::Config, episodes: usize, threads: usize,
+    make: impl FnOnce(invaders::dqn::Config) -> invaders::dqn::Agent<Corridor> + Send,
+) -> Run {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let mut agent = make(config);
+        let rows = (0..episodes)
+            .map(|_| {
+                let row = agent.play_episode().unwrap().csv();
+                row.rsplit_once(',').unwrap().0.to_string()
+            })
+            .collect();
+        let nets = [&agent.learner.online, agent.learner.target()];
+        let weights = nets
+            .iter()
+            .flat_map(|n| {
+                n.params()
+                    .map(|p| p.value.data().to_vec())
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        (rows, agent.counters.train_steps, weights)
+    })
+}
+
+/// [`run`] with the configuration's games, all corridors (`Agent::with_games`).
+#[allow(dead_code)]
+pub fn run_games(config: invaders::dqn::Config, episodes: usize, threads: usize) -> Run {
+    run(config, episodes, threads, |c| {
+        let games = (0..c.games).map(|_| Corridor::new()).collect();
+        invaders::dqn::Agent::with_games(c, games).unwrap()
+    })
+}
