@@ -80,13 +80,14 @@ fn games_side_by_side_learn_a_toy_corridor() {
     learns(|c| c.games = 4);
 }
 
-/// And with each update beside the play (`act_while_learning`, one update every 4 steps).
+/// And 2 games with each update beside the play (`act_while_learning`, one update every 2
+/// steps, as `acting_while_learning_learns_a_toy_corridor`).
 #[test]
 fn games_beside_the_update_learn_a_toy_corridor() {
     learns(|c| {
-        c.games = 4;
+        c.games = 2;
         c.act_while_learning = true;
-        c.train_every = 4;
+        c.train_every = 2;
     });
 }
 
