@@ -48,12 +48,15 @@
 //! sampleable; prioritized sampling needs nothing new (its tree is over slots). With one lane
 //! every rule above is the one-game memory's, draw for draw.
 
+mod shift;
+
 use super::input_border;
 use super::sumtree::SumTree;
 use crate::env::{write_stacked_input_bordered, FRAME_HEIGHT, FRAME_LEN, FRAME_WIDTH};
 use crate::tensor::bf16::to_bf16;
 use crate::tensor::{Border, Padding, Tensor};
 use rand::Rng;
+pub use shift::shift_frame;
 
 /// Replay flag bit: the step from this entry ended the episode.
 pub const FLAG_DONE: u8 = 1;
@@ -637,29 +640,6 @@ impl Replay {
 fn rows(written: &[u64], lane_capacity: usize) -> usize {
     let longest = written.iter().map(|&w| w.min(lane_capacity as u64)).max();
     longest.unwrap_or(0) as usize * written.len()
-}
-
-/// One 88x80 frame moved by `(dy, dx)` pixels with its border repeated: `to[y, x] =
-/// frame[clamp(y + dy), clamp(x + dx)]`, the rows and columns clamped into the frame.
-pub fn shift_frame(frame: &[u8], dy: i64, dx: i64, to: &mut [u8]) {
-    let h = FRAME_HEIGHT as i64;
-    assert!(
-        frame.len() == FRAME_LEN && to.len() == FRAME_LEN,
-        "88x80 frames"
-    );
-    // Columns: `d` of them repeat the edge pixel, the rest are one block of the source row.
-    let d = dx.unsigned_abs().min(FRAME_WIDTH as u64 - 1) as usize;
-    for (y, row) in to.chunks_exact_mut(FRAME_WIDTH).enumerate() {
-        let from = (y as i64 + dy).clamp(0, h - 1) as usize * FRAME_WIDTH;
-        let src = &frame[from..from + FRAME_WIDTH];
-        if dx >= 0 {
-            row[..FRAME_WIDTH - d].copy_from_slice(&src[d..]);
-            row[FRAME_WIDTH - d..].fill(src[FRAME_WIDTH - 1]);
-        } else {
-            row[d..].copy_from_slice(&src[..FRAME_WIDTH - d]);
-            row[..d].fill(src[0]);
-        }
-    }
 }
 
 /// Writes state `i` of a batch's `states` from its frames through `tables`: the values, and
